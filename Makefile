@@ -1,0 +1,65 @@
+# deepcontact: two commands set everything up.
+#   make test   build what is missing (.venv, pinned deps, patched Box2D), run the tests
+#   make demo   the main job
+# Later runs skip what is already built: each step leaves a stamp keyed by its inputs.
+
+PYTHON    ?= python3.11
+VENV      := .venv
+VPY       := $(VENV)/bin/python
+DEPS      := $(VENV)/.deps-stamp
+# The patched wheel is cached per (patch, build script): a changed patch rebuilds it.
+BOX2D_KEY := $(shell cat box2d/deepcontact.patch box2d/build.sh | sha256sum | cut -c1-16)
+BOX2D_DIR := .cache/box2d/$(BOX2D_KEY)
+BOX2D_WHL := $(BOX2D_DIR)/.built
+BOX2D     := $(VENV)/.box2d-$(BOX2D_KEY)
+
+.PHONY: all setup box2d test demo bench-engine clean distclean help
+.DELETE_ON_ERROR:
+
+all: setup
+
+help:
+	@echo "make test          set up on first use, then run the test suite"
+	@echo "make demo          set up on first use, then run the main job"
+	@echo "make box2d         build and install the patched pybox2d only"
+	@echo "make bench-engine  engine benchmark -> bench/results/engine.json"
+	@echo "make clean         remove caches of tests and builds (keeps .venv)"
+	@echo "make distclean     also remove .venv and the Box2D wheel cache"
+
+$(VPY):
+	$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "deepcontact needs Python 3.11 (set PYTHON=...)"'
+	$(PYTHON) -m venv $(VENV)
+
+$(DEPS): requirements.lock pyproject.toml | $(VPY)
+	$(VPY) -m pip install --quiet --disable-pip-version-check -r requirements.lock
+	$(VPY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	touch $@
+
+$(BOX2D_WHL): box2d/deepcontact.patch box2d/build.sh | $(DEPS)
+	PYTHON=$(VPY) bash box2d/build.sh $(BOX2D_DIR)
+	touch $@
+
+$(BOX2D): $(BOX2D_WHL)
+	$(VPY) -m pip install --quiet --disable-pip-version-check --no-deps --force-reinstall $(BOX2D_DIR)/*.whl
+	rm -f $(VENV)/.box2d-*
+	touch $@
+
+box2d: $(BOX2D)
+
+setup: $(DEPS) $(BOX2D)
+
+test: setup
+	$(VPY) -m pytest
+
+demo: setup
+	$(VENV)/bin/deepcontact demo
+
+bench-engine: setup
+	$(VENV)/bin/deepcontact bench engine --json bench/results/engine.json
+
+clean:
+	rm -rf .pytest_cache build *.egg-info
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+
+distclean: clean
+	rm -rf $(VENV) .cache

@@ -1,0 +1,5 @@
+import sys
+
+from deepcontact.cli import main
+
+sys.exit(main())

@@ -1,0 +1,67 @@
+"""The `deepcontact` command.
+
+Each subcommand lives in the module that does the work and exposes
+`add_arguments(parser)` and `run(args) -> int`; the modules are imported only
+when their subcommand runs, so `deepcontact --help` stays fast (no TensorFlow).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# (path of words, module, one-line help)
+COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
+    (("demo",), "deepcontact.demo", "run the main job: server, simulations, results table"),
+    (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="deepcontact",
+        description="Warm-start Box2D's contact solver with a CNN served over gRPC.",
+    )
+    from deepcontact import __version__
+
+    parser.add_argument("--version", action="version", version=f"deepcontact {__version__}")
+    groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
+        (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    }
+    group_help = {("bench",): "benchmarks (engine, transfer)"}
+    for words, module, help_text in COMMANDS:
+        for depth in range(1, len(words)):
+            prefix = words[:depth]
+            if prefix not in groups:
+                sub = groups[prefix[:-1]].add_parser(prefix[-1], help=group_help.get(prefix, ""))
+                groups[prefix] = sub.add_subparsers(dest=f"command_{depth}", metavar="COMMAND", required=True)
+        sub = groups[words[:-1]].add_parser(words[-1], help=help_text, description=help_text)
+        sub.set_defaults(_module=module)
+        _LazyArguments.attach(sub, module)
+    return parser
+
+
+class _LazyArguments:
+    """Adds a subcommand's own arguments only when that subcommand is parsed."""
+
+    @staticmethod
+    def attach(sub: argparse.ArgumentParser, module: str) -> None:
+        original = sub.parse_known_args
+
+        def parse_known_args(args=None, namespace=None):
+            if not getattr(sub, "_deepcontact_loaded", False):
+                importlib.import_module(module).add_arguments(sub)
+                sub._deepcontact_loaded = True
+            return original(args, namespace)
+
+        sub.parse_known_args = parse_known_args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

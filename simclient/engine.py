@@ -1,0 +1,219 @@
+"""The patched Box2D engine, seen from NumPy.
+
+One `Engine` wraps one `Box2D.b2World` built from the deepcontact patch
+(`box2d/deepcontact.patch`). A step is two phases:
+
+    n = engine.collide()            # narrow phase: this step's contact points
+    bodies = engine.bodies()        # (B,) BODY_DTYPE, creation order
+    points = engine.contacts()      # (n,) CONTACT_DTYPE, export order
+    engine.set_warm_start(jn, jt)   # optional: (n,) float32 each, N s
+    stats = engine.solve()          # island solver; StepStats
+
+`engine.step()` is `collide()` + `solve()` with Box2D's own warm start.
+Every array crosses the SWIG boundary in one call; nothing here loops over
+bodies or contacts in Python.
+
+Importing this module with a stock pybox2d fails at once: the project needs
+the patched build (`make box2d`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+PATCH_REVISION = 1
+"""Layout revision of the patch this module speaks (B2_DEEPCONTACT_REVISION)."""
+
+_BUILD_HINT = (
+    "deepcontact needs the patched Box2D (box2d-py 2.3.8+deepcontact.{rev}). "
+    "Build and install it with `make box2d` from the repository root "
+    "(or `make test`, which does it on first use)."
+)
+
+try:
+    import Box2D
+except ImportError as exc:  # pragma: no cover - depends on the environment
+    raise ImportError("Box2D is not installed. " + _BUILD_HINT.format(rev=PATCH_REVISION)) from exc
+
+if not hasattr(Box2D, "DeepContactLayout"):
+    raise ImportError(
+        f"Box2D {getattr(Box2D, '__version__', '?')} is the stock build. "
+        + _BUILD_HINT.format(rev=PATCH_REVISION)
+    )
+
+BODY_DTYPE = np.dtype(
+    [
+        ("index", "<i4"),  # creation order, 0-based
+        ("type", "<i4"),  # 0 static, 1 kinematic, 2 dynamic
+        ("position", "<f4", (2,)),  # body origin (m)
+        ("angle", "<f4"),  # (rad)
+        ("velocity", "<f4", (2,)),  # linear velocity (m/s)
+        ("angular_velocity", "<f4"),  # (rad/s)
+        ("mass", "<f4"),  # (kg), 0 for static bodies
+        ("inertia", "<f4"),  # about the centre of mass (kg m^2)
+        ("shape", "<i4"),  # 0 circle, 1 edge, 2 polygon, 3 chain; -1 several
+        ("radius", "<f4"),  # bounding radius about the origin (m)
+    ]
+)
+"""One body as the patch exports it (48 bytes, b2DCBody)."""
+
+CONTACT_DTYPE = np.dtype(
+    [
+        ("key", "<u8"),  # equal on every step for the same contact point
+        ("body_a", "<i4"),  # body indices (creation order)
+        ("body_b", "<i4"),
+        ("point", "<f4", (2,)),  # world point at collide time (m)
+        ("normal", "<f4", (2,)),  # world normal from A to B
+        ("separation", "<f4"),  # (m), negative when overlapping
+        ("builtin", "<f4", (2,)),  # previous step's impulse (normal, tangent) (N s)
+        ("warm_start", "<f4", (2,)),  # where the solver started; NaN until solved
+        ("impulse", "<f4", (2,)),  # final impulse; NaN until solved
+        ("reserved", "<f4"),
+    ]
+)
+"""One contact point as the patch exports it (64 bytes, b2DCContactPoint)."""
+
+_revision, _body_bytes, _contact_bytes = Box2D.DeepContactLayout()
+if (_revision, _body_bytes, _contact_bytes) != (PATCH_REVISION, BODY_DTYPE.itemsize, CONTACT_DTYPE.itemsize):
+    raise ImportError(
+        f"patched Box2D layout {(_revision, _body_bytes, _contact_bytes)} does not match this "
+        f"checkout's {(PATCH_REVISION, BODY_DTYPE.itemsize, CONTACT_DTYPE.itemsize)}. "
+        + _BUILD_HINT.format(rev=PATCH_REVISION)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """How each step is solved.
+
+    velocity_threshold: stop the velocity iterations after the first sweep
+        whose largest impulse change (N s, infinity norm over normal and
+        tangent components of all points) is <= this; < 0 disables.
+    position_threshold: likewise for the position iterations (largest
+        positional impulse), besides Box2D's own separation test; < 0 disables.
+    statistics: record the residual trace even when no threshold is set.
+    """
+
+    dt: float = 0.01
+    velocity_iterations: int = 1000
+    position_iterations: int = 1000
+    velocity_threshold: float = 1e-4
+    position_threshold: float = -1.0
+    statistics: bool = True
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {self.dt}")
+        if self.velocity_iterations < 1 or self.position_iterations < 0:
+            raise ValueError(
+                "velocity_iterations must be >= 1 and position_iterations >= 0, got "
+                f"{self.velocity_iterations} and {self.position_iterations}"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class StepStats:
+    """What the solver did in one step.
+
+    Islands are solved independently: `velocity_iterations` is the max over
+    islands, `velocity_iterations_sum` the sum, and `residual_trace[k]` the
+    largest impulse change (N s) at iteration k over the islands still
+    iterating (empty when the step ran untracked).
+    """
+
+    contact_points: int
+    islands: int
+    velocity_iterations: int
+    velocity_iterations_sum: int
+    position_iterations: int
+    residual_trace: np.ndarray  # (velocity_iterations,) float32, N s
+    collide_ms: float
+    solve_ms: float
+
+    @classmethod
+    def _from_world(cls, world: "Box2D.b2World") -> "StepStats":
+        raw = world.GetSolverStats()
+        profile = world.GetProfile()
+        return cls(
+            contact_points=raw["points"],
+            islands=raw["islands"],
+            velocity_iterations=raw["velocity_iterations"],
+            velocity_iterations_sum=raw["velocity_iterations_sum"],
+            position_iterations=raw["position_iterations"],
+            residual_trace=np.frombuffer(raw["residual_trace"], dtype=np.float32),
+            collide_ms=float(profile.collide),
+            solve_ms=float(profile.solve),
+        )
+
+
+class Engine:
+    """One simulation: a patched `b2World` plus the solver settings.
+
+    The world is owned by the caller's scene builder; the engine only drives
+    it. `dt` and iteration limits come from `config`.
+    """
+
+    def __init__(self, world: "Box2D.b2World", config: SolverConfig = SolverConfig()):
+        self.world = world
+        self.config = config
+        world.velocityThreshold = config.velocity_threshold
+        world.positionThreshold = config.position_threshold
+        world.solverStatistics = config.statistics
+        self.step_index = 0
+
+    # -- phase 1 ---------------------------------------------------------
+    def collide(self) -> int:
+        """Run this step's narrow phase; returns the number of contact points."""
+        return self.world.Collide()
+
+    def bodies(self) -> np.ndarray:
+        """All bodies, creation order: (B,) BODY_DTYPE."""
+        out = np.empty(self.world.bodyCount, dtype=BODY_DTYPE)
+        self.world.ExportBodies(out)
+        return out
+
+    def contacts(self) -> np.ndarray:
+        """This step's contact points in export order: (n,) CONTACT_DTYPE.
+
+        Geometry and `builtin` are from collide time; `warm_start` and
+        `impulse` are filled once `solve()` has run (NaN before).
+        """
+        out = np.empty(self.world.contactPointCount, dtype=CONTACT_DTYPE)
+        self.world.ExportContacts(out)
+        return out
+
+    def set_warm_start(self, normal: np.ndarray, tangent: np.ndarray) -> None:
+        """Start this step's solver from these impulses (N s), export order.
+
+        normal, tangent: (n,) float32, C-contiguous. Wrong length, dtype or
+        non-finite values raise and leave the step as it was. Negative normal
+        impulses are clamped to 0 (the solver's normal impulse is >= 0).
+        """
+        self.world.SetWarmStart(normal, tangent)
+
+    def oracle(self, max_iterations: int = 20000, threshold: float = 1e-6) -> np.ndarray:
+        """This step's velocity problem solved from zero; the world is unchanged.
+
+        Returns (n, 2) float32: (normal, tangent) impulse per contact point
+        (N s), NaN for points outside every awake island.
+        """
+        out = np.empty((self.world.contactPointCount, 2), dtype=np.float32)
+        self.world.SolveOracle(out, self.config.dt, int(max_iterations), float(threshold))
+        return out
+
+    # -- phase 2 ---------------------------------------------------------
+    def solve(self) -> StepStats:
+        """Finish the step begun by `collide()`."""
+        c = self.config
+        self.world.Solve(c.dt, c.velocity_iterations, c.position_iterations)
+        self.step_index += 1
+        return StepStats._from_world(self.world)
+
+    def step(self) -> StepStats:
+        """A whole step with Box2D's own warm start (upstream `Step`)."""
+        c = self.config
+        self.world.Step(c.dt, c.velocity_iterations, c.position_iterations)
+        self.step_index += 1
+        return StepStats._from_world(self.world)

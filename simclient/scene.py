@@ -1,0 +1,143 @@
+"""Scene definitions: the thesis world and the family it belongs to.
+
+Data generation, the simulation client and every benchmark build their worlds
+here, so the same (spec, seed) always gives the same world, bit for bit.
+
+The thesis world (§8.1): a static 15 x 15 m box open at the top (bottom and two
+sides), 100 dynamic circles of radius 0.5 m, density 1, friction 0.5,
+restitution 0, placed at random without overlap; gravity 9.8 m/s^2, dt 0.01 s,
+250 steps, at most 1000 velocity iterations, stopping threshold 1e-4 N s,
+continuous collision and sleeping off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from simclient.engine import Box2D, Engine, SolverConfig
+
+MAX_PLACEMENT_TRIES = 200_000
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneSpec:
+    """Parameters of one world in the scene family (SI units).
+
+    box_size: (width, height) of the static box, lower-left corner at (0, 0).
+    radius: (min, max) circle radius; boxes (polygons) get the same area.
+    polygons: share of bodies that are boxes instead of circles, in [0, 1].
+    friction: (min, max), drawn per body.
+    """
+
+    name: str = "thesis"
+    bodies: int = 100
+    box_size: tuple[float, float] = (15.0, 15.0)
+    radius: tuple[float, float] = (0.5, 0.5)
+    polygons: float = 0.0
+    friction: tuple[float, float] = (0.5, 0.5)
+    density: float = 1.0
+    restitution: float = 0.0
+    gravity: float = 9.8
+    steps: int = 250
+    solver: SolverConfig = SolverConfig()
+
+    @classmethod
+    def thesis(cls) -> "SceneSpec":
+        return cls()
+
+    @property
+    def domain(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((x_min, y_min), (x_max, y_max)) of the static box (m)."""
+        return (0.0, 0.0), (float(self.box_size[0]), float(self.box_size[1]))
+
+    def validate(self) -> None:
+        """Raise ValueError for parameters no world can be built from."""
+        w, h = self.box_size
+        rmin, rmax = self.radius
+        fmin, fmax = self.friction
+        if self.bodies < 0:
+            raise ValueError(f"bodies must be >= 0, got {self.bodies}")
+        if not (w > 0 and h > 0):
+            raise ValueError(f"box size must be positive, got {self.box_size}")
+        if not (0 < rmin <= rmax):
+            raise ValueError(f"radius range must satisfy 0 < min <= max, got {self.radius}")
+        if not (0.0 <= self.polygons <= 1.0):
+            raise ValueError(f"polygons must be a fraction in [0, 1], got {self.polygons}")
+        if not (0.0 <= fmin <= fmax):
+            raise ValueError(f"friction range must satisfy 0 <= min <= max, got {self.friction}")
+        if self.steps < 1:
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if 2 * rmax >= min(w, h):
+            raise ValueError(f"bodies of radius {rmax} do not fit in a {w} x {h} box")
+        # Random placement stalls well before the packing limit; refuse early.
+        disc_area = self.bodies * math.pi * rmax**2
+        if disc_area > 0.5 * w * h:
+            raise ValueError(
+                f"no room for {self.bodies} bodies of radius up to {rmax} in a {w} x {h} box "
+                f"(they would cover {disc_area / (w * h):.0%} of it; at most 50% can be placed at random)"
+            )
+
+
+def build_world(spec: SceneSpec, seed: int) -> Engine:
+    """Build the world for (spec, seed) and wrap it in an Engine.
+
+    Bodies are created in placement order, so body index i (creation order,
+    after the static box at index 0) is the i-th placed body.
+    """
+    spec.validate()
+    rng = np.random.default_rng(seed)
+    w, h = spec.box_size
+
+    world = Box2D.b2World(gravity=(0.0, -spec.gravity))
+    world.allowSleeping = False
+    world.continuousPhysics = False
+
+    box = world.CreateStaticBody(position=(0.0, 0.0))
+    for a, b in (((0.0, 0.0), (w, 0.0)), ((0.0, 0.0), (0.0, h)), ((w, 0.0), (w, h))):
+        box.CreateEdgeFixture(vertices=[a, b], friction=spec.friction[1], restitution=spec.restitution)
+
+    radii = rng.uniform(spec.radius[0], spec.radius[1], size=spec.bodies)
+    is_box = rng.random(spec.bodies) < spec.polygons
+    friction = rng.uniform(spec.friction[0], spec.friction[1], size=spec.bodies)
+    angles = rng.uniform(0.0, 2.0 * math.pi, size=spec.bodies)
+    # Boxes are placed by their circumscribed circle so nothing overlaps.
+    half_side = 0.5 * math.sqrt(math.pi) * radii
+    reach = np.where(is_box, half_side * math.sqrt(2.0), radii)
+    centres = _place_without_overlap(rng, reach, w, h)
+
+    for i in range(spec.bodies):
+        body = world.CreateDynamicBody(position=tuple(map(float, centres[i])), angle=float(angles[i]))
+        if is_box[i]:
+            body.CreatePolygonFixture(
+                box=(float(half_side[i]), float(half_side[i])),
+                density=spec.density, friction=float(friction[i]), restitution=spec.restitution,
+            )
+        else:
+            body.CreateCircleFixture(
+                radius=float(radii[i]), density=spec.density, friction=float(friction[i]),
+                restitution=spec.restitution,
+            )
+    return Engine(world, spec.solver)
+
+
+def _place_without_overlap(rng: np.random.Generator, reach: np.ndarray, w: float, h: float) -> np.ndarray:
+    """Rejection-sample centres (N, 2) so discs of radius `reach` stay inside
+    the box and apart. Setup code, run once per world."""
+    n = len(reach)
+    centres = np.empty((n, 2))
+    tries = 0
+    for i in range(n):
+        r = reach[i]
+        while True:
+            tries += 1
+            if tries > MAX_PLACEMENT_TRIES:
+                raise ValueError(f"could not place {n} bodies without overlap in a {w} x {h} box")
+            c = rng.uniform((r, r), (w - r, h - r))
+            d2 = np.sum((centres[:i] - c) ** 2, axis=1)
+            if np.all(d2 >= (reach[:i] + r) ** 2):
+                centres[i] = c
+                break
+    return centres

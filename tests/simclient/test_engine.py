@@ -1,0 +1,221 @@
+"""The patched engine: two-phase step, warm starts, stopping rule, export, oracle.
+
+Everything here runs the real patched Box2D on the thesis world.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from simclient.engine import BODY_DTYPE, CONTACT_DTYPE, Box2D
+from tests.conftest import settled
+
+
+def test_oracle_warm_start_converges_in_at_most_two_iterations(thesis_spec):
+    engine = settled(thesis_spec)
+    n = engine.collide()
+    assert n > 100
+    exact = engine.oracle()
+    assert np.isfinite(exact).all()
+    engine.set_warm_start(np.ascontiguousarray(exact[:, 0]), np.ascontiguousarray(exact[:, 1]))
+    stats = engine.solve()
+    assert stats.velocity_iterations <= 2
+    assert stats.contact_points == n
+
+
+def test_oracle_leaves_the_world_unchanged(thesis_spec):
+    with_oracle, without = settled(thesis_spec), settled(thesis_spec)
+    for _ in range(5):
+        with_oracle.collide()
+        with_oracle.oracle()
+        with_oracle.solve()
+        without.step()
+    assert with_oracle.bodies().tobytes() == without.bodies().tobytes()
+
+
+def test_builtin_needs_fewer_iterations_than_none_on_a_settled_pile(thesis_spec):
+    builtin, none = settled(thesis_spec, steps=200), settled(thesis_spec, steps=200)
+    none.world.warmStarting = False
+    its_builtin = [builtin.step().velocity_iterations for _ in range(30)]
+    its_none = [none.step().velocity_iterations for _ in range(30)]
+    assert np.mean(its_builtin) < np.mean(its_none)
+
+
+def test_threshold_zero_reproduces_plain_step_exactly(thesis_spec):
+    fixed = dict(velocity_iterations=40, position_iterations=10)
+    plain = settled(thesis_spec, steps=0, velocity_threshold=-1.0, statistics=False, **fixed)
+    zero = settled(thesis_spec, steps=0, velocity_threshold=0.0, **fixed)
+    for _ in range(120):
+        plain.step()
+        stats = zero.step()
+        assert stats.residual_trace.size == stats.velocity_iterations
+    assert zero.bodies().tobytes() == plain.bodies().tobytes()
+
+
+def test_collide_then_solve_equals_step(thesis_spec):
+    two_phase, plain = settled(thesis_spec, steps=0), settled(thesis_spec, steps=0)
+    for _ in range(150):
+        two_phase.collide()
+        two_phase.solve()
+        plain.step()
+    assert two_phase.bodies().tobytes() == plain.bodies().tobytes()
+
+
+def test_velocity_threshold_is_respected(thesis_spec):
+    engine = settled(thesis_spec, steps=60)
+    threshold = engine.config.velocity_threshold
+    for _ in range(40):
+        stats = engine.step()
+        trace = stats.residual_trace
+        assert trace.size == stats.velocity_iterations >= 1
+        # Every sweep but the last was above the threshold; the last is within
+        # it unless the iteration cap stopped the solve.
+        assert (trace[:-1] > threshold).all()
+        assert trace[-1] <= threshold or stats.velocity_iterations == engine.config.velocity_iterations
+
+
+def test_exported_bodies_agree_with_swig_objects(thesis_spec):
+    engine = settled(thesis_spec, steps=100)
+    bodies = engine.bodies()
+    assert bodies.dtype == BODY_DTYPE
+    swig = engine.world.bodies  # pybox2d lists bodies in creation order too
+    assert len(swig) == len(bodies) == 101
+    np.testing.assert_array_equal(bodies["index"], np.arange(101))
+    assert bodies["type"][0] == Box2D.b2_staticBody and (bodies["type"][1:] == Box2D.b2_dynamicBody).all()
+    np.testing.assert_allclose(bodies["position"], [tuple(b.position) for b in swig], rtol=0, atol=0)
+    np.testing.assert_allclose(bodies["velocity"], [tuple(b.linearVelocity) for b in swig], rtol=0, atol=0)
+    np.testing.assert_allclose(bodies["angular_velocity"], [b.angularVelocity for b in swig], rtol=0, atol=0)
+    np.testing.assert_allclose(bodies["mass"], [b.mass for b in swig], rtol=1e-7)
+    np.testing.assert_allclose(bodies["radius"][1:], 0.5)
+    assert (bodies["shape"][1:] == 0).all() and bodies["shape"][0] == -1  # circles; the box has 3 edges
+
+
+def test_exported_contacts_agree_with_swig_objects(thesis_spec):
+    engine = settled(thesis_spec, steps=100)
+    n = engine.collide()
+    points = engine.contacts()
+    assert points.dtype == CONTACT_DTYPE and points.shape == (n,)
+    position_to_index = {tuple(b.position): i for i, b in enumerate(engine.world.bodies)}
+    expected = []
+    # Export order is Box2D's contact list (newest first); pybox2d reverses it.
+    for c in reversed(engine.world.contacts):
+        if not (c.touching and c.enabled):
+            continue
+        wm = c.worldManifold
+        for j in range(c.manifold.pointCount):
+            expected.append((
+                position_to_index[tuple(c.fixtureA.body.position)],
+                position_to_index[tuple(c.fixtureB.body.position)],
+                wm.points[j][0], wm.points[j][1], wm.normal[0], wm.normal[1],
+                c.manifold.points[j].normalImpulse, c.manifold.points[j].tangentImpulse,
+            ))
+    expected = np.array(expected)
+    assert len(expected) == n
+    np.testing.assert_array_equal(points["body_a"], expected[:, 0])
+    np.testing.assert_array_equal(points["body_b"], expected[:, 1])
+    np.testing.assert_allclose(points["point"], expected[:, 2:4], atol=1e-5)
+    np.testing.assert_allclose(points["normal"], expected[:, 4:6], atol=1e-6)
+    np.testing.assert_array_equal(points["builtin"], expected[:, 6:8].astype(np.float32))
+    assert np.isnan(points["impulse"]).all()
+    engine.solve()
+    solved = engine.contacts()
+    assert np.isfinite(solved["impulse"]).all()
+    np.testing.assert_array_equal(solved["warm_start"], solved["builtin"])  # builtin mode, dt constant
+
+
+def test_point_keys_are_stable_and_carry_last_steps_impulse(thesis_spec):
+    engine = settled(thesis_spec, steps=150)
+    engine.collide()
+    engine.solve()
+    before = engine.contacts()
+    engine.collide()
+    after = engine.contacts()
+    assert len(np.unique(after["key"])) == len(after)
+    common, i_before, i_after = np.intersect1d(before["key"], after["key"], return_indices=True)
+    assert len(common) > 0.8 * len(after)
+    # Box2D's own warm start is the previous step's final impulse of the same point.
+    np.testing.assert_array_equal(after["builtin"][i_after], before["impulse"][i_before])
+    engine.solve()
+
+
+@pytest.mark.parametrize(
+    "normal, tangent, error",
+    [
+        (np.zeros(3, np.float32), np.zeros(3, np.float32), ValueError),  # wrong length
+        ("float64", "float32", TypeError),  # wrong dtype
+        ("nan", "float32", ValueError),  # not finite
+        ("inf", "float32", ValueError),
+        ("2d", "float32", TypeError),
+    ],
+)
+def test_bad_warm_starts_raise_and_leave_the_step_unchanged(thesis_spec, normal, tangent, error):
+    engine, twin = settled(thesis_spec, steps=120), settled(thesis_spec, steps=120)
+    n = engine.collide()
+    make = {
+        "float64": lambda: np.zeros(n, np.float64),
+        "float32": lambda: np.zeros(n, np.float32),
+        "nan": lambda: np.full(n, np.nan, np.float32),
+        "inf": lambda: np.full(n, np.inf, np.float32),
+        "2d": lambda: np.zeros((n, 1), np.float32),
+    }
+    normal = make[normal]() if isinstance(normal, str) else normal
+    tangent = make[tangent]() if isinstance(tangent, str) else tangent
+    with pytest.raises(error):
+        engine.set_warm_start(normal, tangent)
+    engine.solve()  # falls back to builtin, exactly like the twin
+    twin.step()
+    assert engine.bodies().tobytes() == twin.bodies().tobytes()
+
+
+def test_phase_order_is_enforced(thesis_spec):
+    engine = settled(thesis_spec, steps=100)
+    with pytest.raises(RuntimeError, match="before Collide"):
+        engine.set_warm_start(np.zeros(1, np.float32), np.zeros(1, np.float32))
+    with pytest.raises(RuntimeError, match="without Collide"):
+        engine.solve()
+    engine.collide()
+    with pytest.raises(RuntimeError, match="twice"):
+        engine.collide()
+    with pytest.raises(RuntimeError, match="between Collide"):
+        engine.step()
+    with pytest.raises(AssertionError):  # Box2D's own lock: no new bodies mid-step
+        engine.world.CreateDynamicBody(position=(1, 1))
+    engine.solve()
+    engine.step()
+
+
+def test_external_warm_start_is_what_the_solver_starts_from(thesis_spec):
+    engine = settled(thesis_spec, steps=120)
+    n = engine.collide()
+    normal = np.linspace(-1, 1, n, dtype=np.float32)
+    tangent = np.full(n, 0.25, np.float32)
+    engine.set_warm_start(normal, tangent)
+    engine.solve()
+    used = engine.contacts()["warm_start"]
+    np.testing.assert_array_equal(used[:, 0], np.maximum(normal, 0))  # normal clamped at 0
+    np.testing.assert_array_equal(used[:, 1], tangent)
+
+
+def test_stock_box2d_is_refused_with_a_build_hint(tmp_path):
+    fake = tmp_path / "Box2D"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("__version__ = '2.3.8'\n")
+    code = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {str(tmp_path)!r})
+        try:
+            import simclient
+        except ImportError as e:
+            print(e)
+            sys.exit(3)
+        """
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 3, result.stderr
+    assert "make box2d" in result.stdout and "stock" in result.stdout
