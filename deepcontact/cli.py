@@ -14,7 +14,9 @@ import sys
 # (path of words, module, one-line help)
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("demo",), "deepcontact.demo", "run the main job: server, simulations, results table"),
+    (("generate",), "training.generate", "record simulations into an HDF5 training file"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
+    (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
 ]
 
 
@@ -29,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (engine, transfer)"}
+    group_help = {("bench",): "benchmarks (engine, generate, transfer)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

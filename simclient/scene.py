@@ -141,3 +141,55 @@ def _place_without_overlap(rng: np.random.Generator, reach: np.ndarray, w: float
                 centres[i] = c
                 break
     return centres
+
+
+# -- command line -----------------------------------------------------------
+
+SCENES = {"thesis": SceneSpec.thesis}
+
+
+def add_scene_arguments(parser) -> None:
+    """The scene-family flags shared by generate, simulate and the benchmarks.
+
+    `--scene` picks a base scene; each flag given overrides one of its values.
+    """
+    g = parser.add_argument_group("scene", "the world to simulate (defaults: the thesis world)")
+    g.add_argument("--scene", default="thesis", choices=sorted(SCENES), help="base scene (default thesis)")
+    g.add_argument("--bodies", type=int, metavar="N", help="number of dynamic bodies (thesis 100)")
+    g.add_argument("--box-size", type=float, nargs=2, metavar=("W", "H"), help="static box size in m (thesis 15 15)")
+    g.add_argument("--radius", type=float, nargs=2, metavar=("MIN", "MAX"), help="body radius range in m (thesis 0.5 0.5)")
+    g.add_argument("--polygons", type=float, metavar="FRACTION",
+                   help="share of bodies that are boxes of the same area as their circle (thesis 0)")
+    g.add_argument("--friction", type=float, nargs=2, metavar=("MIN", "MAX"), help="friction range (thesis 0.5 0.5)")
+    g.add_argument("--steps", type=int, metavar="N", help="steps per simulation (thesis 250)")
+
+
+def spec_from_args(args) -> SceneSpec:
+    """The SceneSpec the flags describe; ValueError if no world fits them."""
+    spec = SCENES[args.scene]()
+    overrides = {
+        "bodies": args.bodies,
+        "box_size": tuple(args.box_size) if args.box_size else None,
+        "radius": tuple(args.radius) if args.radius else None,
+        "polygons": args.polygons,
+        "friction": tuple(args.friction) if args.friction else None,
+        "steps": args.steps,
+    }
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if overrides:
+        spec = dataclasses.replace(spec, name=f"{spec.name}-custom", **overrides)
+    spec.validate()
+    return spec
+
+
+def spec_to_dict(spec: SceneSpec) -> dict:
+    """JSON-ready form of a spec (stored with every data file and result)."""
+    return dataclasses.asdict(spec)
+
+
+def spec_from_dict(d: dict) -> SceneSpec:
+    d = dict(d)
+    d["solver"] = SolverConfig(**d["solver"])
+    for key in ("box_size", "radius", "friction"):
+        d[key] = tuple(d[key])
+    return SceneSpec(**d)

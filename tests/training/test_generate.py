@@ -1,0 +1,85 @@
+"""`deepcontact generate` and the HDF5 data set it writes."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from deepcontact.cli import main
+from training.dataset import Dataset, DatasetError, Writer
+
+SMALL = ["--steps", "60", "--seeds", "1-3", "--quiet"]
+
+
+def generate(path, *extra):
+    return main(["generate", "--out", str(path), *SMALL, *extra])
+
+
+def test_generate_records_every_step_and_reads_back_a_step_at_a_time(tmp_path):
+    out = tmp_path / "train.h5"
+    assert generate(out) == 0
+    with Dataset(out) as ds:
+        assert ds.seeds == [1, 2, 3] and ds.scene["steps"] == 60
+        assert len(ds) == 180
+        assert list(ds.steps["seed"][::60]) == [1, 2, 3]
+        bodies, points, row = ds.step(59)
+        assert len(bodies) == 101 and len(points) == row["point_count"] > 0
+        assert np.isfinite(points["impulse"]).all()
+        assert ds.trace(59).shape == (row["velocity_iterations"],)
+        batches = list(ds.batches(16, seed=1))
+        assert sum(len(b) for b in batches) == int((ds.steps["point_count"] > 0).sum())
+        assert [len(b) for b in ds.batches(16, seed=1)] == [len(b) for b in batches]
+    with h5py.File(out) as f:
+        assert f["points"].compression == "gzip" and f["points"].chunks is not None
+
+
+def test_contents_do_not_depend_on_the_number_of_processes(tmp_path):
+    one, two = tmp_path / "one.h5", tmp_path / "two.h5"
+    assert generate(one, "--workers", "1") == 0
+    assert generate(two, "--workers", "2") == 0
+    with h5py.File(one) as a, h5py.File(two) as b:
+        for name in ("bodies", "points", "trace"):
+            assert a[name][:].tobytes() == b[name][:].tobytes()
+        for field in a["steps"].dtype.names:
+            if field != "solve_ms":  # wall clock, the one column that may differ
+                np.testing.assert_array_equal(a["steps"][field], b["steps"][field])
+
+
+def test_benchmark_and_reserved_seeds_are_refused_for_training(tmp_path, capsys):
+    out = tmp_path / "x.h5"
+    assert main(["generate", "--out", str(out), "--seeds", "899-901", "--quiet"]) == 2
+    assert "benchmark" in capsys.readouterr().err and not out.exists()
+    assert main(["generate", "--out", str(out), "--seeds", "10000", "--quiet"]) == 2
+    assert main(["generate", "--out", str(out), "--seeds", "900", "--steps", "5", "--quiet",
+                 "--allow-bench-seeds"]) == 0
+
+
+def test_existing_output_is_kept_unless_overwrite(tmp_path, capsys):
+    out = tmp_path / "train.h5"
+    out.write_bytes(b"precious")
+    assert generate(out) == 2
+    assert out.read_bytes() == b"precious" and "--overwrite" in capsys.readouterr().err
+    assert generate(out, "--overwrite") == 0
+    assert Dataset(out).seeds == [1, 2, 3]
+
+
+def test_bad_scene_fails_before_any_work(tmp_path, capsys):
+    assert generate(tmp_path / "x.h5", "--bodies", "5000") == 2
+    assert "no room" in capsys.readouterr().err
+
+
+def test_an_interrupted_write_leaves_nothing_under_the_final_name(tmp_path):
+    out = tmp_path / "train.h5"
+    with pytest.raises(KeyboardInterrupt):
+        with Writer(out, scene={}, seeds=[1], command="test"):
+            raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_missing_or_foreign_files_get_a_clear_error(tmp_path):
+    with pytest.raises(DatasetError, match="no such data file"):
+        Dataset(tmp_path / "none.h5")
+    (tmp_path / "junk.h5").write_text("not hdf5")
+    with pytest.raises(DatasetError, match="not an HDF5 file"):
+        Dataset(tmp_path / "junk.h5")

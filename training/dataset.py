@@ -1,0 +1,174 @@
+"""Recorded simulations in HDF5: the schema, a writer and a reader.
+
+Schema version 1 (docs/data.md has the full description):
+
+    /steps    (S,)  STEP_DTYPE   one row per recorded step, in (seed, step) order
+    /bodies   (SB,) BODY_DTYPE   body state at collide time, all steps concatenated
+    /points   (SP,) CONTACT_DTYPE contact points after the solve (final impulse
+                                  filled), all steps concatenated
+    /trace    (ST,) float32      residual traces, all steps concatenated
+
+A step row holds offsets and counts into the three concatenated datasets, so
+one step, or a slice of steps, reads without loading the file. Root attributes:
+schema_version, scene (JSON), seeds, command, deepcontact_version.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from simclient.engine import BODY_DTYPE, CONTACT_DTYPE
+
+SCHEMA_VERSION = 1
+
+STEP_DTYPE = np.dtype(
+    [
+        ("seed", "<i8"),
+        ("step", "<i4"),
+        ("body_offset", "<i8"),
+        ("body_count", "<i4"),
+        ("point_offset", "<i8"),
+        ("point_count", "<i4"),
+        ("trace_offset", "<i8"),
+        ("velocity_iterations", "<i4"),  # max over islands; also the trace length
+        ("velocity_iterations_sum", "<i4"),
+        ("position_iterations", "<i4"),
+        ("islands", "<i4"),
+        ("solve_ms", "<f4"),  # wall clock: the only column that differs between runs
+    ]
+)
+
+_CHUNK_ROWS = {"steps": 4096, "bodies": 16384, "points": 16384, "trace": 65536}
+
+
+class DatasetError(ValueError):
+    """A data file that is missing, empty or not of this schema."""
+
+
+class Writer:
+    """Appends simulations to a new HDF5 file.
+
+    Use as a context manager: the file is written under a temporary name and
+    renamed to `path` only when the block exits cleanly, so an interrupted run
+    leaves nothing under the final name.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, scene: dict, seeds: list[int], command: str):
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part")
+        self._meta = {"scene": scene, "seeds": seeds, "command": command}
+        self._file: h5py.File | None = None
+
+    def __enter__(self) -> "Writer":
+        from deepcontact import __version__
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        f = h5py.File(self.tmp, "w")
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["scene"] = json.dumps(self._meta["scene"], sort_keys=True)
+        f.attrs["seeds"] = np.asarray(self._meta["seeds"], dtype=np.int64)
+        f.attrs["command"] = self._meta["command"]
+        f.attrs["deepcontact_version"] = __version__
+        for name, dtype in (("steps", STEP_DTYPE), ("bodies", BODY_DTYPE), ("points", CONTACT_DTYPE),
+                            ("trace", np.dtype("<f4"))):
+            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(_CHUNK_ROWS[name],),
+                             compression="gzip", compression_opts=4, shuffle=True)
+        self._file = f
+        return self
+
+    def append(self, steps: np.ndarray, bodies: np.ndarray, points: np.ndarray, trace: np.ndarray) -> None:
+        """Append one simulation. Offsets in `steps` are relative to this
+        simulation's arrays; they are shifted to file positions here."""
+        f = self._file
+        steps = steps.copy()
+        steps["body_offset"] += f["bodies"].shape[0]
+        steps["point_offset"] += f["points"].shape[0]
+        steps["trace_offset"] += f["trace"].shape[0]
+        for name, rows in (("steps", steps), ("bodies", bodies), ("points", points), ("trace", trace)):
+            ds = f[name]
+            start = ds.shape[0]
+            ds.resize((start + len(rows),))
+            ds[start:] = rows
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self._file.close()
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+
+
+class Dataset:
+    """Read access to a recorded file, a step (or a slice) at a time.
+
+        ds = Dataset("data/train.h5")
+        bodies, points, row = ds.step(10)      # one step
+        for batch in ds.batches(32, shuffle=True, seed=0):
+            ...                                 # lists of (bodies, points, row)
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        path = Path(path)
+        if not path.exists():
+            raise DatasetError(f"{path}: no such data file (make one with `deepcontact generate`)")
+        try:
+            self._file = h5py.File(path, "r")
+        except OSError as exc:
+            raise DatasetError(f"{path}: not an HDF5 file ({exc})") from None
+        f = self._file
+        version = f.attrs.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise DatasetError(f"{path}: schema version {version!r}, this reader knows {SCHEMA_VERSION}")
+        self.path = path
+        self.scene = json.loads(f.attrs["scene"])
+        self.seeds = [int(s) for s in f.attrs["seeds"]]
+        self.steps = f["steps"][:]  # the index is small: (S,) rows of 64 bytes
+        if len(self.steps) == 0:
+            raise DatasetError(f"{path}: holds no steps")
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> "Dataset":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def step(self, i: int) -> tuple[np.ndarray, np.ndarray, np.void]:
+        """(bodies (B,) BODY_DTYPE, points (P,) CONTACT_DTYPE, step row)."""
+        row = self.steps[i]
+        b0, p0 = int(row["body_offset"]), int(row["point_offset"])
+        bodies = self._file["bodies"][b0:b0 + int(row["body_count"])]
+        points = self._file["points"][p0:p0 + int(row["point_count"])]
+        return bodies, points, row
+
+    def trace(self, i: int) -> np.ndarray:
+        """Residual trace of step i: (velocity_iterations,) float32, N s."""
+        row = self.steps[i]
+        t0 = int(row["trace_offset"])
+        return self._file["trace"][t0:t0 + int(row["velocity_iterations"])]
+
+    def batches(self, batch_size: int, *, shuffle: bool = True, seed: int = 0,
+                with_points_only: bool = True) -> Iterator[list[tuple[np.ndarray, np.ndarray, np.void]]]:
+        """Yield lists of `batch_size` steps (the last may be shorter).
+
+        with_points_only skips steps without contact points (nothing to learn).
+        The order is fixed by `seed`, so an epoch can be replayed.
+        """
+        index = np.arange(len(self.steps))
+        if with_points_only:
+            index = index[self.steps["point_count"] > 0]
+        if shuffle:
+            np.random.default_rng(seed).shuffle(index)
+        for start in range(0, len(index), batch_size):
+            yield [self.step(int(i)) for i in index[start:start + batch_size]]
