@@ -59,17 +59,9 @@ def _swig_loop_export(world) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _settled(seed: int, steps: int, **solver):
-    import dataclasses
+    from simclient.scene import SceneSpec, settled_world
 
-    from simclient.scene import SceneSpec, build_world
-
-    spec = SceneSpec.thesis()
-    if solver:
-        spec = dataclasses.replace(spec, solver=dataclasses.replace(spec.solver, **solver))
-    engine = build_world(spec, seed)
-    for _ in range(steps):
-        engine.step()
-    return engine
+    return settled_world(SceneSpec.thesis(), seed, steps, **solver)
 
 
 def run(args: argparse.Namespace) -> int:

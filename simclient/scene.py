@@ -193,3 +193,15 @@ def spec_from_dict(d: dict) -> SceneSpec:
     for key in ("box_size", "radius", "friction"):
         d[key] = tuple(d[key])
     return SceneSpec(**d)
+
+
+def settled_world(spec: SceneSpec, seed: int, steps: int, **solver_overrides) -> Engine:
+    """The world for (spec, seed) after `steps` builtin steps (a settled pile
+    for the thesis world after ~150), with solver settings overridden, e.g.
+    `settled_world(spec, 900, 200, statistics=False)`."""
+    if solver_overrides:
+        spec = dataclasses.replace(spec, solver=dataclasses.replace(spec.solver, **solver_overrides))
+    engine = build_world(spec, seed)
+    for _ in range(steps):
+        engine.step()
+    return engine

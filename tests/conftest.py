@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 
 
@@ -16,11 +14,6 @@ def thesis_spec():
 
 def settled(spec, seed: int = 900, steps: int = 150, **solver):
     """A thesis world after `steps` builtin steps: the pile has formed."""
-    from simclient.scene import build_world
+    from simclient.scene import settled_world
 
-    if solver:
-        spec = dataclasses.replace(spec, solver=dataclasses.replace(spec.solver, **solver))
-    engine = build_world(spec, seed)
-    for _ in range(steps):
-        engine.step()
-    return engine
+    return settled_world(spec, seed, steps, **solver)
