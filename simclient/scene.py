@@ -91,8 +91,10 @@ def build_world(spec: SceneSpec, seed: int) -> Engine:
     rng = np.random.default_rng(seed)
     w, h = spec.box_size
 
-    world = Box2D.b2World(gravity=(0.0, -spec.gravity))
-    world.allowSleeping = False
+    world = Box2D.b2World(gravity=(0.0, -spec.gravity), doSleep=False)
+    # pybox2d 2.3.8 has no `allowSleeping` property (doSleep= only sets a plain
+    # Python attribute); the C++ setter is the one that takes effect.
+    world.SetAllowSleeping(False)
     world.continuousPhysics = False
 
     box = world.CreateStaticBody(position=(0.0, 0.0))

@@ -26,7 +26,7 @@ def test_thesis_world_matches_section_8_1():
     np.testing.assert_allclose(bodies["radius"][1:], 0.5)
     np.testing.assert_allclose(bodies["mass"][1:], np.pi * 0.25, rtol=1e-6)  # density 1
     assert engine.world.gravity == (0, -9.8)
-    assert not engine.world.allowSleeping and not engine.world.continuousPhysics
+    assert not engine.world.GetAllowSleeping() and not engine.world.continuousPhysics
     assert (spec.steps, spec.solver.dt, spec.solver.velocity_iterations, spec.solver.velocity_threshold) == (
         250, 0.01, 1000, 1e-4)
     # Placed inside the box, without overlap.
@@ -34,6 +34,17 @@ def test_thesis_world_matches_section_8_1():
     assert (p > 0.5).all() and (p < 14.5).all()
     d = np.linalg.norm(p[:, None] - p[None], axis=-1) + np.eye(100) * 10
     assert d.min() >= 1.0
+
+
+def test_no_body_ever_sleeps_so_every_contact_point_is_solved():
+    engine = build_world(SceneSpec.thesis(), 905)
+    for _ in range(220):
+        engine.collide()
+        stats = engine.solve()
+        points = engine.contacts()
+        assert stats.contact_points == len(points)
+        assert np.isfinite(points["impulse"]).all()
+    assert all(b.awake for b in engine.world.bodies[1:])
 
 
 def test_same_seed_same_world_bit_for_bit():
