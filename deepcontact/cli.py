@@ -15,8 +15,10 @@ import sys
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("demo",), "deepcontact.demo", "run the main job: server, simulations, results table"),
     (("generate",), "training.generate", "record simulations into an HDF5 training file"),
+    (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
+    (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
 ]
 
 

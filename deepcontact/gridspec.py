@@ -343,20 +343,22 @@ class GridSpec:
             ny, nx = self.shape
         except (TypeError, ValueError):
             raise ValueError(f"shape must be (ny, nx), got {self.shape!r}") from None
-        if any(isinstance(v, bool) or not float(v).is_integer() or v < 1 for v in (ny, nx)):
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1 for v in (ny, nx)):
             raise ValueError(f"shape must be two positive integers (ny, nx), got {self.shape!r}")
         set_(self, "shape", (int(ny), int(nx)))
         h = _finite("h", self.h)
         if h <= 0:
             raise ValueError(f"support radius h must be > 0 m, got {h!r}")
         set_(self, "h", h)
-        if self.kernel not in KERNELS:
+        if not isinstance(self.kernel, str) or self.kernel not in KERNELS:
             raise ValueError(f"unknown kernel {self.kernel!r}; known kernels: {list(KERNELS)}")
         set_(self, "inputs", _names("inputs", self.inputs))
         set_(self, "targets", _names("targets", self.targets))
         for n in self.targets:
             if CHANNELS[n].source != "contacts":
-                raise ValueError(f"target channel {n!r} is a {CHANNELS[n].source} channel; targets must be contact-point channels")
+                raise ValueError(
+                    f"target channel {n!r} is a {CHANNELS[n].source} channel; targets must be contact-point channels"
+                )
         if not isinstance(self.normalization, Mapping):
             raise ValueError(f"normalization must be a mapping channel -> (mean, std), got {self.normalization!r}")
         norm: dict[str, tuple[float, float]] = {}

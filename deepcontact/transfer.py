@@ -41,7 +41,8 @@ geometry and cached.  Weights form an (S, N) array (stencil entry x particle)
 indexing a grid padded by k + 1 nodes, so no bounds checks are needed (the
 padding gets weight 0 and is cropped off).  P2G scatters all channels with one
 sparse (nodes x particles) product; SPH G2P sums weights per node with
-``np.bincount``, divides the grid by those sums once, and gathers.  At the
+``np.bincount``, divides each weight by its node's sum, and gathers with the
+transposed product.  At the
 sizes used here (a few hundred particles, 61 x 61 nodes) the cost is mostly
 per NumPy call, so the code keeps the number of calls small; large inputs are
 processed in chunks whose temporaries stay around 128 KiB, because larger
@@ -535,23 +536,33 @@ def _check_mode(outside: str, tolerance: float) -> None:
 
 
 def _bounds(spec: GridSpec, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """(centre, half-size) (2,) m of the accepted region: the domain grown by ``tolerance``."""
-    lo, up = spec.origin, spec.upper
-    return (
-        np.array([(lo[0] + up[0]) / 2, (lo[1] + up[1]) / 2]),
-        np.array([(up[0] - lo[0]) / 2 + tolerance, (up[1] - lo[1]) / 2 + tolerance]),
-    )
+    """(lower, upper) corners (2,) m of the accepted region: the domain grown by ``tolerance``."""
+    return _bounds_cached(spec.origin, spec.upper, float(tolerance))
 
 
-def _inside(pos: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """(N, 2) bool, per coordinate: within the accepted region (False for NaN)."""
-    return np.abs(pos - centre) <= half
+@lru_cache(maxsize=64)
+def _bounds_cached(origin, upper, tolerance):
+    lo = np.array([origin[0] - tolerance, origin[1] - tolerance])
+    hi = np.array([upper[0] + tolerance, upper[1] + tolerance])
+    lo.flags.writeable = hi.flags.writeable = False
+    return lo, hi
 
 
-def _all_inside(pos: np.ndarray, centre: np.ndarray, half: np.ndarray) -> bool:
+def _inside(pos: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(N, 2) bool, per coordinate: within the accepted region (False for NaN).
+
+    Plain comparisons, so a particle exactly on an edge or corner is inside
+    even with zero tolerance.
+    """
+    inside = pos >= lo
+    inside &= pos <= hi
+    return inside
+
+
+def _all_inside(pos: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
     # One pass answers two questions in the common case: NaN fails every
     # comparison, so "all inside" also means "all finite".
-    return bool(_inside(pos, centre, half).all())
+    return bool(_inside(pos, lo, hi).all())
 
 
 def _split_outside(pos: np.ndarray, spec: GridSpec, outside: str, tolerance: float, label: str):
@@ -561,14 +572,14 @@ def _split_outside(pos: np.ndarray, spec: GridSpec, outside: str, tolerance: flo
     indices).  Raises ValueError for NaN/inf, and for particles outside when
     ``outside == "raise"``.
     """
-    centre, half = _bounds(spec, tolerance)
-    if _all_inside(pos, centre, half):
+    lo, hi = _bounds(spec, tolerance)
+    if _all_inside(pos, lo, hi):
         return pos, None, _NO_INDEX
     finite = np.isfinite(pos).all(axis=1)
     if not finite.all():
         bad = np.flatnonzero(~finite)
         raise ValueError(f"{label} positions contain NaN or infinite values (particles {bad[:10].tolist()})")
-    inside = _inside(pos, centre, half).all(axis=1)
+    inside = _inside(pos, lo, hi).all(axis=1)
     out_idx = np.flatnonzero(~inside)
     if outside == "raise":
         up = spec.upper
@@ -664,9 +675,11 @@ def _p2g_sets(sets: Sequence[_Set], spec: GridSpec, batch: int, n_channels: int,
         v = values[p0:p1] / (wsum + lost_c)[:, None]
         padded = _splat(_entries(idx, w), v, (b1 - b0 + 1) * st.cells)
         grid = st.crop(padded.reshape(b1 - b0 + 1, st.nyp, st.nxp, n_channels))
-        if out is None:
+        if out is None and b1 - b0 + 1 == batch:  # the common case: one chunk covers every world
             out = np.ascontiguousarray(grid, dtype=np.float32)
         else:
+            if out is None:
+                out = np.zeros((batch, spec.ny, spec.nx, n_channels), dtype=np.float32)
             out[b0 : b1 + 1] += grid
     if out is None:  # no particles at all
         out = np.zeros((batch, spec.ny, spec.nx, n_channels), dtype=np.float32)
@@ -847,16 +860,14 @@ def _g2p_sph(g: np.ndarray, pos: np.ndarray, spec: GridSpec, clip: bool = True):
     out = np.empty((len(pos), n_channels), dtype=np.float32)
     parts = [(p0, p1, _entries(*_weights(pos[p0:p1], spec, st, None, clip))) for p0, p1 in _chunks(len(pos), st)]
     if parts:
-        # Per-node weight totals.  Dividing the grid by them (rather than
-        # every weight) normalizes per node with one pass over the grid.
+        # Per-node weight totals, to normalize each node's weights to sum 1.
         node_w = np.bincount(parts[0][2].nodes, parts[0][2].weights, minlength=st.cells)
         for _, _, e in parts[1:]:
             node_w += np.bincount(e.nodes, e.weights, minlength=st.cells)
-        # Nodes nobody reaches are divided by 1 instead of 0: they are only
-        # ever gathered with weight 0.
-        scaled = gp / (node_w + (node_w <= 0.0))[:, None]
+        # Nodes nobody reaches get 1 instead of 1/0: their entries have weight 0.
+        inv = 1.0 / (node_w + (node_w <= 0.0))
         for p0, p1, e in parts:
-            out[p0:p1] = _gather(e, scaled)
+            out[p0:p1] = _gather(e._replace(weights=e.weights * inv[e.nodes]), gp)
     else:
         node_w = np.zeros(st.cells)
 

@@ -1,0 +1,391 @@
+"""P2G / G2P: conservation, lost particles, edges, symmetry, bilinear, bad input.
+
+The reference below is thesis Algorithms 1 and 2 written the obvious way, with
+a dense (particles x nodes) matrix of full kernel values; the vectorized
+implementation must agree with it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from deepcontact.gridspec import GridSpec
+from deepcontact.transfer import (
+    DOMAIN_TOLERANCE,
+    g2p,
+    kernel,
+    kernel_shape,
+    p2g,
+    p2g_batch,
+    targets_to_grids,
+    world_to_grids,
+    worlds_to_grids,
+)
+
+THESIS = GridSpec.thesis()  # 15 m x 15 m at 0.25 m, h = 0.5 m: 61 x 61
+SMALL = GridSpec.for_domain((0.0, 0.0), (3.0, 2.0), resolution=0.25, h=0.5)  # 9 x 13
+
+BODY_DTYPE = np.dtype(
+    [("index", "<i4"), ("type", "<i4"), ("position", "<f4", (2,)), ("angle", "<f4"), ("velocity", "<f4", (2,)),
+     ("angular_velocity", "<f4"), ("mass", "<f4"), ("inertia", "<f4"), ("shape", "<i4"), ("radius", "<f4")]
+)  # fmt: skip
+CONTACT_DTYPE = np.dtype(
+    [("key", "<u8"), ("body_a", "<i4"), ("body_b", "<i4"), ("point", "<f4", (2,)), ("normal", "<f4", (2,)),
+     ("separation", "<f4"), ("builtin", "<f4", (2,)), ("warm_start", "<f4", (2,)), ("impulse", "<f4", (2,)),
+     ("reserved", "<f4")]
+)  # fmt: skip
+
+
+def dense_weights(spec: GridSpec, positions: np.ndarray) -> np.ndarray:
+    """(N, ny * nx) full kernel values W(|node - particle|, h)."""
+    nodes = spec.node_positions().reshape(-1, 2)
+    r = np.linalg.norm(np.asarray(positions, float)[:, None, :] - nodes[None, :, :], axis=-1)
+    return kernel(r, spec.h, spec.kernel)
+
+
+def reference_p2g(spec, positions, values):
+    w = dense_weights(spec, positions)
+    total = w.sum(axis=1, keepdims=True)
+    w = np.divide(w, total, out=np.zeros_like(w), where=total > 0)  # normalize per particle
+    return (w.T @ values).reshape(spec.ny, spec.nx, -1)
+
+
+def reference_g2p(spec, grid, positions):
+    w = dense_weights(spec, positions)
+    total = w.sum(axis=0, keepdims=True)
+    w = np.divide(w, total, out=np.zeros_like(w), where=total > 0)  # normalize per node
+    return w @ grid.reshape(spec.n_nodes, -1)
+
+
+def random_particles(rng, spec, n, channels):
+    lo, hi = np.array(spec.lower), np.array(spec.upper)
+    return rng.uniform(lo, hi, size=(n, 2)), rng.normal(size=(n, channels))
+
+
+# --------------------------------------------------------------------------- #
+# P2G
+# --------------------------------------------------------------------------- #
+
+
+def test_p2g_conserves_every_channel():
+    rng = np.random.default_rng(1)
+    positions, values = random_particles(rng, THESIS, 300, 4)
+    grid, report = p2g(positions, values, THESIS)
+    assert grid.shape == (61, 61, 4) and grid.dtype == np.float32
+    np.testing.assert_allclose(grid.sum(axis=(0, 1), dtype=np.float64), values.sum(axis=0), rtol=1e-5, atol=1e-4)
+    assert report.n_particles == 300 and report.n_lost == 0 and report.n_outside == 0
+
+
+@pytest.mark.parametrize("kernel_name", ["poly6", "spiky", "gaussian"])
+@pytest.mark.parametrize("resolution, h", [(0.25, 0.5), (0.5, 0.5), (0.25, 0.3), (0.5, 1.2)])
+def test_p2g_and_sph_g2p_match_the_algorithms(kernel_name, resolution, h):
+    spec = GridSpec.for_domain((0.0, 0.0), (3.0, 2.0), resolution, h, kernel=kernel_name)
+    rng = np.random.default_rng(2)
+    positions, values = random_particles(rng, spec, 40, 3)
+    grid, _ = p2g(positions, values, spec)
+    np.testing.assert_allclose(grid, reference_p2g(spec, positions, values), rtol=1e-5, atol=1e-6)
+    back, _ = g2p(grid, positions, spec)
+    np.testing.assert_allclose(back, reference_g2p(spec, grid, positions), rtol=1e-5, atol=1e-6)
+
+
+def test_particle_with_no_node_in_range_is_lost_and_reported():
+    spec = GridSpec.for_domain((0.0, 0.0), (2.0, 2.0), resolution=0.5, h=0.125)
+    positions = np.array([[0.25, 0.25], [1.0, 1.0], [1.30, 0.75]])  # a cell centre, a node, 0.2 m from a node
+    values = np.array([[2.0, -1.0], [3.0, 5.0], [7.0, 11.0]])
+    grid, report = p2g(positions, values, spec)
+    assert report.n_lost == 2 and report.lost.tolist() == [0, 2]
+    np.testing.assert_allclose(report.lost_value, [9.0, 10.0])
+    assert report.n_transferred == 1
+    # Only the particle on a node arrived, all of it on that node.
+    np.testing.assert_allclose(grid.sum(axis=(0, 1)), [3.0, 5.0])
+    np.testing.assert_allclose(grid[2, 2], [3.0, 5.0])
+
+
+def test_edges_and_corners_conserve_and_stay_on_the_grid():
+    spec = SMALL
+    x1, y1 = spec.upper
+    corners_and_edges = np.array([[0.0, 0.0], [x1, y1], [x1, 0.0], [0.0, y1], [1.5, 0.0], [0.0, 1.1], [x1, 0.6]])
+    values = np.arange(1.0, 8.0)[:, None]
+    grid, report = p2g(corners_and_edges, values, spec, tolerance=0.0)  # exactly on the edge is inside
+    assert report.n_lost == 0 and report.n_outside == 0
+    np.testing.assert_allclose(grid.sum(), values.sum(), rtol=1e-6)
+    np.testing.assert_allclose(grid, reference_p2g(spec, corners_and_edges, values), rtol=1e-5, atol=1e-6)
+    # A lone particle on the lower-left corner: a quarter disc, symmetric in x and y.
+    corner, _ = p2g([[0.0, 0.0]], [1.0], spec)
+    patch = corner[:3, :3, 0]
+    np.testing.assert_allclose(patch, patch.T, atol=1e-7)
+    np.testing.assert_allclose(patch.sum(), 1.0, rtol=1e-6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    points=st.lists(st.tuples(st.floats(0.0, 3.0), st.floats(0.0, 2.0)), min_size=1, max_size=30),
+    kernel_name=st.sampled_from(["poly6", "spiky", "gaussian"]),
+)
+def test_p2g_conserves_for_any_particles_in_the_domain(points, kernel_name):
+    # h = 2 dx: every point of the domain, edges and corners included, has nodes in range.
+    spec = GridSpec.for_domain((0.0, 0.0), (3.0, 2.0), 0.25, 0.5, kernel=kernel_name)
+    positions = np.array(points)
+    values = np.arange(1.0, len(points) + 1.0)
+    grid, report = p2g(positions, values, spec, tolerance=0.0)
+    assert report.n_lost == 0 and report.n_outside == 0
+    assert grid.sum(dtype=np.float64) == pytest.approx(values.sum(), rel=1e-5)
+    back, _ = g2p(grid, positions, spec)
+    assert back.sum(dtype=np.float64) == pytest.approx(values.sum(), rel=1e-5)  # every loaded node has a particle
+
+
+def test_particle_on_a_node_gives_a_symmetric_splat():
+    x, y = 1.5, 1.0  # node (iy, ix) = (4, 6)
+    grid, _ = p2g([[x, y]], [[1.0]], SMALL)
+    patch = grid[2:7, 4:9, 0]  # 5 x 5 around the node (h = 2 nodes)
+    assert grid.sum() == pytest.approx(1.0)
+    assert patch.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(patch, patch[::-1, :], atol=1e-7)
+    np.testing.assert_allclose(patch, patch[:, ::-1], atol=1e-7)
+    np.testing.assert_allclose(patch, patch.T, atol=1e-7)
+    assert patch[2, 2] == patch.max()
+    assert patch[0, 0] == 0.0  # corner at 2 sqrt(2) nodes: beyond h
+
+
+def test_mirroring_positions_mirrors_the_grid():
+    rng = np.random.default_rng(3)
+    positions, values = random_particles(rng, SMALL, 25, 2)
+    mirrored = positions.copy()
+    mirrored[:, 0] = SMALL.upper[0] - positions[:, 0]  # x -> width - x
+    grid, _ = p2g(positions, values, SMALL)
+    grid_m, _ = p2g(mirrored, values, SMALL)
+    np.testing.assert_allclose(grid_m, grid[:, ::-1], atol=1e-6)
+
+
+def test_empty_inputs_give_zero_grids_and_empty_arrays():
+    grid, report = p2g(np.zeros((0, 2)), np.zeros((0, 3)), THESIS)
+    assert grid.shape == (61, 61, 3) and not grid.any() and report.n_particles == 0
+    values, report = g2p(np.ones((61, 61, 2)), np.zeros((0, 2)), THESIS)
+    assert values.shape == (0, 2) and values.dtype == np.float32
+    assert report.n_nodes_lost == 61 * 61  # nobody to receive anything
+    np.testing.assert_allclose(report.lost_value, [61 * 61, 61 * 61])
+    values, _ = g2p(np.ones((61, 61, 2)), np.zeros((0, 2)), THESIS, method="bilinear")
+    assert values.shape == (0, 2)
+
+
+def test_p2g_batch_matches_one_world_at_a_time():
+    rng = np.random.default_rng(4)
+    worlds = [random_particles(rng, SMALL, n, 2) for n in (5, 0, 17, 1)]
+    grids, reports = p2g_batch([p for p, _ in worlds], [v for _, v in worlds], SMALL)
+    assert grids.shape == (4, SMALL.ny, SMALL.nx, 2)
+    for (positions, values), grid, report in zip(worlds, grids, reports):
+        alone, alone_report = p2g(positions, values, SMALL)
+        np.testing.assert_allclose(grid, alone, atol=1e-6)
+        assert report.n_particles == alone_report.n_particles == len(positions)
+
+
+def test_large_inputs_are_chunked_with_the_same_result():
+    rng = np.random.default_rng(5)
+    positions, values = random_particles(rng, SMALL, 2500, 2)  # several chunks
+    grid, _ = p2g(positions, values, SMALL)
+    np.testing.assert_allclose(grid, reference_p2g(SMALL, positions, values), rtol=1e-5, atol=1e-5)
+    back, _ = g2p(grid, positions, SMALL)
+    np.testing.assert_allclose(back, reference_g2p(SMALL, grid, positions), rtol=1e-5, atol=1e-6)
+    grids, _ = p2g_batch([positions[:1500], positions[1500:]], [values[:1500], values[1500:]], SMALL)
+    np.testing.assert_allclose(grids.sum(axis=0), grid, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- #
+# G2P
+# --------------------------------------------------------------------------- #
+
+
+def test_sph_g2p_conserves_the_nodes_it_reaches():
+    rng = np.random.default_rng(6)
+    grid = rng.normal(size=(61, 61, 2)).astype(np.float32)
+    positions = rng.uniform(0, 15, size=(200, 2))
+    values, report = g2p(grid, positions, THESIS)
+    assert values.shape == (200, 2) and values.dtype == np.float32
+    reached = (dense_weights(THESIS, positions) > 0).any(axis=0).reshape(61, 61)
+    np.testing.assert_allclose(values.sum(axis=0), grid[reached].sum(axis=0), rtol=1e-4, atol=1e-3)
+    # What no particle could take is reported, not silently dropped.
+    np.testing.assert_allclose(report.lost_value, grid[~reached].sum(axis=0), rtol=1e-4, atol=1e-3)
+    assert report.n_nodes_lost == (~reached).sum()
+
+
+def test_sph_round_trip_of_one_particle_returns_its_value():
+    grid, _ = p2g([[7.3, 2.1]], [[0.785, -2.0]], THESIS)
+    back, report = g2p(grid, [[7.3, 2.1]], THESIS)
+    np.testing.assert_allclose(back, [[0.785, -2.0]], rtol=1e-5)
+    assert report.n_lost == 0 and report.n_nodes_lost == 0
+
+
+def test_g2p_particle_with_no_node_in_range_gets_zero():
+    spec = GridSpec.for_domain((0.0, 0.0), (2.0, 2.0), resolution=0.5, h=0.125)
+    values, report = g2p(np.ones((5, 5)), [[0.25, 0.25], [1.0, 1.0]], spec)
+    np.testing.assert_array_equal(values[:, 0], [0.0, 1.0])
+    assert report.lost.tolist() == [0]
+    assert report.n_nodes_lost == 24 and report.lost_value.tolist() == [24.0]
+
+
+def test_bilinear_reproduces_a_linear_field_exactly():
+    nodes = THESIS.node_positions()
+    field = 0.3 + 1.7 * nodes[..., 0] - 0.9 * nodes[..., 1]
+    grid = np.stack([field, 2 * field], axis=-1)
+    rng = np.random.default_rng(7)
+    positions = np.vstack([rng.uniform(0, 15, size=(100, 2)), [[0, 0], [15, 15], [15, 0], [7.5, 15]]])
+    values, report = g2p(grid, positions, THESIS, method="bilinear")
+    expected = 0.3 + 1.7 * positions[:, 0] - 0.9 * positions[:, 1]
+    np.testing.assert_allclose(values[:, 0], expected, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(values[:, 1], 2 * expected, rtol=1e-5, atol=1e-4)
+    assert report.n_lost == 0
+
+
+# --------------------------------------------------------------------------- #
+# Bad input and the domain
+# --------------------------------------------------------------------------- #
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: p2g([[1.0, np.nan]], [1.0], THESIS), "positions contain NaN"),
+        (lambda: p2g([[1.0, 1.0]], [[np.inf]], THESIS), "values contain NaN or infinite"),
+        (lambda: p2g([[1.0, 1.0, 1.0]], [1.0], THESIS), "shape \\(N, 2\\)"),
+        (lambda: p2g([[1.0, 1.0]], [1.0, 2.0], THESIS), "N = 1 particles"),
+        (lambda: p2g([[16.0, 1.0]], [1.0], THESIS), "1 particles outside the grid domain"),
+        (lambda: p2g([[1.0, 1.0]], [1.0], THESIS, outside="clip"), "outside must be one of"),
+        (lambda: p2g([[1.0, 1.0]], [1.0], THESIS, tolerance=-1.0), "tolerance"),
+        (lambda: g2p(np.zeros((61, 61, 1)), [[np.inf, 1.0]], THESIS), "positions contain NaN or infinite"),
+        (lambda: g2p(np.full((61, 61, 1), np.nan), [[1.0, 1.0]], THESIS), "grid contains NaN"),
+        (lambda: g2p(np.zeros((60, 61, 1)), [[1.0, 1.0]], THESIS), "grid must have shape"),
+        (lambda: g2p(np.zeros((61, 61, 1)), [[1.0, 1.0]], THESIS, method="nearest"), "method must be one of"),
+        (lambda: g2p(np.zeros((61, 61, 1)), [[-1.0, 1.0]], THESIS), "outside the grid domain"),
+    ],
+)
+def test_bad_input_raises_value_error(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+def test_outside_particles_are_dropped_and_counted_on_request():
+    positions = np.array([[1.0, 1.0], [15.5, 3.0], [2.0, -0.2]])
+    values = np.array([[1.0], [10.0], [100.0]])
+    grid, report = p2g(positions, values, THESIS, outside="drop")
+    assert report.n_outside == 2 and report.outside.tolist() == [1, 2]
+    assert report.lost_value.tolist() == [110.0]
+    assert grid.sum() == pytest.approx(1.0)
+    back, report = g2p(grid, positions, THESIS, outside="drop")
+    assert report.outside.tolist() == [1, 2]
+    np.testing.assert_allclose(back[:, 0], [1.0, 0.0, 0.0], rtol=1e-6)
+
+
+def test_points_a_little_past_a_wall_are_within_tolerance():
+    # A contact point against the floor can sit a few mm below y = 0.
+    grid, report = p2g([[3.0, -0.004]], [2.0], THESIS)
+    assert report.n_outside == 0 and grid.sum() == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="outside"):
+        p2g([[3.0, -0.004]], [2.0], THESIS, tolerance=0.0)
+    assert DOMAIN_TOLERANCE == 0.01
+
+
+def test_kernel_shape_is_proportional_to_the_kernel():
+    r = np.linspace(0.0, 0.6, 61)
+    for name in ("poly6", "spiky", "gaussian"):
+        full = kernel(r, 0.5, name)
+        shape = kernel_shape((r / 0.5) ** 2, name)
+        inside = r < 0.5
+        ratio = full[inside] / shape[inside]
+        np.testing.assert_allclose(ratio, ratio[0], rtol=1e-9)
+        assert not shape[r > 0.5].any()
+    # The Gaussian is truncated at h (where it is still exp(-4.5) of its peak).
+    assert kernel(np.array([0.5]), 0.5, "gaussian")[0] > 0 and kernel(np.array([0.5001]), 0.5, "gaussian")[0] == 0
+
+
+# --------------------------------------------------------------------------- #
+# Worlds: the engine's structured arrays
+# --------------------------------------------------------------------------- #
+
+
+def small_world():
+    bodies = np.zeros(3, dtype=BODY_DTYPE)
+    bodies["type"] = [0, 2, 2]  # the static box is not a particle
+    bodies["position"] = [[0.0, 0.0], [5.0, 0.5], [5.9, 0.5]]
+    bodies["mass"] = [0.0, 0.785, 0.785]
+    bodies["velocity"] = [[0, 0], [1.0, -2.0], [0.5, 0.0]]
+    bodies["angular_velocity"] = [0.0, 3.0, -1.0]
+    contacts = np.zeros(3, dtype=CONTACT_DTYPE)
+    contacts["point"] = [[5.0, 0.0075], [5.9, 0.0075], [5.45, 0.5]]
+    contacts["normal"] = [[0, -1], [0, -1], [1, 0]]
+    contacts["impulse"] = [[0.04, 0.001], [0.05, -0.002], [0.01, 0.0]]
+    return bodies, contacts
+
+
+def test_world_to_grids_builds_the_input_channels_in_order():
+    bodies, contacts = small_world()
+    grid, reports = world_to_grids(bodies, contacts, THESIS, return_report=True)
+    assert grid.shape == (61, 61, 6) and grid.dtype == np.float32
+    sums = grid.sum(axis=(0, 1), dtype=np.float64)
+    walls = THESIS.wall_mask().sum() * THESIS.wall_mass  # thesis §8.1: the box's edges weigh 100
+    np.testing.assert_allclose(sums, [1.57 + walls, 1.5, -2.0, 2.0, 1.0, -2.0], rtol=1e-5)
+    assert grid[0, 30, 0] >= 100.0 and grid[30, 0, 0] == 100.0 and grid[60, 30, 0] == 0.0  # no top wall
+    assert reports["bodies"].n_particles == 2 and reports["contacts"].n_particles == 3
+    bare = world_to_grids(bodies, contacts, THESIS, walls=False)
+    np.testing.assert_allclose(bare.sum(axis=(0, 1))[0], 1.57, rtol=1e-5)
+    np.testing.assert_array_equal(bare[..., 1:], grid[..., 1:])
+
+
+def test_targets_to_grids_and_back_to_the_contacts():
+    _, contacts = small_world()
+    target = targets_to_grids(contacts, THESIS)
+    assert target.shape == (61, 61, 2)
+    np.testing.assert_allclose(target.sum(axis=(0, 1)), contacts["impulse"].sum(axis=0), rtol=1e-5)
+    back, report = g2p(target, contacts["point"], THESIS)
+    assert report.n_lost == 0
+    np.testing.assert_allclose(back.sum(axis=0), contacts["impulse"].sum(axis=0), rtol=1e-5)
+
+
+def test_worlds_to_grids_stacks_a_batch():
+    bodies, contacts = small_world()
+    grids, reports = worlds_to_grids([(bodies, contacts), (bodies[:1], contacts[:0])], THESIS)
+    assert grids.shape == (2, 61, 61, 6) and len(reports) == 2
+    np.testing.assert_array_equal(grids[0], world_to_grids(bodies, contacts, THESIS))
+    assert reports[1]["bodies"].n_particles == 0 and reports[1]["contacts"].n_particles == 0
+    assert grids[1][..., 1:].sum() == 0.0  # an empty world: only the walls' mass
+
+
+def test_world_values_are_checked():
+    bodies, contacts = small_world()
+    contacts["normal"][1, 0] = np.nan
+    with pytest.raises(ValueError, match="contacts values contain NaN.*normal_x"):
+        world_to_grids(bodies, contacts, THESIS)
+
+
+# --------------------------------------------------------------------------- #
+# The two commands, on tiny settings (real engine)
+# --------------------------------------------------------------------------- #
+
+
+def test_transfer_table_command(tmp_path, capsys):
+    import json
+
+    from deepcontact.cli import main
+
+    out = tmp_path / "table.json"
+    assert main(["transfer-table", "--worlds", "1", "--steps", "20", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["resolution"], r["h"]) for r in rows] == [(r, h) for r in (0.125, 0.25, 0.5) for h in (0.125, 0.25, 0.5)]
+    chosen = rows[5]  # 0.25 m, h = 0.5 m: nothing lost, bodies come back exactly
+    assert chosen["body_lost_p2g"] == 0 and chosen["body_avg_diff"] < 1e-5
+    assert rows[6]["body_lost_p2g"] > 0  # 0.5 m with h = 0.125 m loses bodies
+    assert "Avg contact diff" in capsys.readouterr().out
+
+
+def test_bench_transfer_command(tmp_path):
+    import json
+
+    from deepcontact.cli import main
+
+    out = tmp_path / "bench.json"
+    assert main(["bench", "transfer", "--repeats", "5", "--settle-steps", "20", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert set(result["timings_us"]) >= {"p2g_inputs", "g2p_sph"}
+    assert result["input_shape"] == [61, 61, 6] and result["target_shape"] == [61, 61, 2]
