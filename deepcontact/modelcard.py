@@ -1,0 +1,101 @@
+"""Model cards: what a served ONNX model is, and how to feed it.
+
+Every exported model `models/NAME.onnx` has a card `models/NAME.json`. The
+server reads the card, never the training code, so serving transfers exactly
+as training did:
+
+    grids  = world_to_grids(bodies, contacts, card.gridspec)      # (ny, nx, Cin) raw
+    x      = card.gridspec.normalize(grids, "inputs")[None]        # (1, ny, nx, Cin)
+    y      = onnx(x)                                               # (1, ny, nx, Cout)
+    impulses_grid = card.gridspec.denormalize(y[0], "targets")     # N s per node
+    impulses = g2p(impulses_grid, contact points, card.gridspec)   # (n, 2) N s
+
+Tensors are NHWC float32; the batch dimension is dynamic. `fixed_grid` says
+whether the model only accepts `gridspec.shape` (Peak, with its dense layers)
+or any grid size (Pressure, fully convolutional).
+
+`residual` models predict a correction to Box2D's builtin warm start: their
+input channels include `builtin_normal`/`builtin_tangent` and the warm start
+served is builtin + G2P(prediction) per point.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from deepcontact.gridspec import GridSpec
+from deepcontact.io import write_json_atomic
+
+CARD_VERSION = 1
+
+
+class ModelCardError(ValueError):
+    """A card that is missing, malformed or does not match its model."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelCard:
+    name: str
+    kind: str  # "pressure", "peak", ...
+    onnx_file: str  # file name beside the card
+    gridspec: GridSpec
+    fixed_grid: bool
+    input_name: str = "grids"
+    output_name: str = "impulses"
+    residual: bool = False
+    parameters: int = 0
+    architecture: dict = dataclasses.field(default_factory=dict)
+    training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...
+    validation: dict = dataclasses.field(default_factory=dict)  # losses
+    parity_max_abs_error: float | None = None  # TF vs ONNX Runtime on random input
+    commands: tuple[str, ...] = ()  # the commands that made the model
+    version: int = CARD_VERSION
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["gridspec"] = self.gridspec.to_dict()
+        d["commands"] = list(self.commands)
+        return json.loads(json.dumps(d))  # plain JSON types only
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "ModelCard":
+        if not isinstance(d, dict):
+            raise ModelCardError(f"a model card is a JSON object, got {type(d).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ModelCardError(f"unknown model card keys {sorted(unknown)}")
+        missing = {"name", "kind", "onnx_file", "gridspec", "fixed_grid"} - set(d)
+        if missing:
+            raise ModelCardError(f"model card lacks {sorted(missing)}")
+        if d.get("version", CARD_VERSION) != CARD_VERSION:
+            raise ModelCardError(f"model card version {d['version']!r}, this code reads {CARD_VERSION}")
+        d = dict(d)
+        try:
+            d["gridspec"] = GridSpec.from_dict(d["gridspec"])
+        except ValueError as exc:
+            raise ModelCardError(f"model card gridspec: {exc}") from None
+        d["commands"] = tuple(d.get("commands", ()))
+        return cls(**d)
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the card as JSON (temporary name, then rename)."""
+        return write_json_atomic(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "ModelCard":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ModelCardError(f"{path}: no model card") from None
+        except json.JSONDecodeError as exc:
+            raise ModelCardError(f"{path}: not JSON ({exc})") from None
+        return cls.from_dict(data)
+
+    def onnx_path(self, card_path: str | os.PathLike) -> Path:
+        return Path(card_path).with_name(self.onnx_file)
