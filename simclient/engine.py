@@ -43,37 +43,7 @@ if not hasattr(Box2D, "DeepContactLayout"):
         + _BUILD_HINT.format(rev=PATCH_REVISION)
     )
 
-BODY_DTYPE = np.dtype(
-    [
-        ("index", "<i4"),  # creation order, 0-based
-        ("type", "<i4"),  # 0 static, 1 kinematic, 2 dynamic
-        ("position", "<f4", (2,)),  # body origin (m)
-        ("angle", "<f4"),  # (rad)
-        ("velocity", "<f4", (2,)),  # linear velocity (m/s)
-        ("angular_velocity", "<f4"),  # (rad/s)
-        ("mass", "<f4"),  # (kg), 0 for static bodies
-        ("inertia", "<f4"),  # about the centre of mass (kg m^2)
-        ("shape", "<i4"),  # 0 circle, 1 edge, 2 polygon, 3 chain; -1 several
-        ("radius", "<f4"),  # bounding radius about the origin (m)
-    ]
-)
-"""One body as the patch exports it (48 bytes, b2DCBody)."""
-
-CONTACT_DTYPE = np.dtype(
-    [
-        ("key", "<u8"),  # equal on every step for the same contact point
-        ("body_a", "<i4"),  # body indices (creation order)
-        ("body_b", "<i4"),
-        ("point", "<f4", (2,)),  # world point at collide time (m)
-        ("normal", "<f4", (2,)),  # world normal from A to B
-        ("separation", "<f4"),  # (m), negative when overlapping
-        ("builtin", "<f4", (2,)),  # previous step's impulse (normal, tangent) (N s)
-        ("warm_start", "<f4", (2,)),  # where the solver started; NaN until solved
-        ("impulse", "<f4", (2,)),  # final impulse; NaN until solved
-        ("reserved", "<f4"),
-    ]
-)
-"""One contact point as the patch exports it (64 bytes, b2DCContactPoint)."""
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE  # noqa: E402  (after the Box2D check)
 
 _revision, _body_bytes, _contact_bytes = Box2D.DeepContactLayout()
 if (_revision, _body_bytes, _contact_bytes) != (PATCH_REVISION, BODY_DTYPE.itemsize, CONTACT_DTYPE.itemsize):
