@@ -13,7 +13,7 @@ BOX2D_DIR := .cache/box2d/$(BOX2D_KEY)
 BOX2D_WHL := $(BOX2D_DIR)/.built
 BOX2D     := $(VENV)/.box2d-$(BOX2D_KEY)
 
-.PHONY: all setup box2d test demo bench-engine clean distclean help
+.PHONY: all setup box2d proto test demo bench-engine clean distclean help
 .DELETE_ON_ERROR:
 
 all: setup
@@ -22,6 +22,7 @@ help:
 	@echo "make test          set up on first use, then run the test suite"
 	@echo "make demo          set up on first use, then run the main job"
 	@echo "make box2d         build and install the patched pybox2d only"
+	@echo "make proto         regenerate the gRPC stubs from proto/ (committed; a test checks them)"
 	@echo "make bench-engine  engine benchmark -> bench/results/engine.json"
 	@echo "make clean         remove caches of tests and builds (keeps .venv)"
 	@echo "make distclean     also remove .venv and the Box2D wheel cache"
@@ -45,6 +46,9 @@ $(BOX2D): $(BOX2D_WHL)
 	touch $@
 
 box2d: $(BOX2D)
+
+proto: $(DEPS)
+	$(VPY) -m deepcontact.protogen
 
 setup: $(DEPS) $(BOX2D)
 

@@ -15,9 +15,11 @@ import sys
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("demo",), "deepcontact.demo", "run the main job: server, simulations, results table"),
     (("generate",), "training.generate", "record simulations into an HDF5 training file"),
+    (("serve",), "server.serve", "serve warm starts over gRPC (models/ and the providers)"),
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
+    (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
 ]
 
@@ -33,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (engine, generate, transfer)"}
+    group_help = {("bench",): "benchmarks (engine, generate, server, transfer)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

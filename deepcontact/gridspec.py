@@ -27,6 +27,7 @@ arrays are only read by field name.
 
 from __future__ import annotations
 
+
 import json
 import math
 from dataclasses import dataclass, field, fields, replace
@@ -491,14 +492,24 @@ class GridSpec:
         return mean, std
 
     def normalize(self, grid: np.ndarray, which: str = "inputs") -> np.ndarray:
-        """``(grid - mean) / std`` per channel, float32; ``which`` is "inputs" or "targets"."""
-        mean, std = self.normalization_arrays(self._channels(which))
-        return ((np.asarray(grid, dtype=np.float32) - mean) / std).astype(np.float32, copy=False)
+        """``(grid - mean) / std`` per channel, float32; ``which`` is "inputs" or "targets".
+
+        grid: (..., nx, C) with C the channels of ``which``."""
+        grid = np.asarray(grid)
+        mean, inv_std = _row_normalization(self, which, grid.shape[-2])
+        rows = grid.reshape(*grid.shape[:-2], -1)  # (..., nx * C): long inner loops
+        out = np.subtract(rows, mean, dtype=np.float32)
+        out *= inv_std
+        return out.reshape(grid.shape)
 
     def denormalize(self, grid: np.ndarray, which: str = "targets") -> np.ndarray:
         """Inverse of :meth:`normalize`: ``grid * std + mean`` per channel, float32."""
-        mean, std = self.normalization_arrays(self._channels(which))
-        return (np.asarray(grid, dtype=np.float32) * std + mean).astype(np.float32, copy=False)
+        grid = np.asarray(grid)
+        mean, inv_std = _row_normalization(self, which, grid.shape[-2])
+        rows = grid.reshape(*grid.shape[:-2], -1)
+        out = np.divide(rows, inv_std, dtype=np.float32)
+        out += mean
+        return out.reshape(grid.shape)
 
     def _channels(self, which: str) -> tuple[str, ...]:
         if which == "inputs":
@@ -565,3 +576,15 @@ class GridSpec:
         except json.JSONDecodeError as exc:
             raise ValueError(f"GridSpec JSON is malformed: {exc}") from None
         return cls.from_dict(data)
+
+
+@lru_cache(maxsize=256)
+def _row_normalization(spec: GridSpec, which: str, nx: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, 1/std) tiled over one grid row, (nx * C,) float32, built once per
+    (spec, which, nx). Broadcasting over a last axis of 2-6 channels runs NumPy's
+    inner loop a few elements at a time; a whole row at once is ~4x faster."""
+    mean, std = spec.normalization_arrays(spec._channels(which))
+    mean, inv_std = np.tile(mean, nx), np.tile(np.float32(1.0) / std, nx)
+    mean.flags.writeable = False
+    inv_std.flags.writeable = False
+    return mean, inv_std

@@ -1,0 +1,101 @@
+"""`deepcontact bench server`: what the server spends per step, by stage.
+
+Starts `deepcontact serve` in its own process on loopback (in this process
+the client's threads would hold the GIL inside the server's timings),
+records steps of a thesis world on a benchmark seed (bodies at collide time,
+contact points with their builtin warm start), streams them in lockstep through one
+bidirectional stream (simclient.client) and reports medians of the server's stage timings
+(decode, P2G, inference, G2P, total) and of the client's round trip. The
+headline is the server's time outside inference: total - inference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact import wire
+from deepcontact.io import write_json_atomic
+from simclient.client import WarmStartClient
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    parser.add_argument("--model", default="pressure", help="model to time (default pressure, the shipped one)")
+    parser.add_argument("--seed", type=int, default=900, help="thesis-world seed (default 900)")
+    parser.add_argument("--steps", type=int, default=250, help="steps recorded and sent (default 250)")
+    parser.add_argument("--rounds", type=int, default=4, help="times the recorded steps are streamed (default 4)")
+    parser.add_argument("--json", metavar="FILE", help="write the results here as JSON")
+
+
+def record_steps(seed: int, steps: int):
+    """[(bodies, points)] of a thesis world: what a client sends each step."""
+    from simclient.scene import SceneSpec, build_world
+
+    engine = build_world(SceneSpec.thesis(), seed)
+    out = []
+    for _ in range(steps):
+        engine.collide()
+        out.append((engine.bodies(), engine.contacts()))
+        engine.solve()
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.process import ServerProcess
+
+    server = ServerProcess(args.models).start()
+    with WarmStartClient(server.address) as probe:
+        names = [m.name for m in probe.list_models()]
+    if args.model not in names:
+        print(f"deepcontact bench server: no model {args.model!r} in {args.models} (have {sorted(names)})",
+              file=sys.stderr)
+        server.stop()
+        return 2
+    recorded = [s for s in record_steps(args.seed, args.steps) if len(s[1]) > 0]
+    world = wire.encode_world((0.0, 0.0), (15.0, 15.0))
+    stages = {k: [] for k in ("decode", "p2g", "inference", "g2p", "total", "outside_inference")}
+    round_trip = []
+    try:
+        with WarmStartClient(server.address, world=world) as client:
+            for r in range(args.rounds):
+                for k, (bodies, points) in enumerate(recorded):
+                    msg = wire.encode_step(k, args.model, bodies, points, builtin=points["builtin"])
+                    t0 = time.perf_counter()
+                    reply = client.step(msg, timeout=10.0)
+                    rt = time.perf_counter() - t0
+                    if r == 0:
+                        continue  # warm-up round
+                    round_trip.append(rt)
+                    t = reply.timings
+                    for name, value in (("decode", t.decode_us), ("p2g", t.p2g_us), ("inference", t.inference_us),
+                                        ("g2p", t.g2p_us), ("total", t.total_us),
+                                        ("outside_inference", t.total_us - t.inference_us)):
+                        stages[name].append(value)
+    finally:
+        server.stop()
+    n_points = [len(p) for _, p in recorded]
+    result = {
+        "model": args.model, "seed": args.seed, "steps": len(recorded), "rounds": args.rounds,
+        "median_contact_points": statistics.median(n_points),
+        "server_us_median": {k: statistics.median(v) for k, v in stages.items()},
+        "server_us_p90": {k: float(np.percentile(v, 90)) for k, v in stages.items()},
+        "round_trip_ms_median": 1e3 * statistics.median(round_trip),
+        "round_trip_ms_p99": 1e3 * float(np.percentile(round_trip, 99)),
+    }
+    med = result["server_us_median"]
+    print(f"{args.model} on thesis seed {args.seed}: {len(recorded)} steps with contacts "
+          f"(median {result['median_contact_points']:.0f} points), {args.rounds - 1} timed rounds")
+    print("  server stage medians (us): " + ", ".join(f"{k} {med[k]:.0f}" for k in
+                                                     ("decode", "p2g", "inference", "g2p", "total")))
+    print(f"  outside inference (total - inference): median {med['outside_inference']:.0f} us, "
+          f"p90 {result['server_us_p90']['outside_inference']:.0f} us")
+    print(f"  client round trip: median {result['round_trip_ms_median']:.3f} ms, p99 {result['round_trip_ms_p99']:.3f} ms")
+    if args.json:
+        write_json_atomic(args.json, result)
+    return 0

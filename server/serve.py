@@ -1,0 +1,172 @@
+"""`deepcontact serve`: run the warm-start service.
+
+    deepcontact serve --models models/ --bind 127.0.0.1:50051
+
+Loads every ONNX model in the folder with its card, adds the providers
+(zero, random, bad, grid-identity), and serves WarmStart with gRPC health
+checking and server reflection. SIGTERM or SIGINT: stop accepting, let open
+streams drain for `--grace` seconds, exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+from concurrent import futures
+from pathlib import Path
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from deepcontact.modelcard import ModelCardError
+from deepcontact.v1 import warmstart_pb2 as pb
+from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+from server import metrics
+from server.batching import MicroBatcher
+from server.predictors import load_models, providers
+from server.service import Limits, WarmStartService
+
+SERVICE_NAME = pb.DESCRIPTOR.services_by_name["WarmStart"].full_name
+log = logging.getLogger("deepcontact.server")
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line: time, level, message and any `extra` fields."""
+
+    _skip = set(vars(logging.LogRecord("", 0, "", 0, "", (), None))) | {"message", "asctime"}
+
+    def format(self, record: logging.LogRecord) -> str:
+        out = {"time": round(record.created, 6), "level": record.levelname, "msg": record.getMessage()}
+        out.update({k: v for k, v in vars(record).items() if k not in self._skip})
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out, default=str)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--models", type=Path, default=Path("models"),
+                        help="folder of *.onnx models with *.json cards (default models/)")
+    parser.add_argument("--bind", default="127.0.0.1:50051",
+                        help="address to listen on (default 127.0.0.1:50051; port 0 picks a free one)")
+    parser.add_argument("--port-file", type=Path, help="write the bound port here once serving")
+    parser.add_argument("--max-concurrent", type=int, default=64,
+                        help="concurrent RPCs (streams count while open); more get RESOURCE_EXHAUSTED (default 64)")
+    parser.add_argument("--max-queue", type=int, default=256,
+                        help="steps waiting for inference in the micro-batcher; more get RESOURCE_EXHAUSTED (default 256)")
+    parser.add_argument("--batch-max", type=int, default=0,
+                        help="micro-batching: largest batch across streams (default 0: off)")
+    parser.add_argument("--batch-delay-us", type=int, default=500,
+                        help="micro-batching: longest wait for a batch to fill, microseconds (default 500)")
+    parser.add_argument("--intra-op-threads", type=int, default=1, help="ONNX Runtime threads per inference (default 1)")
+    parser.add_argument("--inter-op-threads", type=int, default=1, help="ONNX Runtime inter-op threads (default 1)")
+    parser.add_argument("--max-bodies", type=int, default=Limits.max_bodies, help="bodies per step (default %(default)s)")
+    parser.add_argument("--max-points", type=int, default=Limits.max_points, help="contact points per step (default %(default)s)")
+    parser.add_argument("--random-seed", type=int, default=0, help="seed of the `random` provider (default 0)")
+    parser.add_argument("--metrics-port", type=int, default=0,
+                        help="serve Prometheus metrics on this port at /metrics (default 0: off)")
+    parser.add_argument("--tls-cert", type=Path, help="PEM certificate chain: serve TLS (with --tls-key)")
+    parser.add_argument("--tls-key", type=Path, help="PEM private key for --tls-cert")
+    parser.add_argument("--grace", type=float, default=5.0, help="seconds open streams may drain on shutdown (default 5)")
+    parser.add_argument("--log-format", choices=("json", "text"), default="json", help="log lines (default json)")
+
+
+class Server:
+    """A running service: `server.port`, `server.stop(grace)`. Used by the
+    command and, in-process, by tests and benchmarks."""
+
+    def __init__(self, *, models: Path | None, bind: str = "127.0.0.1:0", max_concurrent: int = 64,
+                 max_queue: int = 256, batch_max: int = 0, batch_delay_us: int = 500,
+                 intra_op_threads: int = 1, inter_op_threads: int = 1, limits: Limits = Limits(),
+                 random_seed: int = 0, credentials: grpc.ServerCredentials | None = None):
+        self.models = load_models(models, intra_op_threads=intra_op_threads,
+                                  inter_op_threads=inter_op_threads) if models else []
+        self.batchers = []
+        if batch_max > 0:
+            for m in self.models:
+                b = MicroBatcher(m.run_session, max_batch=batch_max, max_delay_us=batch_delay_us,
+                                 max_queue=max_queue)
+                m.infer = b
+                self.batchers.append(b)
+        self.service = WarmStartService(self.models + providers(random_seed), limits)
+        # Each open stream holds a worker thread, so the pool is as large as the RPC bound.
+        self.grpc = grpc.server(futures.ThreadPoolExecutor(max_workers=max_concurrent, thread_name_prefix="rpc"),
+                                maximum_concurrent_rpcs=max_concurrent)
+        pb_grpc.add_WarmStartServicer_to_server(self.service, self.grpc)
+        self.health = health.HealthServicer()
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc)
+        reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.grpc)
+        if credentials is None:
+            self.port = self.grpc.add_insecure_port(bind)
+        else:
+            self.port = self.grpc.add_secure_port(bind, credentials)
+        if self.port == 0:
+            raise OSError(f"cannot bind {bind}")
+        self.host = bind.rsplit(":", 1)[0]
+
+    @property
+    def address(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def start(self) -> "Server":
+        self.grpc.start()
+        for name in ("", SERVICE_NAME):
+            self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
+        return self
+
+    def stop(self, grace: float = 0.0) -> None:
+        """Report NOT_SERVING, refuse new RPCs, let open ones finish within grace."""
+        self.health.enter_graceful_shutdown()
+        self.grpc.stop(grace).wait()
+        for b in self.batchers:
+            b.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonFormatter() if args.log_format == "json"
+                         else logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
+
+    if not args.models.is_dir():
+        print(f"deepcontact serve: {args.models} is not a folder of models", file=sys.stderr)
+        return 2
+    credentials = None
+    if args.tls_cert or args.tls_key:
+        if not (args.tls_cert and args.tls_key):
+            print("deepcontact serve: --tls-cert and --tls-key go together", file=sys.stderr)
+            return 2
+        credentials = grpc.ssl_server_credentials([(args.tls_key.read_bytes(), args.tls_cert.read_bytes())])
+    try:
+        server = Server(models=args.models, bind=args.bind, max_concurrent=args.max_concurrent,
+                        max_queue=args.max_queue, batch_max=args.batch_max, batch_delay_us=args.batch_delay_us,
+                        intra_op_threads=args.intra_op_threads, inter_op_threads=args.inter_op_threads,
+                        limits=Limits(args.max_bodies, args.max_points), random_seed=args.random_seed,
+                        credentials=credentials)
+    except (ModelCardError, OSError, ValueError) as exc:
+        print(f"deepcontact serve: {exc}", file=sys.stderr)
+        return 2
+    server.start()
+    if args.metrics_port:
+        metrics.serve_metrics(args.metrics_port, host=server.host)
+    if args.port_file:
+        tmp = args.port_file.with_name(f".{args.port_file.name}.part")
+        tmp.write_text(f"{server.port}\n")
+        os.replace(tmp, args.port_file)
+    log.info("serving", extra={"address": server.address, "pid": os.getpid(),
+                               "models": sorted(server.service.predictors), "tls": credentials is not None,
+                               "batch_max": args.batch_max})
+
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    stop.wait()
+    log.info("shutting down", extra={"grace_s": args.grace})
+    server.stop(args.grace)
+    log.info("stopped")
+    return 0

@@ -1,0 +1,122 @@
+"""The WarmStart gRPC service: validate, P2G -> model -> G2P, reply.
+
+Per step: decode and validate the request (deepcontact.wire), look up the
+model, check its grid fits the world, predict, encode the impulses with the
+stage timings. Bad input never reaches the model: it is answered with
+INVALID_ARGUMENT naming the field and the limit, NOT_FOUND for an unknown
+model, RESOURCE_EXHAUSTED when the inference queue is full. A stream that
+receives a bad message is ended with that status; other streams are not
+affected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import grpc
+
+from deepcontact import wire
+from deepcontact.v1 import warmstart_pb2 as pb
+from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+from server import metrics
+from server.batching import QueueFull
+from server.predictors import GridMismatch, Predictor
+
+log = logging.getLogger("deepcontact.server")
+
+
+@dataclasses.dataclass(frozen=True)
+class Limits:
+    max_bodies: int = 10_000
+    max_points: int = 100_000
+
+
+class _Reject(Exception):
+    def __init__(self, code: grpc.StatusCode, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+class WarmStartService(pb_grpc.WarmStartServicer):
+    def __init__(self, predictors: list[Predictor], limits: Limits = Limits()):
+        self.predictors = {p.name: p for p in predictors}
+        self.limits = limits
+
+    # -- RPCs -----------------------------------------------------------------
+    def ListModels(self, request, context):
+        reply = pb.ListModelsReply()
+        for p in self.predictors.values():
+            reply.models.add(name=p.name, kind=p.kind, fixed_grid=p.fixed_grid,
+                             gridspec_json=p.gridspec.to_json(indent=None) if p.gridspec is not None else "")
+        return reply
+
+    def Predict(self, request, context):
+        try:
+            if not request.HasField("world"):
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "world: required on every Predict request")
+            domain = self._domain(request.world)
+            return self._step(request, domain)
+        except _Reject as r:
+            self._abort(context, r, "Predict")
+
+    def Stream(self, request_iterator, context):
+        domain = None
+        for request in request_iterator:
+            try:
+                if request.HasField("world"):
+                    domain = self._domain(request.world)
+                elif domain is None:
+                    raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                                  "world: required on the first message of a stream")
+                yield self._step(request, domain)
+            except _Reject as r:
+                self._abort(context, r, "Stream")
+
+    # -- one step -------------------------------------------------------------
+    def _domain(self, world: pb.World):
+        try:
+            lower, upper, _edges = wire.decode_world(world)
+        except wire.WireError as exc:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
+        return (float(lower[0]), float(lower[1])), (float(upper[0]), float(upper[1]))
+
+    def _step(self, request: pb.StepRequest, domain) -> pb.Impulses:
+        t0 = time.perf_counter()
+        predictor = self.predictors.get(request.model)
+        if predictor is None:
+            raise _Reject(grpc.StatusCode.NOT_FOUND,
+                          f"model {request.model!r} is not served here; ListModels names {sorted(self.predictors)}")
+        try:
+            bodies, points = wire.decode_step(request, max_bodies=self.limits.max_bodies,
+                                              max_points=self.limits.max_points)
+            predictor.check_domain(domain)
+        except (wire.WireError, GridMismatch) as exc:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
+        t1 = time.perf_counter()
+        try:
+            impulses, stages = predictor.predict(bodies, points, domain, request.step)
+        except QueueFull as exc:
+            raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc)) from None
+        except Exception as exc:  # a bug, not the client's fault: say so, keep serving
+            log.exception("predict failed", extra={"model": predictor.name, "step": request.step})
+            raise _Reject(grpc.StatusCode.INTERNAL, f"{predictor.name} failed: {exc}") from None
+        timings = pb.Timings(decode_us=_us(t1 - t0), p2g_us=_us(stages.get("p2g", 0.0)),
+                             inference_us=_us(stages.get("inference", 0.0)), g2p_us=_us(stages.get("g2p", 0.0)))
+        reply = wire.encode_impulses(request.step, predictor.name, impulses)
+        total = time.perf_counter() - t0
+        timings.total_us = _us(total)
+        reply.timings.CopyFrom(timings)
+        metrics.observe_step(predictor.name, t1 - t0, stages, total)
+        return reply
+
+    def _abort(self, context, reject: _Reject, rpc: str):
+        metrics.ERRORS.labels(code=reject.code.name).inc()
+        log.info("rejected", extra={"rpc": rpc, "code": reject.code.name, "detail": reject.message})
+        context.abort(reject.code, reject.message)
+
+
+def _us(seconds: float) -> int:
+    return max(0, int(round(seconds * 1e6)))

@@ -1,0 +1,150 @@
+"""The streaming client: one bidirectional stream per simulation, in lockstep.
+
+    with WarmStartClient("127.0.0.1:50051") as client:
+        reply = client.step(request, timeout=0.005)   # send step k, wait for reply k
+
+The client owns its channel. A simulation sends a step and waits for its
+reply before the next one, so the request iterator handed to gRPC is fed from
+a queue one message at a time (a plain generator would be drained eagerly and
+the round trips would include queueing). A step that does not come back in
+time, or a broken stream, raises `StepFailed`; the caller falls back for that
+step, and the next `step()` reopens the stream (with backoff) and resends the
+world.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+import grpc
+
+from deepcontact.v1 import warmstart_pb2 as pb
+from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+
+_END = object()
+
+
+class StepFailed(RuntimeError):
+    """No usable reply for this step: deadline, server error, or no server."""
+
+    def __init__(self, reason: str, code: grpc.StatusCode | None = None):
+        super().__init__(reason)
+        self.code = code
+
+
+class WarmStartClient:
+    """A channel and, lazily, one open stream to a warm-start server.
+
+    target: "host:port" or any gRPC target ("dns:///server:50051" with
+    round_robin spreads streams over replicas). world: the World message to
+    (re)send as the first message of every stream.
+    """
+
+    def __init__(self, target: str, *, world: pb.World | None = None,
+                 credentials: grpc.ChannelCredentials | None = None,
+                 backoff_s: tuple[float, float] = (0.05, 2.0)):
+        options = [("grpc.lb_policy_name", "round_robin"), ("grpc.enable_retries", 0)]
+        self.channel = (grpc.secure_channel(target, credentials, options) if credentials
+                        else grpc.insecure_channel(target, options))
+        self.stub = pb_grpc.WarmStartStub(self.channel)
+        self.world = world
+        self._backoff_min, self._backoff_max = backoff_s
+        self._backoff = 0.0
+        self._retry_at = 0.0
+        self._outbox: queue.Queue | None = None
+        self._inbox: queue.Queue | None = None
+        self._replies = None
+        self._opened = False
+        self.reconnects = 0  # streams reopened after the first
+
+    # -- lifecycle ---------------------------------------------------------
+    def close(self) -> None:
+        self._close_stream()
+        self.channel.close()
+
+    def __enter__(self) -> "WarmStartClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def wait_ready(self, timeout: float) -> bool:
+        """True once the channel connects within timeout (seconds)."""
+        try:
+            grpc.channel_ready_future(self.channel).result(timeout=timeout)
+            return True
+        except grpc.FutureTimeoutError:
+            return False
+
+    def list_models(self, timeout: float = 5.0) -> list[pb.ModelInfo]:
+        return list(self.stub.ListModels(pb.ListModelsRequest(), timeout=timeout).models)
+
+    # -- one step ----------------------------------------------------------
+    def step(self, request: pb.StepRequest, timeout: float) -> pb.Impulses:
+        """Send one step on the stream and wait up to `timeout` s for its reply."""
+        if self._replies is None:
+            self._open_stream()
+            if self.world is not None:
+                request.world.CopyFrom(self.world)
+        self._outbox.put(request)
+        try:
+            got = self._inbox.get(timeout=timeout)
+        except queue.Empty:
+            # A late reply would arrive out of turn: drop this stream, open a fresh one next step.
+            self._close_stream()
+            raise StepFailed(f"no reply within {timeout * 1e3:.1f} ms", grpc.StatusCode.DEADLINE_EXCEEDED) from None
+        if isinstance(got, grpc.RpcError):
+            self._close_stream(failed=True)
+            raise StepFailed(f"{got.code().name}: {got.details()}", got.code())
+        if got is _END:
+            self._close_stream(failed=True)
+            raise StepFailed("the server ended the stream")
+        if got.step != request.step:
+            self._close_stream(failed=True)
+            raise StepFailed(f"reply for step {got.step} while waiting for step {request.step}")
+        self._backoff = 0.0
+        return got
+
+    # -- the stream ---------------------------------------------------------
+    def _open_stream(self) -> None:
+        now = time.monotonic()
+        if now < self._retry_at:
+            raise StepFailed(f"reconnecting in {1e3 * (self._retry_at - now):.0f} ms", grpc.StatusCode.UNAVAILABLE)
+        outbox: queue.Queue = queue.Queue()
+        inbox: queue.Queue = queue.Queue()
+
+        def requests():
+            while True:
+                item = outbox.get()
+                if item is _END:
+                    return
+                yield item
+
+        replies = self.stub.Stream(requests())
+
+        def read():
+            # One reader per stream: replies (or the stream's end or error) go to the inbox.
+            try:
+                for reply in replies:
+                    inbox.put(reply)
+                inbox.put(_END)
+            except grpc.RpcError as err:
+                inbox.put(err)
+
+        threading.Thread(target=read, name="warmstart-reader", daemon=True).start()
+        if self._opened:
+            self.reconnects += 1
+        self._opened = True
+        self._outbox, self._inbox, self._replies = outbox, inbox, replies
+
+    def _close_stream(self, failed: bool = False) -> None:
+        if self._outbox is not None:
+            self._outbox.put(_END)
+        if self._replies is not None:
+            self._replies.cancel()
+        self._outbox = self._inbox = self._replies = None
+        if failed:
+            self._backoff = min(self._backoff_max, max(self._backoff_min, 2 * self._backoff))
+            self._retry_at = time.monotonic() + self._backoff

@@ -1,0 +1,81 @@
+"""A real server on loopback with a small real ONNX model (built with onnx.helper,
+so the tests need no TensorFlow), and real thesis-world steps to send it."""
+
+from __future__ import annotations
+
+import grpc
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper
+
+from deepcontact import wire
+from deepcontact.gridspec import GridSpec
+from deepcontact.modelcard import ModelCard
+from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+from server.serve import Server
+
+
+def write_conv_model(folder, name="tiny", fixed_grid=False, residual=False, seed=0):
+    """A 1x1 convolution from the 6 input channels to 2 outputs, with its card."""
+    spec = GridSpec.thesis()
+    cin, cout = len(spec.inputs), len(spec.targets)
+    rng = np.random.default_rng(seed)
+    w = rng.normal(0, 0.1, (cout, cin, 1, 1)).astype(np.float32)
+    nodes = [
+        helper.make_node("Transpose", ["grids"], ["nchw"], perm=[0, 3, 1, 2]),
+        helper.make_node("Conv", ["nchw", "w"], ["y"]),
+        helper.make_node("Transpose", ["y"], ["impulses"], perm=[0, 2, 3, 1]),
+    ]
+    graph = helper.make_graph(
+        nodes, name,
+        [helper.make_tensor_value_info("grids", TensorProto.FLOAT, ["batch", "ny", "nx", cin])],
+        [helper.make_tensor_value_info("impulses", TensorProto.FLOAT, ["batch", "ny", "nx", cout])],
+        [helper.make_tensor("w", TensorProto.FLOAT, w.shape, w.ravel())],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, folder / f"{name}.onnx")
+    card = ModelCard(name=name, kind="test-conv", onnx_file=f"{name}.onnx", gridspec=spec,
+                     fixed_grid=fixed_grid, residual=residual)
+    card.save(folder / f"{name}.json")
+    return card
+
+
+@pytest.fixture(scope="session")
+def model_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("models")
+    write_conv_model(folder, "tiny")
+    write_conv_model(folder, "tiny-fixed", fixed_grid=True)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def server(model_dir):
+    srv = Server(models=model_dir, bind="127.0.0.1:0").start()
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture()
+def stub(server):
+    with grpc.insecure_channel(server.address) as channel:
+        yield pb_grpc.WarmStartStub(channel)
+
+
+@pytest.fixture(scope="session")
+def thesis_steps():
+    """(world message, [(bodies, points)]) of a few settled thesis steps, with final impulses."""
+    from simclient.scene import SceneSpec, settled_world
+
+    spec = SceneSpec.thesis()
+    engine = settled_world(spec, 901, 150)
+    steps = []
+    for _ in range(5):
+        engine.collide()
+        bodies = engine.bodies()
+        engine.solve()
+        steps.append((bodies, engine.contacts()))
+    lower, upper = spec.domain
+    edges = np.array([[0, 0, 15, 0], [0, 0, 0, 15], [15, 0, 15, 15]], np.float32)
+    return wire.encode_world(lower, upper, edges), steps

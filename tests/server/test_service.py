@@ -1,0 +1,125 @@
+"""The warm-start service over real gRPC on loopback, with real ONNX Runtime."""
+
+from __future__ import annotations
+
+import grpc
+import numpy as np
+import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from deepcontact import wire
+from deepcontact.gridspec import GridSpec
+from deepcontact.modelcard import ModelCard
+from deepcontact.transfer import g2p, p2g, world_to_grids
+from deepcontact.v1 import warmstart_pb2 as pb
+
+
+def request(world, bodies, points, model, step=0, **kw):
+    return wire.encode_step(step, model, bodies, points, world=world, **kw)
+
+
+def test_list_models_names_models_and_providers(stub):
+    models = {m.name: m for m in stub.ListModels(pb.ListModelsRequest()).models}
+    assert {"tiny", "tiny-fixed", "zero", "random", "bad", "grid-identity"} <= set(models)
+    assert models["tiny-fixed"].fixed_grid and not models["tiny"].fixed_grid
+    assert GridSpec.from_json(models["tiny"].gridspec_json).shape == (61, 61)
+
+
+def test_predict_runs_p2g_onnx_g2p_like_training(stub, thesis_steps, model_dir):
+    world, steps = thesis_steps
+    bodies, points = steps[0]
+    reply = stub.Predict(request(world, bodies, points, "tiny", step=7))
+    normal, tangent = wire.decode_impulses(reply)
+    assert reply.step == 7 and reply.point_count == len(points)
+
+    # The same computation done here, from the card, without the server.
+    import onnxruntime as ort
+
+    card = ModelCard.load(model_dir / "tiny.json")
+    spec = card.gridspec
+    sent_bodies, sent_points = wire.decode_step(request(world, bodies, points, "tiny"),
+                                                max_bodies=10**6, max_points=10**6)
+    x = spec.normalize(world_to_grids(sent_bodies, sent_points, spec), "inputs")[None]
+    y = ort.InferenceSession(str(model_dir / "tiny.onnx")).run(None, {"grids": x})[0][0]
+    expected, _ = g2p(spec.denormalize(y, "targets"), points["point"], spec)
+    np.testing.assert_allclose(np.stack([normal, tangent], 1), expected, rtol=1e-5, atol=1e-6)
+    t = reply.timings
+    assert t.total_us >= t.p2g_us + t.inference_us + t.g2p_us > 0
+
+
+def test_stream_answers_in_order_with_the_world_sent_once(stub, thesis_steps):
+    world, steps = thesis_steps
+
+    def requests():
+        for k, (bodies, points) in enumerate(steps):
+            yield request(world if k == 0 else None, bodies, points, "tiny", step=100 + k)
+
+    replies = list(stub.Stream(requests()))
+    assert [r.step for r in replies] == [100 + k for k in range(len(steps))]
+    assert [r.point_count for r in replies] == [len(p) for _, p in steps]
+
+
+def test_providers(stub, thesis_steps):
+    world, steps = thesis_steps
+    bodies, points = steps[0]
+    zero = wire.decode_impulses(stub.Predict(request(world, bodies, points, "zero")))
+    assert not np.any(zero[0]) and not np.any(zero[1])
+    bad = wire.decode_impulses(stub.Predict(request(world, bodies, points, "bad")))
+    assert (bad[0] == 50).all() and (bad[1] == 50).all()
+    r1 = wire.decode_impulses(stub.Predict(request(world, bodies, points, "random", step=3)))
+    r2 = wire.decode_impulses(stub.Predict(request(world, bodies, points, "random", step=3)))
+    np.testing.assert_array_equal(r1[0], r2[0])  # seeded per step
+    assert (0 <= r1[0]).all() and (r1[0] <= 5).all() and (np.abs(r1[1]) <= 2).all()
+    # grid-identity: the request's impulses through P2G and back, as the transfer does it.
+    final = points["impulse"]
+    got = wire.decode_impulses(stub.Predict(request(world, bodies, points, "grid-identity", impulses=final)))
+    spec = GridSpec.thesis()
+    expected, _ = g2p(p2g(points["point"], final, spec)[0], points["point"], spec)
+    np.testing.assert_allclose(np.stack(got, 1), expected, rtol=1e-5, atol=1e-6)
+
+
+def test_a_fixed_size_model_names_both_sizes(stub, thesis_steps):
+    _, steps = thesis_steps
+    bodies, points = steps[0]
+    big = wire.encode_world((0, 0), (20, 10))
+    with pytest.raises(grpc.RpcError) as err:
+        stub.Predict(request(big, bodies, points, "tiny-fixed"))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "61x61" in err.value.details() and "41x81" in err.value.details()
+    # The any-size model serves the same world.
+    assert stub.Predict(request(big, bodies, points, "tiny")).point_count == len(points)
+
+
+@pytest.mark.parametrize("mutate, code, words", [
+    (lambda r: setattr(r, "model", "nope"), grpc.StatusCode.NOT_FOUND, "nope"),
+    (lambda r: setattr(r, "point_count", r.point_count + 1), grpc.StatusCode.INVALID_ARGUMENT, "points"),
+    (lambda r: setattr(r, "bodies", r.bodies[:-4]), grpc.StatusCode.INVALID_ARGUMENT, "bodies"),
+    (lambda r: setattr(r, "points", np.full(r.point_count * 4, np.nan, np.float32).tobytes()),
+     grpc.StatusCode.INVALID_ARGUMENT, "NaN"),
+    (lambda r: setattr(r, "body_count", 10**7), grpc.StatusCode.INVALID_ARGUMENT, "limit"),
+    (lambda r: r.ClearField("world"), grpc.StatusCode.INVALID_ARGUMENT, "world"),
+    (lambda r: setattr(r.world, "x_max", -1.0), grpc.StatusCode.INVALID_ARGUMENT, "domain"),
+])
+def test_bad_requests_get_a_status_that_names_the_problem(stub, thesis_steps, mutate, code, words):
+    world, steps = thesis_steps
+    r = request(world, *steps[0], "tiny")
+    mutate(r)
+    with pytest.raises(grpc.RpcError) as err:
+        stub.Predict(r)
+    assert err.value.code() == code
+    assert words in err.value.details()
+
+
+def test_a_stream_without_a_world_is_refused(stub, thesis_steps):
+    _, steps = thesis_steps
+    with pytest.raises(grpc.RpcError) as err:
+        list(stub.Stream(iter([request(None, *steps[0], "tiny")])))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_health_reports_serving(server):
+    with grpc.insecure_channel(server.address) as channel:
+        health = health_pb2_grpc.HealthStub(channel)
+        for service in ("", "deepcontact.v1.WarmStart"):
+            status = health.Check(health_pb2.HealthCheckRequest(service=service)).status
+            assert status == health_pb2.HealthCheckResponse.SERVING
