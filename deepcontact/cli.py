@@ -16,6 +16,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("demo",), "deepcontact.demo", "run the main job: server, simulations, results table"),
     (("generate",), "training.generate", "record simulations into an HDF5 training file"),
     (("serve",), "server.serve", "serve warm starts over gRPC (models/ and the providers)"),
+    (("simulate",), "simclient.simulate", "one simulation with one warm start; iterations and latency to JSON"),
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),

@@ -1,0 +1,246 @@
+"""`deepcontact simulate`: one simulation with one warm start, measured.
+
+    deepcontact simulate --scene thesis --seed 901 --warm-start server:pressure \\
+        --server 127.0.0.1:50051 --out results/901.json
+
+Per step: collide, export, get the warm start (locally, or over one
+bidirectional stream for the whole simulation), inject, solve, record.
+Faults never stop a simulation: a step whose reply misses the deadline, or
+meets a broken or absent server, runs with Box2D's builtin warm start and
+counts as a fallback; the stream reopens with backoff; every step runs and
+the results file is always written (temporary name, then rename).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact import wire
+from deepcontact.io import write_json_atomic
+from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_to_dict
+from simclient.warmstarts import Provider, make_provider
+
+DEFAULT_DEADLINE_MS = 10.0
+
+
+@dataclasses.dataclass
+class StepRecord:
+    contact_points: int
+    velocity_iterations: int
+    position_iterations: int
+    residual_trace: list[float]
+    mse_normal: float | None
+    mse_tangent: float | None
+    latency_ms: float | None  # round trip to the server; None for local warm starts
+    server_us: dict | None  # the server's stage timings
+    client_us: float  # export + encode + decode + inject, microseconds
+    provider_ms: float  # time to obtain the warm start (round trip or local computation)
+    solve_ms: float
+    fallback: bool
+
+
+def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=None,
+                   deadline_ms: float = DEFAULT_DEADLINE_MS, progress=None) -> dict:
+    """Simulate (spec, seed) with `provider`; returns {"per_step": ..., "summary": ...}.
+
+    client: a simclient.client.WarmStartClient for `server:` providers (its
+    world is set here); None makes every server step a fallback.
+    """
+    from simclient.client import StepFailed
+
+    engine = build_world(spec, seed)
+    provider.prepare(engine)
+    if client is not None:
+        lower, upper = spec.domain
+        w, h = spec.box_size
+        edges = np.array([[0, 0, w, 0], [0, 0, 0, h], [w, 0, w, h]], np.float32)
+        client.world = wire.encode_world(lower, upper, edges)
+    records: list[StepRecord] = []
+    timeout = deadline_ms / 1e3
+    for k in range(spec.steps):
+        engine.collide()
+        t0 = time.perf_counter()
+        bodies, points = engine.bodies(), engine.contacts()
+        client_s = time.perf_counter() - t0
+        latency_ms = server_us = None
+        fallback = False
+        tp = time.perf_counter()
+        if provider.uses_server:
+            warm = None
+            if len(points) == 0:
+                pass  # nothing to warm-start; no round trip
+            elif client is None:
+                fallback = True
+            else:
+                oracle = engine.oracle() if provider.sends_oracle else None
+                tq = time.perf_counter()
+                request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"],
+                                           impulses=oracle)
+                t2 = time.perf_counter()
+                try:
+                    reply = client.step(request, timeout)
+                    t3 = time.perf_counter()
+                    warm = wire.decode_impulses(reply)
+                    t4 = time.perf_counter()
+                    latency_ms = 1e3 * (t3 - t2)
+                    tm = reply.timings
+                    server_us = {"decode": tm.decode_us, "p2g": tm.p2g_us, "inference": tm.inference_us,
+                                 "g2p": tm.g2p_us, "total": tm.total_us}
+                    client_s += (t2 - tq) + (t4 - t3)
+                except StepFailed:
+                    fallback = True
+                    latency_ms = 1e3 * (time.perf_counter() - t2)
+        else:
+            warm = provider.warm_start(engine, bodies, points, k)
+        provider_s = time.perf_counter() - tp
+        if warm is not None:
+            t5 = time.perf_counter()
+            engine.set_warm_start(*warm)
+            client_s += time.perf_counter() - t5
+        stats = engine.solve()
+        after = engine.contacts()
+        provider.observe(after)
+        mse_n = mse_t = None
+        if len(after):
+            err = after["warm_start"] - after["impulse"]
+            mse_n, mse_t = float(np.mean(err[:, 0] ** 2)), float(np.mean(err[:, 1] ** 2))
+        records.append(StepRecord(
+            contact_points=stats.contact_points, velocity_iterations=stats.velocity_iterations,
+            position_iterations=stats.position_iterations,
+            residual_trace=[float(x) for x in stats.residual_trace],
+            mse_normal=mse_n, mse_tangent=mse_t, latency_ms=latency_ms, server_us=server_us,
+            client_us=1e6 * client_s, provider_ms=1e3 * provider_s, solve_ms=stats.solve_ms,
+            fallback=fallback))
+        if progress is not None:
+            progress(k)
+    return {"per_step": _columns(records), "summary": summarize(records)}
+
+
+def _columns(records: list[StepRecord]) -> dict[str, list]:
+    return {f.name: [getattr(r, f.name) for r in records] for f in dataclasses.fields(StepRecord)}
+
+
+def summarize(records: list[StepRecord]) -> dict:
+    """Iteration statistics over steps with at least one contact point."""
+    solved = [r for r in records if r.contact_points > 0]
+    its = np.array([r.velocity_iterations for r in solved], float)
+    lat = np.array([r.latency_ms for r in records if r.latency_ms is not None and not r.fallback], float)
+    mse_n = [r.mse_normal for r in solved if r.mse_normal is not None]
+    mse_t = [r.mse_tangent for r in solved if r.mse_tangent is not None]
+    client = np.array([r.client_us for r in solved], float)
+
+    def stat(fn, a):
+        return float(fn(a)) if len(a) else None
+
+    return {
+        "steps": len(records),
+        "steps_with_contacts": len(solved),
+        "mean_velocity_iterations": stat(np.mean, its),
+        "median_velocity_iterations": stat(np.median, its),
+        "p90_velocity_iterations": stat(lambda a: np.percentile(a, 90), its),
+        "mse_normal": stat(np.mean, mse_n),
+        "mse_tangent": stat(np.mean, mse_t),
+        "p50_latency_ms": stat(np.median, lat),
+        "p99_latency_ms": stat(lambda a: np.percentile(a, 99), lat),
+        "fallback_steps": sum(r.fallback for r in records),
+        "median_client_us": stat(np.median, client),
+        "total_solve_ms": float(sum(r.solve_ms for r in records)),
+    }
+
+
+# -- command -----------------------------------------------------------------
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_scene_arguments(parser)
+    parser.add_argument("--seed", type=int, required=True, help="world seed (benchmarks use 900-999)")
+    parser.add_argument("--warm-start", required=True, metavar="W",
+                        help="none, builtin, copy, copy2, copy0, extrapolate, or server:MODEL "
+                             "(server:random, server:bad, server:grid-identity, server:<onnx model>)")
+    parser.add_argument("--server", metavar="HOST:PORT",
+                        help="warm-start server for server:MODEL (any gRPC target, e.g. dns:///server:50051)")
+    parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
+                        help=f"per-step deadline for the server's reply; later replies fall back to builtin "
+                             f"(default {DEFAULT_DEADLINE_MS:g})")
+    parser.add_argument("--allow-fallback", action="store_true",
+                        help="if the server cannot be reached at start-up, simulate anyway with builtin fallbacks")
+    parser.add_argument("--connect-timeout", type=float, default=5.0, help="seconds to wait for the server at start-up")
+    parser.add_argument("--out", type=Path, required=True, help="results file (JSON)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def check_writable(path: Path) -> None:
+    """Fail before simulating if the results cannot be written there."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+        pass
+
+
+def connect(target: str, model: str, *, connect_timeout: float, allow_fallback: bool):
+    """A client for `target` that serves `model`, or None (fallbacks only).
+    Raises SystemExit-worthy ValueError/ConnectionError with a message."""
+    from simclient.client import WarmStartClient
+
+    client = WarmStartClient(target)
+    if not client.wait_ready(connect_timeout):
+        client.close()
+        if allow_fallback:
+            print(f"warning: no server at {target}; every step falls back to builtin", file=sys.stderr)
+            return None
+        raise ConnectionError(f"no warm-start server at {target} (waited {connect_timeout:g} s); "
+                              "start one with `deepcontact serve`, or pass --allow-fallback")
+    names = [m.name for m in client.list_models()]
+    if model not in names:
+        client.close()
+        raise ValueError(f"the server at {target} has no model {model!r}; it serves {', '.join(sorted(names))}")
+    return client
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        spec = spec_from_args(args)
+        provider = make_provider(args.warm_start)
+        if provider.uses_server and not args.server:
+            raise ValueError(f"{args.warm_start} needs --server HOST:PORT (start one with `deepcontact serve`)")
+        check_writable(args.out)
+    except (ValueError, OSError) as exc:
+        print(f"deepcontact simulate: {exc}", file=sys.stderr)
+        return 2
+    client = None
+    if provider.uses_server:
+        try:
+            client = connect(args.server, provider.model, connect_timeout=args.connect_timeout,
+                             allow_fallback=args.allow_fallback)
+        except (ValueError, ConnectionError) as exc:
+            print(f"deepcontact simulate: {exc}", file=sys.stderr)
+            return 2
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=spec.steps, unit="step", desc=f"{args.warm_start} seed {args.seed}", file=sys.stderr)
+    try:
+        result = run_simulation(spec, args.seed, provider, client=client, deadline_ms=args.deadline_ms,
+                                progress=(lambda k: bar.update(1)) if bar else None)
+    finally:
+        if bar:
+            bar.close()
+        if client is not None:
+            client.close()
+    result.update({"scene": spec_to_dict(spec), "seed": args.seed, "warm_start": args.warm_start,
+                   "server": args.server, "deadline_ms": args.deadline_ms,
+                   "command": "deepcontact " + " ".join(sys.argv[1:])})
+    write_json_atomic(args.out, result)
+    s = result["summary"]
+    lat = f", latency p50 {s['p50_latency_ms']:.2f} ms p99 {s['p99_latency_ms']:.2f} ms" if s["p50_latency_ms"] else ""
+    print(f"{args.warm_start} seed {args.seed}: mean {s['mean_velocity_iterations']:.1f}, median "
+          f"{s['median_velocity_iterations']:.0f} velocity iterations over {s['steps_with_contacts']} steps"
+          f"{lat}, {s['fallback_steps']} fallbacks -> {args.out}")
+    return 0
