@@ -20,6 +20,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
+    (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
 ]
@@ -36,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (engine, generate, server, transfer)"}
+    group_help = {("bench",): "benchmarks (engine, generate, iterations, server, transfer)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

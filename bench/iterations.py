@@ -1,0 +1,202 @@
+"""`deepcontact bench iterations`: every warm start on the same held-out worlds.
+
+    deepcontact bench iterations --seeds 901-910 \\
+        --warm-starts none,builtin,copy,copy2,copy0,extrapolate,server:random,server:bad,server:grid-identity,server:pressure \\
+        --out bench/results/iterations
+
+Runs each warm start on each seed (benchmark seeds: never used in training),
+starting `deepcontact serve --models MODELS` itself when a `server:` warm start
+is listed and no `--server` is given. Writes DIR/summary.json
+({"warm_starts": {NAME: summary}}), DIR/results.md (the table) and the
+thesis's figures as PNG:
+    fig20_contacts_iterations.png   contacts and iterations per step (Fig. 20)
+    fig21_convergence.png           steps still iterating after k iterations,
+                                    and the median residual per iteration (Fig. 21-25)
+    fig26_mse.png                   warm-start MSE per step, normal and tangent (Fig. 26, 28)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.io import write_json_atomic
+from simclient import seeds as seed_ranges
+from simclient.scene import add_scene_arguments, spec_from_args
+from simclient.simulate import DEFAULT_DEADLINE_MS, StepRecord, run_simulation, summarize
+from simclient.warmstarts import make_provider
+
+DEFAULT_WARM_STARTS = ("none,builtin,copy,copy2,copy0,extrapolate,"
+                       "server:random,server:bad,server:grid-identity,server:pressure")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_scene_arguments(parser)
+    parser.add_argument("--seeds", default="901-910", help="benchmark seeds (default 901-910)")
+    parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS, help=f"comma-separated (default {DEFAULT_WARM_STARTS})")
+    parser.add_argument("--server", metavar="HOST:PORT", help="use this server instead of starting one")
+    parser.add_argument("--models", type=Path, default=Path("models"), help="models for the server started here (default models/)")
+    parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
+                        help=f"per-step deadline for server replies (default {DEFAULT_DEADLINE_MS:g})")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        spec = spec_from_args(args)
+        seeds = seed_ranges.parse_seeds(args.seeds)
+        names = [w.strip() for w in args.warm_starts.split(",") if w.strip()]
+        providers = {name: make_provider(name) for name in names}
+    except ValueError as exc:
+        print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+        return 2
+    training = [s for s in seeds if seed_ranges.describe(s) == "training"]
+    if training:
+        print(f"warning: seeds {training[:5]} are training seeds; results on them are not held out", file=sys.stderr)
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    server_proc = None
+    target = args.server
+    remote = [p for p in providers.values() if p.uses_server]
+    if remote and target is None:
+        from server.process import ServerProcess
+
+        server_proc = ServerProcess(args.models, log=args.out / "server.log").start()
+        target = server_proc.address
+    runs: dict[str, list[dict]] = {}
+    try:
+        from simclient.simulate import connect
+
+        bar = None
+        if not args.quiet:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(names) * len(seeds) * spec.steps, unit="step", desc="iterations", file=sys.stderr)
+        for name, provider in providers.items():
+            client = None
+            if provider.uses_server:
+                try:
+                    client = connect(target, provider.model, connect_timeout=10.0, allow_fallback=False)
+                except (ValueError, ConnectionError) as exc:
+                    print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+                    return 2
+            try:
+                runs[name] = []
+                for seed in seeds:
+                    if bar:
+                        bar.set_postfix_str(f"{name} seed {seed}")
+                    # A fresh provider per world: some keep state across steps.
+                    runs[name].append(run_simulation(spec, seed, make_provider(name), client=client,
+                                                     deadline_ms=args.deadline_ms,
+                                                     progress=(lambda k: bar.update(1)) if bar else None))
+            finally:
+                if client is not None:
+                    client.close()
+        if bar:
+            bar.close()
+    finally:
+        if server_proc is not None:
+            server_proc.stop()
+
+    summaries = {name: pooled_summary(r) for name, r in runs.items()}
+    write_json_atomic(args.out / "summary.json", {
+        "seeds": seeds, "scene": spec.name, "deadline_ms": args.deadline_ms,
+        "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries})
+    table = markdown_table(summaries, seeds, spec.name)
+    tmp = args.out / ".results.md.part"
+    tmp.write_text(table)
+    tmp.replace(args.out / "results.md")
+    plot_figures(runs, spec.solver.velocity_iterations, spec.solver.velocity_threshold, args.out)
+    print(table)
+    print(f"wrote {args.out}/summary.json, results.md and figures")
+    return 0
+
+
+def pooled_summary(results: list[dict]) -> dict:
+    """The summary over all steps of all seeds of one warm start."""
+    records = []
+    for r in results:
+        cols = r["per_step"]
+        n = len(cols["velocity_iterations"])
+        records += [StepRecord(**{k: cols[k][i] for k in cols}) for i in range(n)]
+    return summarize(records)
+
+
+def markdown_table(summaries: dict, seeds: list[int], scene: str) -> str:
+    builtin = summaries.get("builtin", {}).get("mean_velocity_iterations")
+    lines = [f"Scene `{scene}`, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds); iterations over steps with contacts.",
+             "",
+             "| warm start | mean iterations | / builtin | median | p90 | MSE normal | MSE tangent | p50 latency ms | p99 latency ms | fallbacks |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+
+    def f(x, fmt):
+        return "–" if x is None else format(x, fmt)
+
+    for name, s in summaries.items():
+        ratio = s["mean_velocity_iterations"] / builtin if builtin else None
+        lines.append(f"| {name} | {f(s['mean_velocity_iterations'], '.1f')} | {f(ratio, '.3f')} | "
+                     f"{f(s['median_velocity_iterations'], '.0f')} | {f(s['p90_velocity_iterations'], '.0f')} | "
+                     f"{f(s['mse_normal'], '.3g')} | {f(s['mse_tangent'], '.3g')} | {f(s['p50_latency_ms'], '.2f')} | "
+                     f"{f(s['p99_latency_ms'], '.2f')} | {s['fallback_steps']} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: float, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def per_step(name, key):
+        a = np.array([[np.nan if v is None else v for v in r["per_step"][key]] for r in runs[name]], float)
+        return np.nanmean(a, axis=0)
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    for name in runs:
+        ax1.plot(per_step(name, "contact_points"), label=name, lw=1)
+        ax2.plot(per_step(name, "velocity_iterations"), label=name, lw=1)
+    ax1.set(xlabel="step", ylabel="contact points", title="(a) contact points per step (mean over seeds)")
+    ax2.set(xlabel="step", ylabel="velocity iterations", title="(b) iterations per step (mean over seeds)")
+    ax2.legend(fontsize=7)
+    _save(fig, out / "fig20_contacts_iterations.png")
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    k = np.arange(max_iterations + 1)
+    for name in runs:
+        its = np.array([i for r in runs[name] for i, n in zip(r["per_step"]["velocity_iterations"],
+                                                               r["per_step"]["contact_points"]) if n > 0])
+        ax1.plot(k, (its[None, :] > k[:, None]).sum(axis=1) / len(runs[name]), label=name, lw=1)
+        traces = [t for r in runs[name] for t, n in zip(r["per_step"]["residual_trace"], r["per_step"]["contact_points"])
+                  if n > 0 and len(t)]
+        # Finished steps repeat their last residual (thesis §8.2.1), so the median stays defined.
+        padded = np.array([np.pad(t, (0, max_iterations - len(t)), mode="edge") for t in traces])
+        ax2.semilogy(np.arange(1, max_iterations + 1), np.median(padded, axis=0), label=name, lw=1)
+    ax1.set(xlabel="iteration k", ylabel="steps still iterating (per simulation)",
+            title="(a) steps needing more than k iterations")
+    ax2.axhline(threshold, color="k", ls=":", lw=0.8)
+    ax2.set(xlabel="iteration", ylabel="median max |impulse change| (N s)", title="(b) median residual per iteration")
+    ax2.legend(fontsize=7)
+    _save(fig, out / "fig21_convergence.png")
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    for name in runs:
+        ax1.semilogy(per_step(name, "mse_normal"), label=name, lw=1)
+        ax2.semilogy(per_step(name, "mse_tangent"), label=name, lw=1)
+    ax1.set(xlabel="step", ylabel="MSE (N s)^2", title="(a) warm start vs final impulse, normal")
+    ax2.set(xlabel="step", ylabel="MSE (N s)^2", title="(b) tangent")
+    ax2.legend(fontsize=7)
+    _save(fig, out / "fig26_mse.png")
+
+
+def _save(fig, path: Path) -> None:
+    tmp = path.with_name(f".{path.stem}.part.png")
+    fig.tight_layout()
+    fig.savefig(tmp, dpi=110)
+    tmp.replace(path)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
