@@ -22,10 +22,11 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 
 class ServerProcess:
-    def __init__(self, models: str | os.PathLike, *extra_args: str, startup_timeout: float = 60.0,
-                 log: str | os.PathLike | None = None):
+    def __init__(self, models: str | os.PathLike, *extra_args: str, bind: str = "127.0.0.1:0",
+                 startup_timeout: float = 60.0, log: str | os.PathLike | None = None):
         self.models = Path(models)
         self.extra_args = list(extra_args)
+        self.bind = bind  # a fixed port may be shared by several processes (gRPC sets SO_REUSEPORT)
         self.startup_timeout = startup_timeout
         self.log_path = Path(log) if log else None
         self.proc: subprocess.Popen | None = None
@@ -40,7 +41,7 @@ class ServerProcess:
         port_file = Path(self._tmp.name) / "port"
         log = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "deepcontact", "serve", "--models", str(self.models), "--bind", "127.0.0.1:0",
+            [sys.executable, "-m", "deepcontact", "serve", "--models", str(self.models), "--bind", self.bind,
              "--port-file", str(port_file), *self.extra_args],
             stdout=log, stderr=log, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         deadline = time.monotonic() + self.startup_timeout

@@ -29,9 +29,10 @@ _END = object()
 class StepFailed(RuntimeError):
     """No usable reply for this step: deadline, server error, or no server."""
 
-    def __init__(self, reason: str, code: grpc.StatusCode | None = None):
+    def __init__(self, reason: str, code: grpc.StatusCode | None = None, *, backing_off: bool = False):
         super().__init__(reason)
         self.code = code
+        self.backing_off = backing_off  # not sent: the stream is waiting out its reconnect backoff
 
 
 class WarmStartClient:
@@ -111,7 +112,8 @@ class WarmStartClient:
     def _open_stream(self) -> None:
         now = time.monotonic()
         if now < self._retry_at:
-            raise StepFailed(f"reconnecting in {1e3 * (self._retry_at - now):.0f} ms", grpc.StatusCode.UNAVAILABLE)
+            raise StepFailed(f"reconnecting in {1e3 * (self._retry_at - now):.0f} ms", grpc.StatusCode.UNAVAILABLE,
+                             backing_off=True)
         outbox: queue.Queue = queue.Queue()
         inbox: queue.Queue = queue.Queue()
 
