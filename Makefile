@@ -13,7 +13,7 @@ BOX2D_DIR := .cache/box2d/$(BOX2D_KEY)
 BOX2D_WHL := $(BOX2D_DIR)/.built
 BOX2D     := $(VENV)/.box2d-$(BOX2D_KEY)
 
-.PHONY: all setup box2d proto test demo bench-engine clean distclean help
+.PHONY: all setup box2d proto test demo default-model bench-engine clean distclean help
 .DELETE_ON_ERROR:
 
 all: setup
@@ -21,6 +21,7 @@ all: setup
 help:
 	@echo "make test          set up on first use, then run the test suite"
 	@echo "make demo          set up on first use, then run the main job"
+	@echo "make default-model data, training and export of models/pressure.onnx (about 13 min on 2 cores)"
 	@echo "make box2d         build and install the patched pybox2d only"
 	@echo "make proto         regenerate the gRPC stubs from proto/ (committed; a test checks them)"
 	@echo "make bench-engine  engine benchmark -> bench/results/engine.json"
@@ -57,6 +58,9 @@ test: setup
 
 demo: setup
 	$(VENV)/bin/deepcontact demo
+
+default-model: setup
+	bash training/make_default_model.sh
 
 bench-engine: setup
 	$(VENV)/bin/deepcontact bench engine --json bench/results/engine.json

@@ -15,6 +15,9 @@ import sys
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("demo",), "deepcontact.demo", "run the main job: server, simulations, results table"),
     (("generate",), "training.generate", "record simulations into an HDF5 training file"),
+    (("train",), "training.train", "fit a Pressure or Peak model on recorded simulations (resumable)"),
+    (("export",), "training.export", "export a finished training run to ONNX with its model card"),
+    (("evaluate",), "training.evaluate", "score exported models on recorded data with ONNX Runtime"),
     (("serve",), "server.serve", "serve warm starts over gRPC (models/ and the providers)"),
     (("simulate",), "simclient.simulate", "one simulation with one warm start; iterations and latency to JSON"),
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),

@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if not (args.models / f"{args.model}.onnx").exists():
         print(f"deepcontact demo: no model {args.model!r} in {args.models}/ "
-              f"(the shipped one is built by `make model`)", file=sys.stderr)
+              f"(the shipped one is rebuilt by `make default-model`)", file=sys.stderr)
         return 2
     parser = argparse.ArgumentParser()
     iterations.add_arguments(parser)

@@ -1,0 +1,221 @@
+"""`deepcontact evaluate`: score an exported model on recorded data, as the server would run it.
+
+    deepcontact evaluate --model models/pressure.onnx --data data/val.h5 --json results.json
+
+Uses only what the server has: the ONNX file and its card (no TensorFlow, no
+training code path).  Per step, exactly as the card's docstring says:
+
+    grid   = world_to_grids(bodies, contacts, card.gridspec)     # raw, wall mass included
+    pred   = onnx(card.gridspec.normalize(grid)[None])           # normalized
+    values = g2p(card.gridspec.denormalize(pred[0]), points)     # N s per contact point
+
+and reports the grid loss (MSE of the normalized target grid, as in training)
+and the loss at the contact points (MSE, MAE, RMSE in N s; normal and tangent
+separately), next to warm starts that need no model: zero, Box2D's builtin
+(last step's impulse) and the true grid sent back through G2P (what a perfect
+grid would still miss).  Matching the validation numbers in the card checks
+that serving-side preprocessing equals training-side.
+
+A fully convolutional model (``fixed_grid`` false) is run on the grid of the
+data's scene (same resolution, kernel, channels, normalization), whatever its
+size; a fixed-grid model refuses a scene of another size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from deepcontact.gridspec import GridSpec, channel_values, particle_positions
+from deepcontact.io import write_json_atomic
+from deepcontact.modelcard import ModelCard, ModelCardError
+from deepcontact.transfer import g2p, targets_to_grids, world_to_grids
+from training.grids import TRANSFER, GridDataError, iter_steps, open_dataset, point_errors, select_steps, spec_for_scene
+
+
+#: Width, in steps, of the simulation phases the errors are also broken down by.
+PHASE_STEPS = 50
+
+
+class EvaluateError(Exception):
+    """A model or data file that cannot be evaluated; the message says why."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", type=Path, required=True, action="append",
+                        help="ONNX model with its card beside it (NAME.json); repeat to compare several")
+    parser.add_argument("--data", type=Path, required=True,
+                        help="HDF5 file from `deepcontact generate` (not training seeds)")
+    parser.add_argument("--json", type=Path, help="write the results here (JSON)")
+    parser.add_argument("--max-steps", type=int, metavar="N",
+                        help="score at most N steps with contacts, drawn with --seed (default: all of them)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the step choice with --max-steps (default 0)")
+    parser.add_argument("--batch-size", type=int, default=32, help="steps per ONNX Runtime call (default 32)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.batch_size < 1 or (args.max_steps is not None and args.max_steps < 1):
+        print("deepcontact evaluate: --batch-size and --max-steps must be >= 1", file=sys.stderr)
+        return 2
+    results = []
+    try:
+        for model in args.model:
+            results.append(evaluate(model, args.data, max_steps=args.max_steps, seed=args.seed,
+                                    batch_size=args.batch_size))
+            print(format_result(results[-1]), flush=True)
+    except (EvaluateError, GridDataError, ModelCardError) as exc:
+        print(f"deepcontact evaluate: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        write_json_atomic(args.json, {"data": results[0]["data"], "models": results})
+        print(f"wrote {args.json}")
+    return 0
+
+
+def load_model(model_path: str | Path):
+    """(card, ONNX Runtime session) of ``model_path``; EvaluateError if they do not fit together."""
+    import onnxruntime as ort
+
+    model_path = Path(model_path)
+    if not model_path.exists():
+        raise EvaluateError(f"{model_path}: no such model file")
+    card = ModelCard.load(model_path.with_suffix(".json"))
+    if card.onnx_file != model_path.name:
+        raise EvaluateError(f"{model_path.with_suffix('.json')} describes {card.onnx_file}, not {model_path.name}")
+    try:
+        session = ort.InferenceSession(str(model_path), providers=["CPUExecutionProvider"])
+    except Exception as exc:  # ORT raises its own exception types
+        raise EvaluateError(f"{model_path}: ONNX Runtime cannot load it ({exc})") from None
+    (inp,), (out,) = session.get_inputs(), session.get_outputs()
+    if (inp.name, out.name) != (card.input_name, card.output_name):
+        raise EvaluateError(f"{model_path}: tensors are {inp.name!r} -> {out.name!r}, the card says "
+                            f"{card.input_name!r} -> {card.output_name!r}")
+    for what, tensor, channels in (("input", inp, card.gridspec.inputs), ("output", out, card.gridspec.targets)):
+        if isinstance(tensor.shape[-1], int) and tensor.shape[-1] != len(channels):
+            raise EvaluateError(f"channel mismatch: the model's {what} has {tensor.shape[-1]} channels, its card "
+                                f"lists {len(channels)} ({list(channels)})")
+    return card, session
+
+
+def spec_for_data(card: ModelCard, scene: dict, path: Path) -> GridSpec:
+    """The card's spec, moved onto the data's scene box if the model takes any grid size."""
+    spec = card.gridspec
+    wanted = spec_for_scene(scene, resolution=spec.resolution, h=spec.h)
+    if (wanted.shape, wanted.origin) == (spec.shape, spec.origin):
+        return spec
+    if card.fixed_grid:
+        raise EvaluateError(f"{path}: scene {scene.get('name')!r} needs a {wanted.shape[0]} x {wanted.shape[1]} grid, "
+                            f"model {card.name} only takes {spec.shape[0]} x {spec.shape[1]}")
+    return dataclasses.replace(spec, origin=wanted.origin, shape=wanted.shape)
+
+
+def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int = 0,
+             batch_size: int = 32) -> dict[str, Any]:
+    """Scores of ``model_path`` on ``data_path`` (see the module docstring); a JSON-able dict."""
+    card, session = load_model(model_path)
+    data_path = Path(data_path)
+    ds = open_dataset(data_path)
+    try:
+        steps, scene, seeds = ds.steps, ds.scene, ds.seeds
+    finally:
+        ds.close()
+    spec = spec_for_data(card, scene, data_path)
+    index = select_steps(steps, max_steps, seed)
+    if len(index) == 0:
+        raise EvaluateError(f"{data_path}: no steps with contact points to score")
+    transfer = card.training.get("transfer", TRANSFER)
+    opts = {"outside": transfer["outside"], "tolerance": transfer["tolerance"]}
+    method = transfer.get("g2p", "sph")
+    names = spec.targets
+    mean_t, std_t = spec.normalization_arrays(names)
+
+    sq_sum, sq_count, onnx_s = 0.0, 0, 0.0
+    model_vals, oracle_vals, truth, builtin, step_of_point = [], [], [], [], []
+    pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def flush() -> None:
+        nonlocal sq_sum, sq_count, onnx_s
+        x = np.stack([spec.normalize(g, "inputs") for g, _, _ in pending])
+        t0 = time.perf_counter()
+        pred = session.run([card.output_name], {card.input_name: x})[0]
+        onnx_s += time.perf_counter() - t0
+        for p, (_, target, pos) in zip(pred, pending):  # loop over steps
+            sq_sum += float(np.square(p.astype(np.float64) - (target - mean_t) / std_t).sum())
+            sq_count += p.size
+            model_vals.append(g2p(spec.denormalize(p, "targets"), pos, spec, method, **opts)[0])
+            oracle_vals.append(g2p(target, pos, spec, method, **opts)[0])
+        pending.clear()
+
+    t_start = time.perf_counter()
+    for i, bodies, points in iter_steps(data_path, steps, index):
+        try:
+            grid = world_to_grids(bodies, points, spec, **opts)
+            target = targets_to_grids(points, spec, **opts)
+        except ValueError as exc:
+            row = steps[i]
+            raise EvaluateError(f"{data_path}: seed {row['seed']} step {row['step']}: {exc}") from None
+        pending.append((grid, target, particle_positions("contacts", points)))
+        truth.append(channel_values(names, points))
+        builtin.append(points["builtin"])
+        step_of_point.append(np.full(len(points), steps[i]["step"], np.int32))
+        if len(pending) == batch_size:
+            flush()
+    if pending:
+        flush()
+    truth_a = np.concatenate(truth)
+    warm = {"model": np.concatenate(model_vals), "zero": np.zeros_like(truth_a)}
+    if tuple(names) == ("impulse_normal", "impulse_tangent"):
+        warm["builtin"] = np.concatenate(builtin)
+    warm["grid_oracle"] = np.concatenate(oracle_vals)
+    baselines = {k: point_errors(v, truth_a, names) for k, v in warm.items() if k != "model"}
+    # By phase of the simulation: impacts while the bodies fall and pile up
+    # dominate the errors early on; later the pile rests and Box2D's builtin
+    # warm start (last step's impulse) is hard to beat.
+    point_step = np.concatenate(step_of_point)
+    by_steps = {}
+    for lo in range(0, int(point_step.max()) + 1, PHASE_STEPS):
+        sel = np.flatnonzero((point_step >= lo) & (point_step < lo + PHASE_STEPS))
+        if len(sel):
+            by_steps[f"{lo}-{lo + PHASE_STEPS - 1}"] = {
+                "points": int(len(sel)), **{k: point_errors(v[sel], truth_a[sel], names) for k, v in warm.items()}}
+    return {
+        "model": {"name": card.name, "kind": card.kind, "file": str(model_path), "parameters": card.parameters},
+        "data": {"file": str(data_path), "scene": scene.get("name"), "seeds": seeds, "steps": int(len(index)),
+                 "points": int(len(truth_a)), "grid": list(spec.shape), "max_steps": max_steps, "seed": seed},
+        "grid_mse": sq_sum / sq_count,
+        "contact": point_errors(np.concatenate(model_vals), truth_a, names),
+        "baselines": baselines,
+        "by_steps": by_steps,
+        "timing": {"seconds": round(time.perf_counter() - t_start, 2),
+                   "onnx_ms_per_step": round(1e3 * onnx_s / len(index), 3), "batch_size": batch_size},
+    }
+
+
+def format_result(r: dict[str, Any]) -> str:
+    d = r["data"]
+    lines = [f"{r['model']['name']} ({r['model']['kind']}, {r['model']['parameters']:,} parameters) on {d['file']}: "
+             f"{d['steps']} steps, {d['points']} contact points, grid {d['grid'][0]} x {d['grid'][1]}",
+             f"grid MSE (normalized): {r['grid_mse']:.4f}",
+             "contact points, N s        " + "".join(f"{n:>30}" for n in r["contact"]),
+             "                           " + "".join(f"{'rmse':>10}{'mae':>10}{'mse':>10}" for _ in r["contact"])]
+    rows = [("model", r["contact"])] + list(r["baselines"].items())
+    for label, errs in rows:
+        lines.append(f"  {label:<25}" + "".join(f"{e['rmse']:10.4f}{e['mae']:10.4f}{e['mse']:10.4f}"
+                                                 for e in errs.values()))
+    if r.get("by_steps"):
+        first = next(iter(r["by_steps"].values()))
+        labels = [k for k in first if k != "points"]
+        lines.append("contact RMSE by simulation step, N s (" + ", ".join(f"{n}" for n in r["contact"]) + ")")
+        lines.append(f"  {'steps':<10}{'points':>9}" + "".join(f"{k:>22}" for k in labels))
+        for phase, row in r["by_steps"].items():
+            cells = ["  ".join(f"{e['rmse']:.4f}" for e in row[k].values()) for k in labels]
+            lines.append(f"  {phase:<10}{row['points']:>9}" + "".join(f"{c:>22}" for c in cells))
+    lines.append(f"ONNX Runtime {r['timing']['onnx_ms_per_step']:.2f} ms per step in batches of "
+                 f"{r['timing']['batch_size']}; {r['timing']['seconds']:.1f} s in all")
+    return "\n".join(lines)
