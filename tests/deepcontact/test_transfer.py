@@ -15,11 +15,13 @@ from hypothesis import strategies as st
 from deepcontact.gridspec import GridSpec
 from deepcontact.transfer import (
     DOMAIN_TOLERANCE,
+    TransferPlan,
     g2p,
     kernel,
     kernel_shape,
     p2g,
     p2g_batch,
+    plan,
     targets_to_grids,
     world_to_grids,
     worlds_to_grids,
@@ -389,3 +391,99 @@ def test_bench_transfer_command(tmp_path):
     result = json.loads(out.read_text())
     assert set(result["timings_us"]) >= {"p2g_inputs", "g2p_sph"}
     assert result["input_shape"] == [61, 61, 6] and result["target_shape"] == [61, 61, 2]
+
+
+# --------------------------------------------------------------------------- #
+# Plans: weights computed once for P2G and G2P
+# --------------------------------------------------------------------------- #
+
+
+@pytest.mark.parametrize("kernel_name", ["poly6", "spiky", "gaussian"])
+def test_a_plan_transfers_exactly_like_p2g_and_g2p(kernel_name):
+    spec = GridSpec.for_domain((0.0, 0.0), (3.0, 2.0), 0.25, 0.5, kernel=kernel_name)
+    rng = np.random.default_rng(8)
+    positions, values = random_particles(rng, spec, 60, 3)
+    positions[:3] = [[-0.5, 1.0], [1.0, 2.7], [3.005, 0.0]]  # two outside, one within the tolerance
+    pl = plan(positions, spec, outside="drop")
+    assert isinstance(pl, TransferPlan) and pl.n_particles == 60 and pl.outside.tolist() == [0, 1]
+    grid, report = pl.p2g(values)
+    expected, expected_report = p2g(positions, values, spec, outside="drop")
+    np.testing.assert_array_equal(grid, expected)
+    assert report.to_dict() == expected_report.to_dict()
+    back, report = pl.g2p(grid)
+    expected, expected_report = g2p(grid, positions, spec, outside="drop")
+    np.testing.assert_array_equal(back, expected)
+    assert report.to_dict() == expected_report.to_dict()
+    with pytest.raises(ValueError, match="outside"):
+        plan(positions, spec)  # outside="raise" by default, as p2g
+
+
+def test_plan_rows_transfer_like_a_plan_of_those_particles():
+    rng = np.random.default_rng(9)
+    positions, _ = random_particles(rng, SMALL, 40, 1)
+    positions[[5, 30]] = [[-1.0, 0.5], [1.0, 9.0]]  # outside, dropped
+    grid = rng.normal(size=(SMALL.ny, SMALL.nx, 2))
+    whole = plan(positions, SMALL, outside="drop")
+    for start, stop in [(0, 40), (0, 10), (10, 31), (31, 40), (7, 7)]:
+        part = whole.rows(start, stop)
+        alone = plan(positions[start:stop], SMALL, outside="drop")
+        assert part.n_particles == stop - start and part.outside.tolist() == alone.outside.tolist()
+        got, report = part.g2p(grid)
+        expected, expected_report = alone.g2p(grid)
+        np.testing.assert_array_equal(got, expected)
+        assert report.to_dict() == expected_report.to_dict()
+
+
+def test_world_to_grids_hands_back_the_contact_points_plan():
+    bodies, contacts = small_world()
+    contacts = np.concatenate([contacts, contacts[:1]])
+    contacts["point"][-1] = [16.0, 3.0]  # outside the domain: dropped
+    grid, pl = world_to_grids(bodies, contacts, THESIS, outside="drop", return_plan=True)
+    grid2, reports, pl2 = world_to_grids(bodies, contacts, THESIS, outside="drop", return_report=True, return_plan=True)
+    np.testing.assert_array_equal(grid, world_to_grids(bodies, contacts, THESIS, outside="drop"))
+    np.testing.assert_array_equal(grid2, grid)
+    assert reports["contacts"].outside.tolist() == [3] and pl.outside.tolist() == [3]
+    out = np.random.default_rng(10).normal(size=(61, 61, 2)).astype(np.float32)
+    expected, expected_report = g2p(out, contacts["point"], THESIS, outside="drop")
+    for p in (pl, pl2):
+        got, report = p.g2p(out)
+        np.testing.assert_array_equal(got, expected)
+        assert report.to_dict() == expected_report.to_dict()
+    # Inputs that read no contact point still give the contact points' plan.
+    spec = GridSpec.thesis(inputs=("mass", "vx"))
+    _, pl = world_to_grids(bodies, contacts, spec, outside="drop", return_plan=True)
+    np.testing.assert_array_equal(pl.g2p(out)[0], expected)
+
+
+# --------------------------------------------------------------------------- #
+# Stencils at the edges: windows moved inwards, grids smaller than a window
+# --------------------------------------------------------------------------- #
+
+
+@pytest.mark.parametrize("kernel_name", ["poly6", "spiky", "gaussian"])
+@pytest.mark.parametrize(
+    "upper, resolution, h",
+    [((3.0, 2.0), 0.25, 0.5), ((1.0, 1.0), 0.5, 1.2), ((0.5, 2.0), 0.5, 0.9), ((2.0, 2.0), 1.0, 5.0)],
+)
+def test_edges_small_grids_and_far_particles_match_the_algorithms(kernel_name, upper, resolution, h):
+    # Windows larger than the grid (3 x 3 nodes, h = 5 dx), and particles up
+    # to 3 m outside (tolerance 3 m): every node in range is still found.
+    spec = GridSpec.for_domain((0.0, 0.0), upper, resolution, h, kernel=kernel_name)
+    rng = np.random.default_rng(11)
+    positions = rng.uniform(np.array(spec.lower) - 3.0, np.array(spec.upper) + 3.0, size=(60, 2))
+    values = rng.normal(size=(60, 2))
+    grid, report = p2g(positions, values, spec, tolerance=3.0)
+    np.testing.assert_allclose(grid, reference_p2g(spec, positions, values), rtol=1e-5, atol=1e-6)
+    lost = ~(dense_weights(spec, positions) > 0).any(axis=1)
+    assert report.lost.tolist() == np.flatnonzero(lost).tolist()
+    back, _ = g2p(grid, positions, spec, tolerance=3.0)
+    np.testing.assert_allclose(back, reference_g2p(spec, grid, positions), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("walls", [("bottom", "left", "right"), ("bottom", "left", "right", "top"), ("left",), ()])
+def test_wall_mass_goes_where_gridspec_puts_it(walls):
+    spec = GridSpec.thesis(walls=walls)
+    bodies, contacts = small_world()
+    bare, _ = worlds_to_grids([(bodies, contacts), (bodies, contacts[:1])], spec, walls=False)
+    grids, _ = worlds_to_grids([(bodies, contacts), (bodies, contacts[:1])], spec)
+    np.testing.assert_array_equal(grids, spec.add_wall_mass(bare.copy()))

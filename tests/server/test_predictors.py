@@ -1,0 +1,134 @@
+"""The server's predictors and step decoding, without gRPC: the same transfer
+and normalization as training, bit for bit, with the contact points' kernel
+weights computed once per step."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from deepcontact import wire
+from deepcontact.gridspec import GridSpec
+from deepcontact.modelcard import ModelCard
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
+from deepcontact.transfer import g2p, p2g, world_to_grids
+from server.predictors import GridIdentityPredictor, ModelPredictor, _Normalization
+from tests.server.conftest import write_conv_model
+
+DOMAIN = ((0.0, 0.0), (15.0, 15.0))
+NORMALIZATION = {
+    "mass": (0.3, 2.5), "vx": (-0.1, 0.7), "omega": (0.05, 1.3), "normal_y": (-0.2, 0.9),
+    "impulse_normal": (0.4, 1.7), "impulse_tangent": (-0.01, 0.2),
+}
+
+
+@pytest.fixture(scope="module")
+def normalized_model(tmp_path_factory):
+    """A residual 1x1-convolution model whose card normalizes most channels."""
+    folder = tmp_path_factory.mktemp("normalized")
+    card = write_conv_model(folder, "norm", residual=True, seed=3)
+    card = dataclasses.replace(card, gridspec=card.gridspec.with_normalization(NORMALIZATION))
+    card.save(folder / "norm.json")
+    return ModelPredictor(ModelCard.load(folder / "norm.json"), folder / "norm.onnx")
+
+
+def sent(bodies, points):
+    """The records the server works on: the step through the wire."""
+    msg = wire.encode_step(0, "norm", bodies, points, builtin=points["builtin"], impulses=points["impulse"])
+    return wire.decode_step(msg, max_bodies=10**4, max_points=10**5)
+
+
+def with_a_point_outside(points):
+    """The points plus a copy of the first one 2 m past the right wall (dropped)."""
+    extra = points[:1].copy()
+    extra["point"] = [[17.0, 3.0]]
+    return np.concatenate([points, extra])
+
+
+def test_normalization_is_gridspecs_bit_for_bit():
+    spec = GridSpec.thesis(normalization=NORMALIZATION)
+    norm = _Normalization(spec)
+    rng = np.random.default_rng(0)
+    grid = (3 * rng.normal(size=(61, 61, 6))).astype(np.float32)
+    np.testing.assert_array_equal(norm.inputs(grid.copy()), spec.normalize(grid, "inputs")[None])
+    y = rng.normal(size=(1, 61, 61, 2)).astype(np.float32)
+    np.testing.assert_array_equal(norm.targets(y), spec.denormalize(y[0], "targets"))
+
+
+def test_a_model_step_is_the_transfer_done_by_hand(normalized_model, thesis_steps):
+    model = normalized_model
+    _, steps = thesis_steps
+    for bodies, points in steps:
+        bodies, points = sent(bodies, with_a_point_outside(points))
+        impulses, stages = model.predict(bodies, points, DOMAIN, 0)
+        assert set(stages) == {"p2g", "inference", "g2p"}
+        # Training's way: P2G, normalize, the model, denormalize, G2P (+ builtin: residual).
+        spec = model._specs.get(DOMAIN)
+        x = spec.normalize(world_to_grids(bodies, points, spec, outside="drop"), "inputs")[None]
+        y = model.session.run(None, {"grids": x})[0]
+        expected, _ = g2p(spec.denormalize(y[0], "targets"), points["point"], spec, outside="drop")
+        expected = expected + points["builtin"]
+        assert impulses.dtype == np.float32 and impulses.shape == (len(points), 2)
+        np.testing.assert_array_equal(impulses, expected)
+        np.testing.assert_array_equal(impulses[-1], points["builtin"][-1])  # dropped: builtin only
+
+
+def test_grid_identity_is_p2g_then_g2p(thesis_steps):
+    _, steps = thesis_steps
+    bodies, points = sent(*steps[0])
+    points = with_a_point_outside(points)
+    predictor = GridIdentityPredictor(GridSpec.thesis())
+    got, _ = predictor.predict(bodies, points, DOMAIN, 0)
+    spec = GridSpec.thesis()
+    grid, _ = p2g(points["point"], points["impulse"], spec, outside="drop")
+    expected, _ = g2p(grid, points["point"], spec, outside="drop")
+    np.testing.assert_array_equal(got, expected)
+
+
+def reference_decode(msg):
+    """decode_step written field by field."""
+    b = np.frombuffer(msg.bodies, np.float32).reshape(msg.body_count, len(wire.BODY_COLUMNS))
+    p = np.frombuffer(msg.points, np.float32).reshape(msg.point_count, len(wire.POINT_COLUMNS))
+    bodies = np.zeros(len(b), BODY_DTYPE)
+    bodies["index"] = np.arange(1, len(b) + 1)
+    bodies["type"] = 2
+    bodies["position"] = b[:, 0:2]
+    bodies["angle"] = b[:, 2]
+    bodies["velocity"] = b[:, 3:5]
+    bodies["angular_velocity"] = b[:, 5]
+    bodies["mass"] = b[:, 6]
+    bodies["radius"] = b[:, 7]
+    points = np.zeros(len(p), CONTACT_DTYPE)
+    points["point"] = p[:, 0:2]
+    points["normal"] = p[:, 2:4]
+    if msg.builtin:
+        points["builtin"] = np.frombuffer(msg.builtin, np.float32).reshape(-1, 2)
+    if msg.impulses:
+        points["impulse"] = np.frombuffer(msg.impulses, np.float32).reshape(-1, 2)
+    return bodies, points
+
+
+@pytest.mark.parametrize("extra", [{}, {"builtin": True}, {"builtin": True, "impulses": True}])
+def test_steps_decode_into_the_records_field_by_field(thesis_steps, extra):
+    _, steps = thesis_steps
+    for bodies, points in steps + [(steps[0][0][:0], steps[0][1][:0])]:
+        kw = {k: points["builtin" if k == "builtin" else "impulse"] for k in extra}
+        msg = wire.encode_step(0, "tiny", bodies, points, **kw)
+        got = wire.decode_step(msg, max_bodies=10**4, max_points=10**5)
+        for g, e in zip(got, reference_decode(msg)):
+            assert g.dtype == e.dtype and g.shape == e.shape
+            assert g.tobytes() == e.tobytes()
+
+
+@pytest.mark.parametrize("field", ["bodies", "points", "builtin", "impulses"])
+def test_a_non_finite_array_is_named(thesis_steps, field):
+    _, steps = thesis_steps
+    bodies, points = steps[0]
+    msg = wire.encode_step(0, "tiny", bodies, points, builtin=points["builtin"], impulses=points["builtin"])
+    bad = np.frombuffer(getattr(msg, field), np.float32).copy()
+    bad[-1] = np.inf
+    setattr(msg, field, bad.tobytes())
+    with pytest.raises(wire.WireError, match=f"^{field}: holds NaN or infinite values"):
+        wire.decode_step(msg, max_bodies=10**4, max_points=10**5)
