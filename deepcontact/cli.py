@@ -19,6 +19,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("export",), "training.export", "export a finished training run to ONNX with its model card"),
     (("evaluate",), "training.evaluate", "score exported models on recorded data with ONNX Runtime"),
     (("serve",), "server.serve", "serve warm starts over gRPC (models/ and the providers)"),
+    (("health",), "deepcontact.health", "exit 0 if a warm-start server reports SERVING"),
     (("simulate",), "simclient.simulate", "one simulation with one warm start; iterations and latency to JSON"),
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
