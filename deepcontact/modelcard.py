@@ -14,9 +14,14 @@ Tensors are NHWC float32; the batch dimension is dynamic. `fixed_grid` says
 whether the model only accepts `gridspec.shape` (Peak, with its dense layers)
 or any grid size (Pressure, fully convolutional).
 
-`residual` models predict a correction to Box2D's builtin warm start: their
-input channels include `builtin_normal`/`builtin_tangent` and the warm start
-served is builtin + G2P(prediction) per point.
+`combine` says how the model's G2P output becomes the warm start served, per
+contact point, given Box2D's builtin warm start sent in the request:
+    "replace"     the model's impulse (the thesis's models)
+    "residual"    builtin + the model's output (a correction; models whose
+                  inputs include builtin_normal/builtin_tangent)
+    "new-points"  the model's impulse where the point is new this step
+                  (builtin exactly zero), builtin where it persists
+Several cards may name the same ONNX file, e.g. one model served two ways.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
 
 CARD_VERSION = 1
+COMBINE = ("replace", "residual", "new-points")
 
 
 class ModelCardError(ValueError):
@@ -46,7 +52,7 @@ class ModelCard:
     fixed_grid: bool
     input_name: str = "grids"
     output_name: str = "impulses"
-    residual: bool = False
+    combine: str = "replace"  # "replace", "residual" or "new-points" (see above)
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...
@@ -80,6 +86,8 @@ class ModelCard:
         except ValueError as exc:
             raise ModelCardError(f"model card gridspec: {exc}") from None
         d["commands"] = tuple(d.get("commands", ()))
+        if d.get("combine", "replace") not in COMBINE:
+            raise ModelCardError(f"model card combine {d['combine']!r}: use one of {', '.join(COMBINE)}")
         return cls(**d)
 
     def save(self, path: str | os.PathLike) -> Path:

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact.gridspec import GridSpec
-from deepcontact.modelcard import ModelCard
+from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.transfer import plan, world_to_grids
 
 Domain = tuple[tuple[float, float], tuple[float, float]]
@@ -165,10 +165,20 @@ class ModelPredictor(Predictor):
         t2 = time.perf_counter()
         out = norm.targets(y)  # == spec.denormalize(y[0], "targets")
         impulses, _ = contacts.g2p(out)  # == g2p(out, points["point"], spec, outside="drop")
-        if self.card.residual:
-            impulses = impulses + points["builtin"]
+        impulses = combine(self.card.combine, impulses, points["builtin"])
         t3 = time.perf_counter()
         return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
+
+
+def combine(how: str, predicted: np.ndarray, builtin: np.ndarray) -> np.ndarray:
+    """The warm start served, (P, 2) N s, from the model's G2P output and the
+    request's builtin warm start (both (P, 2)); see deepcontact.modelcard."""
+    if how == "residual":
+        return predicted + builtin
+    if how == "new-points":
+        new = ~builtin.any(axis=1)  # Box2D carries no impulse into a point it has not seen
+        return np.where(new[:, None], predicted, builtin)
+    return predicted
 
 
 @dataclasses.dataclass
@@ -236,11 +246,20 @@ def providers(random_seed: int = 0) -> list[Predictor]:
 
 
 def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: int = 1) -> list[ModelPredictor]:
-    """Every `*.onnx` in folder with its `*.json` card. A model without a card,
-    or a card that does not match its model, stops the server with a message."""
+    """One predictor per card (`*.json`) in folder, each running the ONNX file
+    its card names. An ONNX file that no card names, or a card whose file is
+    missing or does not match, stops the server with a message."""
+    folder = Path(folder)
+    cards = {path: ModelCard.load(path) for path in sorted(folder.glob("*.json"))}
+    named = {card.onnx_file for card in cards.values()}
+    orphans = sorted(p.name for p in folder.glob("*.onnx") if p.name not in named)
+    if orphans:
+        raise ModelCardError(f"{folder}: no model card names {', '.join(orphans)}")
     models = []
-    for onnx_path in sorted(Path(folder).glob("*.onnx")):
-        card = ModelCard.load(onnx_path.with_suffix(".json"))
+    for path, card in cards.items():
+        onnx_path = card.onnx_path(path)
+        if not onnx_path.exists():
+            raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {folder}")
         models.append(ModelPredictor(card, onnx_path, intra_op_threads=intra_op_threads,
                                      inter_op_threads=inter_op_threads))
     return models

@@ -16,7 +16,7 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server.serve import Server
 
 
-def write_conv_model(folder, name="tiny", fixed_grid=False, residual=False, seed=0):
+def write_conv_model(folder, name="tiny", fixed_grid=False, combine="replace", seed=0):
     """A 1x1 convolution from the 6 input channels to 2 outputs, with its card."""
     spec = GridSpec.thesis()
     cin, cout = len(spec.inputs), len(spec.targets)
@@ -37,7 +37,7 @@ def write_conv_model(folder, name="tiny", fixed_grid=False, residual=False, seed
     model.ir_version = 8
     onnx.save(model, folder / f"{name}.onnx")
     card = ModelCard(name=name, kind="test-conv", onnx_file=f"{name}.onnx", gridspec=spec,
-                     fixed_grid=fixed_grid, residual=residual)
+                     fixed_grid=fixed_grid, combine=combine)
     card.save(folder / f"{name}.json")
     return card
 

@@ -28,7 +28,7 @@ NORMALIZATION = {
 def normalized_model(tmp_path_factory):
     """A residual 1x1-convolution model whose card normalizes most channels."""
     folder = tmp_path_factory.mktemp("normalized")
-    card = write_conv_model(folder, "norm", residual=True, seed=3)
+    card = write_conv_model(folder, "norm", combine="residual", seed=3)
     card = dataclasses.replace(card, gridspec=card.gridspec.with_normalization(NORMALIZATION))
     card.save(folder / "norm.json")
     return ModelPredictor(ModelCard.load(folder / "norm.json"), folder / "norm.onnx")
@@ -132,3 +132,27 @@ def test_a_non_finite_array_is_named(thesis_steps, field):
     setattr(msg, field, bad.tobytes())
     with pytest.raises(wire.WireError, match=f"^{field}: holds NaN or infinite values"):
         wire.decode_step(msg, max_bodies=10**4, max_points=10**5)
+
+
+def test_combine_serves_model_builtin_or_both():
+    from server.predictors import combine
+
+    predicted = np.array([[1.0, 0.1], [2.0, 0.2], [3.0, 0.3]], np.float32)
+    builtin = np.array([[0.5, 0.0], [0.0, 0.0], [0.0, -0.1]], np.float32)  # point 1 is new
+    np.testing.assert_array_equal(combine("replace", predicted, builtin), predicted)
+    np.testing.assert_array_equal(combine("residual", predicted, builtin), predicted + builtin)
+    np.testing.assert_array_equal(combine("new-points", predicted, builtin), np.array([[0.5, 0.0], [2.0, 0.2], [0.0, -0.1]], np.float32))
+
+
+def test_cards_may_share_an_onnx_file_and_orphans_are_refused(tmp_path):
+    from deepcontact.modelcard import ModelCardError
+    from server.predictors import load_models
+
+    card = write_conv_model(tmp_path, "base")
+    dataclasses.replace(card, name="base-new-points", combine="new-points").save(tmp_path / "base-new-points.json")
+    models = {m.name: m.card.combine for m in load_models(tmp_path)}
+    assert models == {"base": "replace", "base-new-points": "new-points"}
+    (tmp_path / "base.json").unlink()
+    (tmp_path / "base-new-points.json").unlink()
+    with pytest.raises(ModelCardError, match="no model card names base.onnx"):
+        load_models(tmp_path)
