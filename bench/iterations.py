@@ -65,7 +65,11 @@ def run(args: argparse.Namespace) -> int:
     if remote and target is None:
         from server.process import ServerProcess
 
-        server_proc = ServerProcess(args.models, log=args.out / "server.log").start()
+        try:
+            server_proc = ServerProcess(args.models, log=args.out / "server.log").start()
+        except (RuntimeError, TimeoutError) as exc:
+            print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+            return 2
         target = server_proc.address
     runs: dict[str, list[dict]] = {}
     try:

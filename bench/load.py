@@ -235,6 +235,20 @@ def run(args: argparse.Namespace) -> int:
             (f"{args.server_processes} processes (SO_REUSEPORT)", [common] * args.server_processes),
         ]
     results = []
+    try:
+        _run_configs(args, configs, levels, results)
+    except (RuntimeError, TimeoutError) as exc:  # a server that would not start
+        print(f"deepcontact bench load: {exc}", file=sys.stderr)
+        return 2
+    write_json_atomic(args.out / "load.json", {
+        "model": args.model, "replay": str(args.replay) if args.replay else None, "duration_s": args.duration,
+        "command": "deepcontact " + " ".join(sys.argv[1:]), "results": results})
+    _plot(results, args.out / "latency_vs_load.png")
+    print(f"wrote {args.out}/load.json and latency_vs_load.png")
+    return 0
+
+
+def _run_configs(args, configs, levels, results: list[dict]) -> None:
     for label, servers in configs:
         procs = []
         try:
@@ -251,8 +265,7 @@ def run(args: argparse.Namespace) -> int:
 
             with WarmStartClient(target) as probe:
                 if not probe.wait_ready(10) or args.model not in [m.name for m in probe.list_models()]:
-                    print(f"deepcontact bench load: {target} does not serve {args.model!r}", file=sys.stderr)
-                    return 2
+                    raise RuntimeError(f"{target} does not serve {args.model!r}")
             for clients in levels:
                 r = run_level(target, args.model, clients, args.duration, replay=args.replay,
                               max_processes=args.processes, deadline_s=args.deadline_ms / 1e3)
@@ -265,12 +278,6 @@ def run(args: argparse.Namespace) -> int:
         finally:
             for p in procs:
                 p.stop()
-    write_json_atomic(args.out / "load.json", {
-        "model": args.model, "replay": str(args.replay) if args.replay else None, "duration_s": args.duration,
-        "command": "deepcontact " + " ".join(sys.argv[1:]), "results": results})
-    _plot(results, args.out / "latency_vs_load.png")
-    print(f"wrote {args.out}/load.json and latency_vs_load.png")
-    return 0
 
 
 def _fmt(x):

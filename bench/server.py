@@ -49,7 +49,11 @@ def record_steps(seed: int, steps: int):
 def run(args: argparse.Namespace) -> int:
     from server.process import ServerProcess
 
-    server = ServerProcess(args.models).start()
+    try:
+        server = ServerProcess(args.models).start()
+    except (RuntimeError, TimeoutError) as exc:
+        print(f"deepcontact bench server: {exc}", file=sys.stderr)
+        return 2
     with WarmStartClient(server.address) as probe:
         names = [m.name for m in probe.list_models()]
     if args.model not in names:

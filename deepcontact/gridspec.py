@@ -184,6 +184,11 @@ for _c in (
     Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),
     Channel("impulse_normal", "contacts", _field("impulse", 0), "N s", "final solver impulse, normal"),
     Channel("impulse_tangent", "contacts", _field("impulse", 1), "N s", "final solver impulse, tangent"),
+    # Targets of residual models: what the solver adds to Box2D's own warm start.
+    Channel("correction_normal", "contacts", lambda c: c["impulse"][:, 0] - c["builtin"][:, 0], "N s",
+            "final impulse minus the builtin warm start, normal"),
+    Channel("correction_tangent", "contacts", lambda c: c["impulse"][:, 1] - c["builtin"][:, 1], "N s",
+            "final impulse minus the builtin warm start, tangent"),
 ):
     register_channel(_c)
 del _c

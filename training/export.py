@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from deepcontact.gridspec import GridSpec
-from deepcontact.modelcard import ModelCard
+from deepcontact.modelcard import COMBINE, ModelCard
 
 OPSET = 17
 PARITY_SEED = 0
@@ -50,13 +50,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True,
                         help="ONNX file to write, e.g. models/pressure.onnx (the card goes beside it as .json)")
     parser.add_argument("--name", help="model name in the card (default: the --out file's stem)")
+    parser.add_argument("--combine", choices=COMBINE,
+                        help="how the served warm start uses the model's output (default: residual for runs whose "
+                             "targets are correction_* channels, replace otherwise; see deepcontact.modelcard)")
 
 
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
     try:
         card, onnx_path, card_path = export_run(args.run_dir, args.out, name=args.name,
-                                                command=_command(args))
+                                                command=_command(args), combine=args.combine)
     except ExportError as exc:
         print(f"deepcontact export: {exc}", file=sys.stderr)
         return 2
@@ -94,7 +97,7 @@ def load_finished_run(run_dir: str | os.PathLike) -> tuple[dict, dict]:
 
 
 def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str | None = None,
-               command: str | None = None) -> tuple[ModelCard, Path, Path]:
+               command: str | None = None, combine: str | None = None) -> tuple[ModelCard, Path, Path]:
     """Export the best weights of a finished run to ``out`` (.onnx) and its card (.json).
 
     Returns (card, onnx path, card path).
@@ -132,6 +135,7 @@ def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str 
         onnx_file=out.name,
         gridspec=spec,
         fixed_grid=bool(config.fixed_grid),
+        combine=combine or ("residual" if all(t.startswith("correction_") for t in spec.targets) else "replace"),
         parameters=params["total"],
         architecture={"config": info["model"], "parameters": params, "onnx_opset": OPSET,
                       "onnx_bytes": len(data), "tensorflow": tf.__version__},
