@@ -84,7 +84,7 @@ def _steps_source(replay: str | None, stream_index: int, limit: int = 250):
                 engine.solve()
 
 
-def _stream_worker(target, model, replay, stream_index, start_at, stop_at, deadline_s, out: dict, lock):
+def _stream_worker(target, model, source, stream_index, timing, deadline_s, out: dict, lock):
     from hdrh.histogram import HdrHistogram
 
     from deepcontact import wire
@@ -95,9 +95,9 @@ def _stream_worker(target, model, replay, stream_index, start_at, stop_at, deadl
     server_inference = HdrHistogram(1, HIGHEST_US, 3)
     errors: dict[str, int] = {}
     ok = wrong_order = 0
-    source = _steps_source(replay, stream_index)
     world = wire.encode_world((0.0, 0.0), (15.0, 15.0))
     with WarmStartClient(target, world=world, backoff_s=(0.01, 0.2)) as client:
+        start_at, stop_at = timing()
         while time.time() < start_at:
             time.sleep(0.001)
         k = 0
@@ -134,15 +134,27 @@ def _stream_worker(target, model, replay, stream_index, start_at, stop_at, deadl
             out[name].add(h)
 
 
-def _process_worker(target, model, replay, stream_indices, start_at, stop_at, deadline_s, result_path):
+def _process_worker(target, model, replay, stream_indices, deadline_s, ready, start_time, duration, result_path):
     from hdrh.histogram import HdrHistogram
 
     out = {"ok": 0, "wrong_order": 0, "errors": {},
            "latency": HdrHistogram(1, HIGHEST_US, 3), "server_total": HdrHistogram(1, HIGHEST_US, 3),
            "server_inference": HdrHistogram(1, HIGHEST_US, 3)}
     lock = threading.Lock()
-    threads = [threading.Thread(target=_stream_worker, args=(target, model, replay, i, start_at, stop_at,
-                                                             deadline_s, out, lock)) for i in stream_indices]
+    # Load every stream's steps before reporting ready, so the timed window
+    # measures the server, not start-up.
+    sources = {i: _steps_source(replay, i) for i in stream_indices}
+    for src in sources.values():
+        next(src)
+    ready.wait()  # a barrier across all load processes and the parent
+
+    def timing():
+        while start_time.value == 0.0:
+            time.sleep(0.001)
+        return start_time.value, start_time.value + duration
+
+    threads = [threading.Thread(target=_stream_worker, args=(target, model, sources[i], i, timing, deadline_s,
+                                                             out, lock)) for i in stream_indices]
     for t in threads:
         t.start()
     for t in threads:
@@ -161,18 +173,19 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
     ctx = mp.get_context("spawn")  # no gRPC state crosses a fork
     n_proc = max(1, min(clients, max_processes))
     groups = [list(range(i, clients, n_proc)) for i in range(n_proc)]
-    warmup = 3.0 + 0.4 * n_proc  # spawned interpreters import numpy and grpc first
-    start_at = time.time() + warmup
-    stop_at = start_at + duration
+    ready = ctx.Barrier(n_proc + 1)
+    start_time = ctx.Value("d", 0.0)
     with tempfile.TemporaryDirectory(prefix="deepcontact-load-") as tmp:
         paths = [Path(tmp) / f"w{i}.json" for i in range(n_proc)]
         procs = [ctx.Process(target=_process_worker, args=(target, model, str(replay) if replay else None, g,
-                                                           start_at, stop_at, deadline_s, str(p)))
+                                                           deadline_s, ready, start_time, duration, str(p)))
                  for g, p in zip(groups, paths)]
         for p in procs:
             p.start()
+        ready.wait(timeout=300)
+        start_time.value = time.time() + 1.0  # the streams connect, then all start together
         for p in procs:
-            p.join(timeout=warmup + duration + 60)
+            p.join(timeout=duration + 120)
             if p.is_alive():
                 p.kill()
         parts = [json.loads(p.read_text()) for p in paths if p.exists()]
