@@ -48,3 +48,11 @@ def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(model
     assert r["errors"].get("RESOURCE_EXHAUSTED", 0) > 0
     assert set(r["errors"]) <= {"RESOURCE_EXHAUSTED"}  # refused promptly, not timed out
     assert r["wrong_order_or_step"] == 0 and r["steps"] > 0
+
+
+def test_live_simulations_can_drive_the_load(models, tmp_path):
+    with ServerProcess(models) as server:
+        assert main(["bench", "load", "--server", server.address, "--model", "tiny", "--clients", "2",
+                     "--duration", "1", "--processes", "1", "--out", str(tmp_path)]) == 0
+    (r,) = json.loads((tmp_path / "load.json").read_text())["results"]
+    assert r["steps"] > 0 and r["errors"] == {} and r["wrong_order_or_step"] == 0

@@ -134,3 +134,25 @@ def test_reflection_lists_the_service(server):
 
 def test_generated_stubs_are_up_to_date():
     assert protogen.stale() == [], "run `make proto`"
+
+
+def test_prometheus_metrics_count_steps_and_errors(model_dir, tmp_path, thesis_steps):
+    import socket
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        metrics_port = s.getsockname()[1]
+    from server.process import ServerProcess
+
+    world, steps = thesis_steps
+    with ServerProcess(model_dir, "--metrics-port", str(metrics_port)) as server:
+        with grpc.insecure_channel(server.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            stub.Predict(wire.encode_step(0, "tiny", *steps[0], world=world))
+            with pytest.raises(grpc.RpcError):
+                stub.Predict(wire.encode_step(0, "nope", *steps[0], world=world))
+        text = urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10).read().decode()
+    assert 'deepcontact_steps_total{model="tiny"} 1.0' in text
+    assert 'deepcontact_errors_total{code="NOT_FOUND"} 1.0' in text
+    assert 'deepcontact_stage_seconds_count{stage="inference"} 1.0' in text
