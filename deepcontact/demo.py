@@ -2,7 +2,8 @@
 
 Starts `deepcontact serve` with the shipped models on a free loopback port,
 waits for its health check, runs the thesis world on a held-out seed with
-`none`, `builtin` and the shipped model through the server, prints the table
+`none`, `builtin` and the shipped models through the server (the thesis-style
+`pressure` and `residual-new-points`, which beats builtin), prints the table
 (iterations per step, round-trip latency, fallbacks), writes the figures to
 the folder it names, and stops the server, also when a step fails. It is
 `deepcontact bench iterations` with a fixed small selection.
@@ -19,24 +20,28 @@ from bench import iterations
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=901, help="held-out thesis seed (default 901)")
-    parser.add_argument("--model", default="pressure", help="shipped model to compare (default pressure)")
+    parser.add_argument("--model", default="pressure,residual-new-points",
+                        help="shipped models to compare, comma-separated (default pressure,residual-new-points)")
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
     parser.add_argument("--out", type=Path, default=Path("demo-results"), help="folder for the table and figures (default demo-results/)")
 
 
 def run(args: argparse.Namespace) -> int:
-    if not (args.models / f"{args.model}.onnx").exists():
-        print(f"deepcontact demo: no model {args.model!r} in {args.models}/ "
-              f"(the shipped one is rebuilt by `make default-model`)", file=sys.stderr)
+    names = [m.strip() for m in args.model.split(",") if m.strip()]
+    missing = [m for m in names if not (args.models / f"{m}.json").exists()]
+    if missing:
+        print(f"deepcontact demo: no model card {', '.join(missing)} in {args.models}/ "
+              f"(models/pressure.onnx is rebuilt by `make default-model`)", file=sys.stderr)
         return 2
+    servers = ",".join(f"server:{m}" for m in names)
     parser = argparse.ArgumentParser()
     iterations.add_arguments(parser)
     bench_args = parser.parse_args([
-        "--seeds", str(args.seed), "--warm-starts", f"none,builtin,server:{args.model}",
+        "--seeds", str(args.seed), "--warm-starts", f"none,builtin,{servers}",
         "--models", str(args.models), "--out", str(args.out),
     ])
-    print(f"deepcontact demo: thesis world, seed {args.seed}; warm starts none, builtin and "
-          f"server:{args.model} (a server on a free loopback port)", file=sys.stderr)
+    print(f"deepcontact demo: thesis world, seed {args.seed}; warm starts none, builtin, {servers} "
+          f"(a server on a free loopback port)", file=sys.stderr)
     code = iterations.run(bench_args)
     if code == 0:
         print(f"figures and table in {args.out}/ (fig20_contacts_iterations.png, fig21_convergence.png, "
