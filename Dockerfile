@@ -8,7 +8,7 @@ RUN apt-get update \
 
 WORKDIR /app
 # Dependencies and the Box2D build first, so code edits do not rebuild them.
-COPY requirements.lock pyproject.toml README.md Makefile ./
+COPY requirements.lock pyproject.toml setup.py README.md Makefile ./
 COPY box2d/ box2d/
 COPY deepcontact/ deepcontact/
 COPY simclient/ simclient/

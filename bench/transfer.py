@@ -91,7 +91,6 @@ def run(args: argparse.Namespace) -> int:
         "timings_us": timings,
         "targets_us": TARGETS_US,
         "meets_targets": {k: timings[k]["median"] <= v for k, v in TARGETS_US.items()},
-        "compiled_sparse_kernels": transfer._splat is transfer._splat_compiled,
         "machine": {
             "python": platform.python_version(),
             "numpy": np.__version__,

@@ -43,15 +43,15 @@ Implementation: no Python loop over particles or nodes.  A particle is
 anchored at its nearest node and can only touch the (2k+1)^2 nodes around it,
 k = floor(h/dx + 1/2); anchors are moved inwards near the edges so that every
 stencil lies on the grid (see :class:`_Stencil`), and the stencil's constants
-are computed once per grid geometry and cached.  Weights form an (S, N) array
-(stencil entry x particle) of flat node indices and weights.  P2G scatters
-all channels with one sparse (nodes x particles) product in coordinate form;
-SPH G2P sums the weights per node, divides each weight by its node's sum,
-and gathers with the transposed product.  At the sizes used here (a few
-hundred particles, 61 x 61 nodes) the cost is mostly per NumPy call, so the
-code keeps the number of calls small; large inputs are processed in chunks
-whose temporaries stay around 128 KiB, because larger short-lived
-allocations are returned to the OS and page-faulted back in on every call.
+are computed once per grid geometry and cached.  Weights form an (N, S) array
+(particle x stencil entry) of flat node indices and weights.  The three inner
+loops -- the weights, the P2G splat and the SPH G2P gather -- are compiled
+(``deepcontact/_transfer.c``, built by ``make setup``): at the sizes used here
+(a few hundred particles, 61 x 61 nodes) NumPy spent most of its time in
+per-call overhead, and the server's step paid it again with cold caches after
+every inference.  This module keeps the geometry, the checks and the reports;
+the C code does arithmetic on arrays it is handed.  Sums are accumulated in
+float64 and rounded to float32 once.
 
 Bad input: NaN or infinite positions or values raise ValueError naming what
 was bad; particles beyond the domain (by more than ``tolerance``) are counted
@@ -71,9 +71,16 @@ from functools import lru_cache
 from typing import NamedTuple, Sequence
 
 import numpy as np
-from scipy import sparse
 
 from deepcontact.gridspec import CHANNELS, KERNELS, SOURCES, GridSpec
+
+try:
+    from deepcontact import _transfer as _compiled
+except ImportError as exc:  # pragma: no cover - a checkout that was never set up
+    raise ImportError(
+        "deepcontact's compiled transfer kernels (deepcontact/_transfer.c) are not built: "
+        "run `make setup` (or `pip install -e .`)"
+    ) from exc
 
 __all__ = [
     "DOMAIN_TOLERANCE",
@@ -98,13 +105,9 @@ DOMAIN_TOLERANCE = 0.01
 _OUTSIDE_MODES = ("raise", "drop")
 _G2P_METHODS = ("sph", "bilinear")
 
-#: Stencil entries (S x N) per chunk: float64 temporaries of about 128 KiB.
-_CHUNK_ENTRIES = 16384
-
-# x.all() and x.sum(axis=0) run a Python-level wrapper in NumPy; on the
+# x.all() runs a Python-level wrapper in NumPy; on the
 # server's per-step path the ufunc reductions are called directly.
 _all = functools.partial(np.logical_and.reduce, axis=None)
-_sum0 = functools.partial(np.add.reduce, axis=0)
 
 
 # --------------------------------------------------------------------------- #
@@ -137,41 +140,16 @@ def kernel_shape(q2: np.ndarray, name: str = "poly6") -> np.ndarray:
     Proportional to :func:`kernel` (the factor cancels in the normalization);
     zero for ``q2 > 1`` (poly6, spiky) and truncated there (gaussian).
     """
-    return _shape_of_m(1.0 - np.asarray(q2, dtype=np.float64), name)
+    if name not in _KERNEL_IDS:
+        raise ValueError(f"unknown kernel {name!r}; known kernels: {list(KERNELS)}")
+    m = np.ascontiguousarray(1.0 - np.asarray(q2, dtype=np.float64))
+    out = np.empty_like(m)
+    _compiled.shape(m, _KERNEL_IDS[name], out)
+    return out
 
 
-def _shape_of_m(m: np.ndarray, name: str, out: np.ndarray | None = None) -> np.ndarray:
-    """Kernel shape as a function of ``m = 1 - (r/h)^2``, in ``m``'s dtype.
-
-    The fast path builds ``m`` directly (see :func:`_weights`); ``m`` is
-    overwritten, and the result is written to ``out`` (same shape) if given.
-    ``m <= 0`` means out of range.
-    """
-    if name == "poly6":
-        np.maximum(m, 0.0, out=m)
-        w = np.multiply(m, m, out=out)
-        w *= m
-        return w
-    if name == "spiky":
-        np.subtract(1.0, m, out=m)  # q^2
-        np.maximum(m, 0.0, out=m)
-        np.sqrt(m, out=m)
-        np.subtract(1.0, m, out=m)
-        np.maximum(m, 0.0, out=m)
-        w = np.multiply(m, m, out=out)
-        w *= m
-        return w
-    if name == "gaussian":
-        # sigma = h/3  =>  r^2 / (2 sigma^2) = 4.5 q^2 = 4.5 (1 - m); truncated at q = 1.
-        w = np.subtract(m, 1.0, out=out)
-        w *= 4.5
-        np.exp(w, out=w)
-        np.putmask(w, m < 0.0, 0.0)
-        return w
-    raise ValueError(f"unknown kernel {name!r}; known kernels: {list(KERNELS)}")
-
-
-if set(KERNELS) != {"poly6", "spiky", "gaussian"}:  # keep gridspec's list and this module in step
+_KERNEL_IDS = {"poly6": _compiled.POLY6, "spiky": _compiled.SPIKY, "gaussian": _compiled.GAUSSIAN}
+if set(KERNELS) != set(_KERNEL_IDS):  # keep gridspec's list and this module in step
     raise ImportError("deepcontact.gridspec.KERNELS and deepcontact.transfer disagree")
 
 
@@ -297,24 +275,15 @@ class _Stencil:
     window out of range simply get weight 0 from the kernel.  (An axis with
     fewer than K nodes gets a window of all its nodes, completed to K with
     entries at an infinite offset, which get weight 0.)
-
-    Arrays are laid out stencil-major, particle-minor ((2, K, N), (S, N)):
-    with the particle axis innermost every NumPy operation runs long
-    contiguous loops, several times faster than (N, S) for small stencils.
-    At the sizes used here the cost is mostly per NumPy call, so the
-    constants below are arranged to keep the number of calls down.
     """
 
     ny: int
     nx: int
-    o_h: np.ndarray  # (2, K, 1) window offsets per axis (x, y) from the anchor, in units of h (inf: none)
-    anchor_lo: np.ndarray  # (2, 1) anchors (x, y) are clamped to [anchor_lo, anchor_hi]
-    anchor_hi: np.ndarray  # (2, 1)
-    flat_off: np.ndarray  # (S, 1) int32 flat offsets oy * nx + ox of the entries, S = K^2 in (ky, kx) order
-    base_w: np.ndarray  # (2,): anchor (ax, ay) -> flat index ax + ay * nx
-    origin: np.ndarray  # (2, 1) m
-    inv_dx: float  # 1 / resolution, 1/m
-    scale: float  # resolution / h: node units -> units of h
+    o_h: np.ndarray  # (2, K) window offsets per axis (x, y) from the anchor, in units of h (inf: none)
+    flat_off: np.ndarray  # (S,) int32 flat offsets oy * nx + ox of the entries, S = K^2 in (ky, kx) order
+    # (origin x, origin y (m), 1/resolution (1/m), resolution/h, lowest anchor x, y,
+    # highest anchor x, y, nx): the compiled kernel's view of the geometry.
+    params: tuple
 
     @property
     def cells(self) -> int:
@@ -356,16 +325,12 @@ def _stencil(origin: tuple[float, float], shape: tuple[int, int], resolution: fl
     st = _Stencil(
         ny=ny,
         nx=nx,
-        o_h=np.stack([ox_h, oy_h]).reshape(2, -1, 1),
-        anchor_lo=np.array([[x_lo], [y_lo]], dtype=np.float64),
-        anchor_hi=np.array([[x_hi], [y_hi]], dtype=np.float64),
-        flat_off=flat.astype(np.int32).reshape(-1, 1),
-        base_w=np.array([1.0, float(nx)]),
-        origin=np.array(origin, dtype=np.float64).reshape(2, 1),
-        inv_dx=1.0 / resolution,
-        scale=scale,
+        o_h=np.ascontiguousarray(np.stack([ox_h, oy_h]), dtype=np.float64),
+        flat_off=np.ascontiguousarray(flat.reshape(-1), dtype=np.int32),
+        params=(float(origin[0]), float(origin[1]), 1.0 / resolution, scale,
+                float(x_lo), float(y_lo), float(x_hi), float(y_hi), nx),
     )
-    for a in (st.o_h, st.anchor_lo, st.anchor_hi, st.flat_off, st.base_w, st.origin):
+    for a in (st.o_h, st.flat_off):
         a.flags.writeable = False
     return st
 
@@ -374,225 +339,60 @@ def _stencil_for(spec: GridSpec) -> _Stencil:
     return _stencil(spec.origin, spec.shape, spec.resolution, spec.h)
 
 
-def _weights(
-    pos: np.ndarray,
-    spec: GridSpec,
-    st: _Stencil,
-    world_offset,
-    nodes_out: np.ndarray,
-    w_out: np.ndarray,
-) -> None:
-    """Unnormalized kernel weights of particles to the nodes of their stencils.
-
-    ``pos`` (N, 2) float64 m; ``world_offset`` None or (N,) int added to the
-    indices (batching: world b's nodes start at ``b * st.cells``).  Writes
-    ``nodes_out`` (S, N) int32 flat node indices ``iy * nx + ix`` and
-    ``w_out`` (S, N) float64 weights, 0 for nodes out of range; both may be
-    column slices of larger arrays.
-    """
-    n = len(pos)
-    # C order matters: everything below inherits u's layout, and ufuncs on
-    # the transposed (Fortran-ordered) view run several times slower.
-    u = np.subtract(pos.T, st.origin, order="C")  # (2, N)
-    u *= st.inv_dx  # node units
-    a = np.rint(u)  # anchor node per axis: the nearest node...
-    np.maximum(a, st.anchor_lo, out=a)  # ...moved inwards so its window stays on the grid
-    np.minimum(a, st.anchor_hi, out=a)
-    u -= a
-    u *= st.scale  # particle offset from its anchor, units of h
-    # Per axis, per offset: t = 1/2 - (distance along the axis / h)^2, so that
-    # t_y + t_x = 1 - (r/h)^2 = m, which every kernel is a function of.
-    t = st.o_h - u[:, None, :]  # (2, K, N)
-    np.multiply(t, t, out=t)
-    np.subtract(0.5, t, out=t)
-    m = (t[1][:, None, :] + t[0][None, :, :]).reshape(-1, n)  # (S, N), S in (ky, kx) order
-    _shape_of_m(m, spec.kernel, out=w_out)
-    base = (st.base_w @ a).astype(np.int32)  # (N,) anchor's flat index
-    if world_offset is not None:
-        base += world_offset
-    # int32: half the memory traffic, and the sparse kernels' index type.
-    np.add(st.flat_off, base, out=nodes_out)
-
-
-def _chunk_size(st: _Stencil) -> int:
-    """Particles per chunk: about _CHUNK_ENTRIES stencil entries."""
-    return max(64, _CHUNK_ENTRIES // st.n_stencil)
-
-
 class _Entries(NamedTuple):
-    """The stencil entries of M particles, stencil-major: column n is particle n.
+    """The stencil entries of M particles, particle-major: row n is particle n.
 
     These are what P2G and SPH G2P share: computed once, they serve both
     directions (see :class:`TransferPlan`).
     """
 
-    nodes: np.ndarray  # (S, M) int32 flat node index (plus the world's offset in a batch)
-    weights: np.ndarray  # (S, M) float64 unnormalized kernel weights, 0 out of range
+    nodes: np.ndarray  # (M, S) int32 flat node index (plus the world's offset in a batch)
+    weights: np.ndarray  # (M, S) float64 unnormalized kernel weights, 0 out of range
     lost: np.ndarray  # (M,) bool: no node in range (all weights 0)
     divisor: np.ndarray  # (M,) float64 per-particle weight total, 1 for lost particles
 
-    def columns(self, start: int, stop: int) -> "_Entries":
-        """The entries of particles [start, stop) (views)."""
+    def particles(self, start: int, stop: int) -> "_Entries":
+        """The entries of particles [start, stop) (views, still C-contiguous)."""
         return _Entries(
-            self.nodes[:, start:stop], self.weights[:, start:stop], self.lost[start:stop], self.divisor[start:stop]
+            self.nodes[start:stop], self.weights[start:stop], self.lost[start:stop], self.divisor[start:stop]
         )
 
 
-def _stencil_entries(pos: np.ndarray, spec: GridSpec, st: _Stencil, world_of=None) -> _Entries:
-    """Stencil entries of ``pos`` (M, 2) float64 m; ``world_of`` None or (M,) world per particle.
+def _stencil_entries(pos: np.ndarray, spec: GridSpec, st: _Stencil, world_of=None,
+                     tolerance: float = DOMAIN_TOLERANCE) -> tuple[_Entries, int]:
+    """Stencil entries of ``pos`` (M, 2) float64 m; ``world_of`` None or (M,)
+    int world per particle (world b's nodes start at ``b * st.cells``).
 
-    Computed chunk by chunk so the temporaries stay small; the results are
-    written straight into the (S, M) arrays.
+    Also returns how many particles are not finite or beyond the domain by
+    more than ``tolerance`` (their weights are finite, and meaningless).
     """
     n = len(pos)
-    nodes = np.empty((st.n_stencil, n), dtype=np.int32)
-    weights = np.empty((st.n_stencil, n))
-    size = _chunk_size(st)
-    if 0 < n <= size:  # the common case, without the slicing
-        _weights(pos, spec, st, None if world_of is None else world_of * st.cells, nodes, weights)
-    elif n > size:
-        for p0 in range(0, n, size):
-            p1 = min(p0 + size, n)
-            offsets = None if world_of is None else world_of[p0:p1] * st.cells
-            _weights(pos[p0:p1], spec, st, offsets, nodes[:, p0:p1], weights[:, p0:p1])
-    wsum = _sum0(weights)
-    lost = wsum <= 0.0
-    # Lost particles have all-zero weights, so any finite divisor will do.
-    wsum += lost
-    return _Entries(nodes, weights, lost, wsum)
+    nodes = np.empty((n, st.n_stencil), dtype=np.int32)
+    weights = np.empty((n, st.n_stencil))
+    lost = np.empty(n, dtype=bool)
+    divisor = np.empty(n)
+    offsets = None if world_of is None else np.multiply(world_of, st.cells, dtype=np.int32)
+    n_outside = _compiled.entries(np.ascontiguousarray(pos, dtype=np.float64), offsets, st.o_h, st.flat_off,
+                                  st.params, _KERNEL_IDS[spec.kernel], _bounds(spec, tolerance).box,
+                                  nodes, weights, lost, divisor)
+    return _Entries(nodes, weights, lost, divisor), n_outside
 
 
-# --------------------------------------------------------------------------- #
-# Scatter and gather
-# --------------------------------------------------------------------------- #
-#
-# The stencil weights of M particles form a sparse (nodes x M) matrix A whose
-# column n holds particle n's weights: P2G is A @ values and SPH G2P gathers
-# with A^T.  Both use A in coordinate (COO) form straight from the
-# stencil-major (S, M) arrays -- row = node, column = particle, no
-# reordering -- and handle every channel in one call (one np.bincount per
-# channel was about 2.5x slower for the six input channels).
-#
-# scipy builds and checks a sparse array in Python, which costs tens of us
-# per call here, a large part of a whole world's P2G.  So the compiled kernel
-# behind `coo_array @ dense` is called directly when this SciPy still has it
-# with the expected signature (checked against the public API once, at
-# import); otherwise the public API is used.
+def _splat_grids(e: _Entries, values: np.ndarray, st: _Stencil, batch: int) -> np.ndarray | None:
+    """P2G of ``values`` (M, C) with entries ``e``: (batch, ny, nx, C) float32,
+    or None if some value is not finite.
 
-try:
-    from scipy.sparse import _sparsetools
-except ImportError:  # pragma: no cover - depends on the SciPy version
-    _sparsetools = None
-
-_ARANGE = np.arange(0, dtype=np.int32)
-
-
-def _particle_of(s: int, m: int) -> np.ndarray:
-    """(S * M,) int32: the particle (column) of each stencil-major entry, 0..M-1 repeated S times."""
-    global _ARANGE
-    if len(_ARANGE) < m:  # grown as needed, so the common sizes cost one copy
-        _ARANGE = np.arange(max(m, 2 * len(_ARANGE)), dtype=np.int32)
-    cols = np.empty((s, m), dtype=np.int32)
-    cols[...] = _ARANGE[:m]
-    return cols.reshape(-1)
-
-
-def _splat_public(nodes, cols, w, v: np.ndarray, n_rows: int) -> np.ndarray:
-    return sparse.coo_array((w, (nodes, cols)), shape=(n_rows, len(v))) @ v
-
-
-def _gather_public(nodes, cols, w, x: np.ndarray, n_out: int) -> np.ndarray:
-    return sparse.coo_array((w, (cols, nodes)), shape=(n_out, len(x))) @ x
-
-
-def _splat_compiled(nodes, cols, w, v: np.ndarray, n_rows: int) -> np.ndarray:
-    # The kernel reads (and writes) C-contiguous buffers of any shape.
-    v = np.ascontiguousarray(v, dtype=np.float64)
-    y = np.zeros((n_rows, v.shape[1]))
-    _sparsetools.coo_matmat_dense(len(w), v.shape[1], nodes, cols, w, v, y)
-    return y
-
-
-def _gather_compiled(nodes, cols, w, x: np.ndarray, n_out: int) -> np.ndarray:
-    x = np.ascontiguousarray(x, dtype=np.float64)
-    y = np.zeros((n_out, x.shape[1]))
-    _sparsetools.coo_matmat_dense(len(w), x.shape[1], cols, nodes, w, x, y)
-    return y
-
-
-def _node_sums_public(nodes, cols, w, n_rows: int) -> np.ndarray:
-    return np.bincount(nodes, w, minlength=n_rows)
-
-
-def _node_sums_compiled(nodes, cols, w, n_rows: int) -> np.ndarray:
-    # y[node] += w * 1: cheaper than np.bincount, which first converts the
-    # int32 indices to intp.
-    y = np.zeros(n_rows)
-    _sparsetools.coo_matvec(len(w), nodes, cols, w, _ones(len(w)), y)
-    return y
-
-
-_ONES = np.ones(0)
-
-
-def _ones(n: int) -> np.ndarray:
-    """(n,) float64 ones (read-only; grown as needed, replaced whole)."""
-    global _ONES
-    if len(_ONES) < n:
-        ones = np.ones(max(n, 2 * len(_ONES)))
-        ones.flags.writeable = False
-        _ONES = ones
-    return _ONES[:n]
-
-
-def _compiled_kernels_work() -> bool:
-    """Do the private kernels exist and agree with the public API on a small case?"""
-    if _sparsetools is None:
-        return False
-    try:
-        rng = np.random.default_rng(0)
-        nodes = rng.integers(0, 9, 20).astype(np.int32)
-        cols = _particle_of(4, 5)
-        w = rng.random(20)
-        v, x = rng.random((5, 3)), rng.random((9, 2))
-        return bool(
-            np.allclose(_splat_compiled(nodes, cols, w, v, 9), _splat_public(nodes, cols, w, v, 9))
-            and np.allclose(_gather_compiled(nodes, cols, w, x, 5), _gather_public(nodes, cols, w, x, 5))
-            and np.allclose(_node_sums_compiled(nodes, cols, w, 9), _node_sums_public(nodes, cols, w, 9))
-        )
-    except Exception:  # any change in the private API: use the public one
-        return False
-
-
-if _compiled_kernels_work():
-    _splat, _gather, _node_sums = _splat_compiled, _gather_compiled, _node_sums_compiled
-else:  # pragma: no cover - depends on the SciPy version
-    _splat, _gather, _node_sums = _splat_public, _gather_public, _node_sums_public
-_splat.__doc__ = (
-    "(n_rows, C) float64: row r = sum of w * v[cols] over the entries with nodes == r (P2G);"
-    " nodes, cols int32 and w float64 flat entry arrays, v (M, C)."
-)
-_gather.__doc__ = (
-    "(n_out, C) float64: row n = sum of w * x[nodes] over the entries with cols == n (G2P);"
-    " x (n_nodes, C)."
-)
-_node_sums.__doc__ = "(n_rows,) float64: per node, the sum of w over its entries."
-
-
-def _splat_grids(e: _Entries, values: np.ndarray, st: _Stencil, batch: int) -> np.ndarray:
-    """P2G of ``values`` (M, C) with entries ``e``: (batch, ny, nx, C) float32.
-
-    Dividing each particle's values by its weight sum normalizes Algorithm
-    1's weights without touching the (S, M) arrays.
+    Each particle's values are divided by its weight total, which normalizes
+    Algorithm 1's weights without touching them.
     """
-    s, m = e.nodes.shape
+    m = len(e.divisor)
     n_channels = values.shape[1]
-    if m == 0:
+    if m == 0 or n_channels == 0:
         return np.zeros((batch, st.ny, st.nx, n_channels), dtype=np.float32)
-    v = np.empty((m, n_channels))  # C order: the kernel reads rows
-    np.divide(values, e.divisor[:, None], out=v)
-    padded = _splat(e.nodes.reshape(-1), _particle_of(s, m), e.weights.reshape(-1), v, batch * st.cells)
-    return padded.astype(np.float32).reshape(batch, st.ny, st.nx, n_channels)
+    grids = np.empty((batch, st.ny, st.nx, n_channels), dtype=np.float32)
+    finite = _compiled.splat(e.nodes, e.weights, e.divisor, np.ascontiguousarray(values, dtype=np.float64),
+                             batch * st.cells, grids)
+    return grids if finite else None
 
 
 # --------------------------------------------------------------------------- #
@@ -629,16 +429,22 @@ def _check_finite_values(vals: np.ndarray, label: str, names: Sequence[str] | No
     raise ValueError(f"{label} values contain NaN or infinite values (particles {rows[:10].tolist()}, channels {what})")
 
 
-def _check_grid(grid, spec: GridSpec) -> np.ndarray:
+def _check_grid(grid, spec: GridSpec, finite: bool = True) -> np.ndarray:
+    """``grid`` as (ny, nx, C); ValueError for another shape, and, with
+    ``finite``, for NaN or infinite values (SPH G2P checks those itself)."""
     g = np.asarray(grid)
     if g.ndim == 2:
         g = g[:, :, None]
     if g.ndim != 3 or g.shape[:2] != spec.shape:
         raise ValueError(f"grid must have shape (ny, nx, C) = ({spec.ny}, {spec.nx}, C), got {np.shape(grid)}")
-    if not _all(np.isfinite(g)):
-        bad = np.argwhere(~np.isfinite(g))[0]
-        raise ValueError(f"grid contains NaN or infinite values (e.g. node (iy, ix) = ({bad[0]}, {bad[1]}), channel {bad[2]})")
+    if finite and not _all(np.isfinite(g)):
+        _raise_not_finite(g)
     return g
+
+
+def _raise_not_finite(g: np.ndarray) -> None:
+    bad = np.argwhere(~np.isfinite(g))[0]
+    raise ValueError(f"grid contains NaN or infinite values (e.g. node (iy, ix) = ({bad[0]}, {bad[1]}), channel {bad[2]})")
 
 
 def _check_mode(outside: str, tolerance: float) -> None:
@@ -653,6 +459,7 @@ class _Bounds:
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray):
         self.lo, self.hi = lo, hi
+        self.box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))  # for the compiled kernel
         # lo and hi repeated (x, y, x, y, ...), grown as needed: comparing the
         # flat (2N,) positions with them runs one long loop, where broadcasting
         # against (2,) runs N loops of two (about twice as slow).  One tuple,
@@ -779,8 +586,14 @@ def _p2g_sets(
     st = _stencil_for(spec)
     if batch * st.cells >= 2**31:
         raise ValueError(f"a batch of {batch} grids is too large for one transfer; split it")
-    kept = None  # per set (kept indices or None for all, outside indices), when some are outside
-    if not (_bounds(spec, tolerance).all_inside(pos) and _all(np.isfinite(values))):
+    sizes = [s.stop - s.start for s in sets]
+    world_of = np.repeat(np.array([s.world for s in sets], dtype=np.intp), sizes) if batch > 1 else None
+    # The common case in one pass each: the weights count the particles that
+    # are not finite or outside, the splat says whether every value is finite.
+    e, n_outside = _stencil_entries(pos, spec, st, world_of, tolerance)
+    grids = _splat_grids(e, values, st, batch) if n_outside == 0 else None
+    kept = None  # per set (kept indices or None for all, outside indices), on the careful path
+    if grids is None:  # the careful path: find what is wrong, raise or drop
         kept = []
         for s in sets:
             # Dropped particles' values are checked too: they go into lost_value.
@@ -790,22 +603,16 @@ def _p2g_sets(
         rows = np.concatenate(
             [np.arange(s.start, s.stop) if k is None else s.start + k for s, (k, _) in zip(sets, kept)]
         )
-        pos, kept_values = pos[rows], values[rows]
-    else:  # the common case: one check of each kind for every set
-        kept_values = values
-    if kept is None:
-        sizes = [s.stop - s.start for s in sets]
-    else:
         sizes = [s.stop - s.start if k is None else len(k) for s, (k, _) in zip(sets, kept)]
-    world_of = np.repeat(np.array([s.world for s in sets], dtype=np.intp), sizes) if batch > 1 else None
-    e = _stencil_entries(pos, spec, st, world_of)
-    grids = _splat_grids(e, kept_values, st, batch)
+        world_of = np.repeat(np.array([s.world for s in sets], dtype=np.intp), sizes) if batch > 1 else None
+        e, _ = _stencil_entries(pos[rows], spec, st, world_of, tolerance)
+        grids = _splat_grids(e, values[rows], st, batch)
 
     plan_ = None
     if plan_set is not None:
         s, start = sets[plan_set], sum(sizes[:plan_set])
         keep, out_idx = (None, _NO_INDEX) if kept is None else kept[plan_set]
-        plan_ = TransferPlan(spec, s.stop - s.start, keep, out_idx, e.columns(start, start + sizes[plan_set]))
+        plan_ = TransferPlan(spec, s.stop - s.start, keep, out_idx, e.particles(start, start + sizes[plan_set]))
     if not reports:
         return grids, None, plan_
 
@@ -960,7 +767,7 @@ def g2p(
     if method not in _G2P_METHODS:
         raise ValueError(f"method must be one of {list(_G2P_METHODS)}, got {method!r}")
     _check_mode(outside, tolerance)
-    g = _check_grid(grid, spec)
+    g = _check_grid(grid, spec, finite=method != "sph")
     if method == "sph":
         return plan(positions, spec, outside=outside, tolerance=tolerance)._g2p(g)
     n_channels = g.shape[2]
@@ -980,31 +787,29 @@ def _g2p_sph(g: np.ndarray, e: _Entries, st: _Stencil):
     """SPH G2P (Algorithm 2) from ``g`` (ny, nx, C) to the M particles of entries ``e``.
 
     Returns ``(values (M, C) float32, diagnose)``; ``diagnose()`` gives
-    ``(lost mask (M,), lost node value (C,), lost node count)``.
+    ``(lost mask (M,), lost node value (C,) float64, lost node count)``.
     """
     ny, nx, n_channels = g.shape
-    s, m = e.nodes.shape
-    # Flat entry arrays (a copy when e holds some columns of larger arrays).
-    nodes = np.ascontiguousarray(e.nodes).reshape(-1)
-    w = np.ascontiguousarray(e.weights).reshape(-1)
-    cols = _particle_of(s, m)
-    # A private float64 copy of the grid, so the lazy diagnostics see it as it was.
-    gp = np.array(g.reshape(ny * nx, n_channels), dtype=np.float64)
-    # Per-node weight totals, to normalize each node's weights to sum 1.
-    node_w = _node_sums(nodes, cols, w, st.cells)
-    # Each entry's weight over its node's total.  Nodes nobody reaches have
-    # total 0, and so have all their entries' weights; adding 1 to the divisor
-    # where the weight is 0 keeps those at 0 and leaves the rest exact.
-    # (Scaling the entries is cheaper than scaling the nodes' values, whose
-    # channel axis is too short for fast broadcasting.)
-    divisor = node_w.take(nodes)
-    divisor += w == 0.0
-    out = _gather(nodes, cols, np.divide(w, divisor, out=divisor), gp, m).astype(np.float32)
+    m = len(e.divisor)
+    if m == 0 or n_channels == 0:  # every node is lost
+        if not _all(np.isfinite(g)):
+            _raise_not_finite(g)
+        out = np.zeros((m, n_channels), dtype=np.float32)
+        nodes_lost = int(np.count_nonzero(np.abs(g).sum(axis=2))) if n_channels else 0
+        lost_value = g.reshape(-1, n_channels).sum(axis=0, dtype=np.float64)
+        return out, lambda: (e.lost, lost_value, nodes_lost)
+    if g.dtype != np.float32:
+        g = g.astype(np.float64, copy=False)
+    g = np.ascontiguousarray(g)
+    out = np.empty((m, n_channels), dtype=np.float32)
+    node_w = np.empty(st.cells)  # per node, the weight total of the particles in range
+    kept = np.empty_like(g)  # the grid as it was, for the report
+    if not _compiled.gather(e.nodes, e.weights, g, g.dtype == np.float64, out, node_w, kept):
+        _raise_not_finite(g)
 
     def diagnose():
-        # What nobody received.
-        unreached = (node_w <= 0.0).astype(np.float64)
-        return e.lost, unreached @ gp, np.count_nonzero(unreached * np.abs(gp).sum(axis=1))
+        unreached = kept.reshape(st.cells, n_channels)[node_w <= 0.0].astype(np.float64)
+        return e.lost, unreached.sum(axis=0), np.count_nonzero(np.abs(unreached).sum(axis=1))
 
     return out, diagnose
 
@@ -1084,7 +889,7 @@ class TransferPlan:
 
     def g2p(self, grid) -> tuple[np.ndarray, TransferReport]:
         """SPH :func:`g2p` of ``grid`` (ny, nx, C) (or (ny, nx)): ``(values (N, C) float32, report)``."""
-        return self._g2p(_check_grid(grid, self.spec))
+        return self._g2p(_check_grid(grid, self.spec, finite=False))
 
     def _g2p(self, g: np.ndarray) -> tuple[np.ndarray, TransferReport]:
         vals, diagnose = _g2p_sph(g, self._entries, self._st)
@@ -1116,7 +921,7 @@ class TransferPlan:
             r0, r1 = np.searchsorted(self._keep, [start, stop])
             keep = self._keep[r0:r1] - start
         out = self.outside[(self.outside >= start) & (self.outside < stop)] - start
-        return TransferPlan(self.spec, stop - start, keep, out, self._entries.columns(int(r0), int(r1)))
+        return TransferPlan(self.spec, stop - start, keep, out, self._entries.particles(int(r0), int(r1)))
 
     def __repr__(self) -> str:
         return f"TransferPlan(n_particles={self.n_particles}, n_outside={len(self.outside)}, grid={self.spec.shape})"
@@ -1138,8 +943,8 @@ def plan(
     _check_mode(outside, tolerance)
     pos = _as_positions(positions, "positions")
     pos_in, keep, out_idx = _split_outside(pos, spec, outside, tolerance, "particles")
-    st = _stencil_for(spec)
-    return TransferPlan(spec, len(pos), keep, out_idx, _stencil_entries(pos_in, spec, st))
+    entries, _ = _stencil_entries(pos_in, spec, _stencil_for(spec), None, tolerance)
+    return TransferPlan(spec, len(pos), keep, out_idx, entries)
 
 
 # --------------------------------------------------------------------------- #

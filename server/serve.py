@@ -25,14 +25,11 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from deepcontact.modelcard import ModelCardError
-from deepcontact.v1 import warmstart_pb2 as pb
-from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
 from server.batching import MicroBatcher
 from server.predictors import load_models, providers
-from server.service import Limits, WarmStartService
+from server.service import SERVICE_NAME, Limits, WarmStartService, add_to_server
 
-SERVICE_NAME = pb.DESCRIPTOR.services_by_name["WarmStart"].full_name
 log = logging.getLogger("deepcontact.server")
 
 
@@ -97,7 +94,7 @@ class Server:
         # Each open stream holds a worker thread, so the pool is as large as the RPC bound.
         self.grpc = grpc.server(futures.ThreadPoolExecutor(max_workers=max_concurrent, thread_name_prefix="rpc"),
                                 maximum_concurrent_rpcs=max_concurrent)
-        pb_grpc.add_WarmStartServicer_to_server(self.service, self.grpc)
+        add_to_server(self.service, self.grpc)
         self.health = health.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc)
         reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.grpc)

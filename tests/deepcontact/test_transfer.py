@@ -184,15 +184,48 @@ def test_p2g_batch_matches_one_world_at_a_time():
         assert report.n_particles == alone_report.n_particles == len(positions)
 
 
-def test_large_inputs_are_chunked_with_the_same_result():
+def test_large_inputs_match_the_algorithms():
     rng = np.random.default_rng(5)
-    positions, values = random_particles(rng, SMALL, 2500, 2)  # several chunks
+    positions, values = random_particles(rng, SMALL, 2500, 2)
     grid, _ = p2g(positions, values, SMALL)
     np.testing.assert_allclose(grid, reference_p2g(SMALL, positions, values), rtol=1e-5, atol=1e-5)
     back, _ = g2p(grid, positions, SMALL)
     np.testing.assert_allclose(back, reference_g2p(SMALL, grid, positions), rtol=1e-5, atol=1e-6)
     grids, _ = p2g_batch([positions[:1500], positions[1500:]], [values[:1500], values[1500:]], SMALL)
     np.testing.assert_allclose(grids.sum(axis=0), grid, atol=1e-5)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 5, 17, 40])
+def test_any_number_of_channels_matches_the_algorithms(channels):
+    # The compiled loops work through channels in blocks (4 in G2P, 16 in P2G).
+    rng = np.random.default_rng(channels)
+    positions, values = random_particles(rng, SMALL, 60, channels)
+    grid, _ = p2g(positions, values, SMALL)
+    np.testing.assert_allclose(grid, reference_p2g(SMALL, positions, values), rtol=1e-5, atol=1e-5)
+    back, _ = g2p(grid, positions, SMALL)
+    np.testing.assert_allclose(back, reference_g2p(SMALL, grid, positions), rtol=1e-5, atol=1e-5)
+    back64, _ = g2p(grid.astype(np.float64), positions, SMALL)
+    np.testing.assert_allclose(back64, back, rtol=1e-6, atol=1e-7)
+
+
+def test_compiled_kernels_refuse_wrong_sizes_and_node_indices():
+    # deepcontact/_transfer.c is only called by this module, with arrays it
+    # made; still, a wrong call raises instead of writing out of bounds.
+    from deepcontact import _transfer
+
+    nodes = np.array([[0, 1], [2, 99]], dtype=np.int32)  # 99: not one of the 4 nodes
+    weights = np.ones((2, 2))
+    divisor = np.full(2, 2.0)
+    values = np.ones((2, 3))
+    with pytest.raises(IndexError, match="node index 99"):
+        _transfer.splat(nodes, weights, divisor, values, 4, np.empty((4, 3), np.float32))
+    with pytest.raises(IndexError, match="node index 99"):
+        _transfer.gather(nodes, weights, np.ones((4, 3), np.float32), False, np.empty((2, 3), np.float32),
+                         np.empty(4), np.empty((4, 3), np.float32))
+    with pytest.raises(ValueError, match="values holds 48 bytes, expected 32"):  # out has 2 channels, values 3
+        _transfer.splat(nodes % 4, weights, divisor, values, 4, np.empty((4, 2), np.float32))
+    with pytest.raises(ValueError, match="not C-contiguous"):  # a strided view is no flat buffer
+        _transfer.splat(nodes % 4, weights, divisor, np.ones((2, 6))[:, ::2], 4, np.empty((4, 3), np.float32))
 
 
 # --------------------------------------------------------------------------- #

@@ -123,3 +123,22 @@ def test_health_reports_serving(server):
         for service in ("", "deepcontact.v1.WarmStart"):
             status = health.Check(health_pb2.HealthCheckRequest(service=service)).status
             assert status == health_pb2.HealthCheckResponse.SERVING
+
+
+def test_decode_time_starts_when_grpc_parses_the_request(thesis_steps):
+    # gRPC parses a request in the thread that then runs the handler; the
+    # step's decode time includes that parse and whatever gRPC does between.
+    import time
+
+    from server.predictors import providers
+    from server.service import WarmStartService, _parse_step
+
+    world, steps = thesis_steps
+    service = WarmStartService(providers())
+    domain = service._domain(world)
+    raw = request(world, *steps[0], "zero").SerializeToString()
+    parsed = _parse_step(raw)
+    time.sleep(0.02)
+    assert service._step(parsed, domain).timings.decode_us >= 20_000
+    # Consumed once: a step that was not parsed here is timed from its own start.
+    assert service._step(parsed, domain).timings.decode_us < 20_000
