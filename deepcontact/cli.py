@@ -26,7 +26,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
     (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
     (("bench", "load"), "bench.load", "latency and throughput with many simulations streaming at once"),
-    (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps"),
+    (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
 ]
 
