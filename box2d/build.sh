@@ -36,8 +36,15 @@ rm -f "$src/library/Box2D/Box2D.py"
 
 echo "box2d: building (SWIG + C++, about a minute)"
 mkdir -p "$out"
-PATH="$bindir:$PATH" "$python" -m pip wheel --quiet --no-deps --no-build-isolation \
-    -w "$work/dist" "$src"
+# A failed build prints thousands of lines of warnings around its errors: the
+# whole output goes to a log, and the errors are repeated at the end.
+log="$out/build.log"
+if ! PATH="$bindir:$PATH" "$python" -m pip wheel --quiet --no-deps --no-build-isolation \
+        -w "$work/dist" "$src" > "$log" 2>&1; then
+    echo "box2d: the build failed; its errors (the whole output is in $log):" >&2
+    grep -E "error:|Error:" "$log" | grep -v "subprocess-exited-with-error" | head -20 >&2 || true
+    exit 1
+fi
 wheel=$(ls "$work"/dist/*.whl)
 # Land the wheel under its final name only once it is complete.
 cp "$wheel" "$out/.$(basename "$wheel").part"
