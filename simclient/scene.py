@@ -20,6 +20,12 @@ import numpy as np
 from simclient.engine import Box2D, Engine, SolverConfig
 
 MAX_PLACEMENT_TRIES = 200_000
+MAX_RANDOM_COVER = 0.5
+"""Random placement without overlap stalls well before the packing limit: bodies
+are placed at random in a region they cover at most this share of."""
+MAX_PILE_COVER = 0.8
+"""Discs settle no denser than about 0.82 of the area they fill (random close
+packing in 2-D): a world whose bodies would cover more of the box cannot fit."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,13 +78,31 @@ class SceneSpec:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if 2 * rmax >= min(w, h):
             raise ValueError(f"bodies of radius {rmax} do not fit in a {w} x {h} box")
-        # Random placement stalls well before the packing limit; refuse early.
-        disc_area = self.bodies * math.pi * rmax**2
-        if disc_area > 0.5 * w * h:
+        cover = self.bodies * math.pi * rmax**2 / (w * h)
+        if cover > MAX_PILE_COVER:
             raise ValueError(
-                f"no room for {self.bodies} bodies of radius up to {rmax} in a {w} x {h} box "
-                f"(they would cover {disc_area / (w * h):.0%} of it; at most 50% can be placed at random)"
+                f"no room for {self.bodies} bodies of radius up to {rmax} in a {w} x {h} box: they would "
+                f"cover {cover:.0%} of it, and a pile of discs covers at most about {MAX_PILE_COVER:.0%}; "
+                "use a larger --box-size, fewer --bodies or a smaller --radius"
             )
+
+    @property
+    def spawn_height(self) -> float:
+        """Height (m) of the region the bodies are placed in at random.
+
+        The box itself when they cover at most MAX_RANDOM_COVER of it (the
+        thesis world); otherwise a taller region over the same floor, so that
+        they cover that share of it, from which they fall into the box (a
+        dense world). The side walls rise to this height."""
+        w, h = self.box_size
+        need = self.bodies * math.pi * self.radius[1] ** 2 / (MAX_RANDOM_COVER * w)
+        return float(h) if need <= h else float(need)
+
+    def walls(self) -> np.ndarray:
+        """The static box's edges, (3, 4) float (x0, y0, x1, y1) m: floor, left
+        and right side, the sides as high as the spawn region."""
+        w, top = float(self.box_size[0]), self.spawn_height
+        return np.array([[0.0, 0.0, w, 0.0], [0.0, 0.0, 0.0, top], [w, 0.0, w, top]])
 
 
 def build_world(spec: SceneSpec, seed: int) -> Engine:
@@ -89,7 +113,7 @@ def build_world(spec: SceneSpec, seed: int) -> Engine:
     """
     spec.validate()
     rng = np.random.default_rng(seed)
-    w, h = spec.box_size
+    w = spec.box_size[0]
 
     world = Box2D.b2World(gravity=(0.0, -spec.gravity), doSleep=False)
     # pybox2d 2.3.8 has no `allowSleeping` property (doSleep= only sets a plain
@@ -98,8 +122,8 @@ def build_world(spec: SceneSpec, seed: int) -> Engine:
     world.continuousPhysics = False
 
     box = world.CreateStaticBody(position=(0.0, 0.0))
-    for a, b in (((0.0, 0.0), (w, 0.0)), ((0.0, 0.0), (0.0, h)), ((w, 0.0), (w, h))):
-        box.CreateEdgeFixture(vertices=[a, b], friction=spec.friction[1], restitution=spec.restitution)
+    for x0, y0, x1, y1 in spec.walls().tolist():
+        box.CreateEdgeFixture(vertices=[(x0, y0), (x1, y1)], friction=spec.friction[1], restitution=spec.restitution)
 
     radii = rng.uniform(spec.radius[0], spec.radius[1], size=spec.bodies)
     is_box = rng.random(spec.bodies) < spec.polygons
@@ -108,7 +132,7 @@ def build_world(spec: SceneSpec, seed: int) -> Engine:
     # Boxes are placed by their circumscribed circle so nothing overlaps.
     half_side = 0.5 * math.sqrt(math.pi) * radii
     reach = np.where(is_box, half_side * math.sqrt(2.0), radii)
-    centres = _place_without_overlap(rng, reach, w, h)
+    centres = _place_without_overlap(rng, reach, w, spec.spawn_height)
 
     for i in range(spec.bodies):
         body = world.CreateDynamicBody(position=tuple(map(float, centres[i])), angle=float(angles[i]))

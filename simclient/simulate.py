@@ -59,9 +59,7 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     provider.prepare(engine)
     if client is not None:
         lower, upper = spec.domain
-        w, h = spec.box_size
-        edges = np.array([[0, 0, w, 0], [0, 0, 0, h], [w, 0, w, h]], np.float32)
-        client.world = wire.encode_world(lower, upper, edges)
+        client.world = wire.encode_world(lower, upper, spec.walls())
     records: list[StepRecord] = []
     timeout = deadline_ms / 1e3
     for k in range(spec.steps):

@@ -84,6 +84,33 @@ def test_impossible_scenes_fail_before_any_work(argv, message):
         parse(*argv)
 
 
+def test_thesis_placement_is_unchanged_bit_for_bit():
+    # Digests of the initial bodies as placed since round 1: dense-world
+    # spawning must not move a single thesis body.
+    import hashlib
+
+    for seed, digest in ((1, "e9a156f838d8ef6c"), (901, "3f2e3498178759ae")):
+        assert hashlib.sha256(build_world(SceneSpec.thesis(), seed).bodies().tobytes()).hexdigest()[:16] == digest
+
+
+def test_a_dense_world_is_spawned_above_the_box_and_falls_into_it():
+    spec = parse("--radius", "0.5", "0.7", "--steps", "300")  # 68 % of the box at the largest radius
+    assert spec.spawn_height > spec.box_size[1]
+    np.testing.assert_allclose(spec.walls()[1:, 3], spec.spawn_height)  # the side walls form a chute
+    engine = build_world(spec, 3)
+    start = engine.bodies()["position"][1:]
+    assert (start[:, 1] > spec.box_size[1]).any()  # some bodies start above the box
+    for _ in range(spec.steps):
+        engine.step()
+    end = engine.bodies()["position"][1:]
+    assert (end[:, 1] < spec.box_size[1]).all() and (end[:, 0] > 0).all() and (end[:, 0] < spec.box_size[0]).all()
+
+
+def test_a_world_that_cannot_fit_in_its_box_is_refused_with_the_reason():
+    with pytest.raises(ValueError, match=r"cover 101% of it, and a pile of discs covers at most about 80%"):
+        parse("--bodies", "200", "--radius", "0.6", "0.6")
+
+
 def test_unknown_scene_is_refused_by_the_parser():
     with pytest.raises(SystemExit):
         parse("--scene", "moon")
