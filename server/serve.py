@@ -27,6 +27,7 @@ from grpc_reflection.v1alpha import reflection
 from deepcontact.modelcard import ModelCardError
 from server import metrics
 from server.batching import MicroBatcher
+from server.malformed import MalformedRequests
 from server.predictors import load_models, providers
 from server.service import SERVICE_NAME, Limits, WarmStartService, add_to_server
 
@@ -73,6 +74,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-format", choices=("json", "text"), default="json", help="log lines (default json)")
 
 
+HEALTH_SERVICES = ("", SERVICE_NAME)  # the server as a whole, and WarmStart
+
+
+class HealthServicer(health.HealthServicer):
+    """grpcio-health's servicer with List, which health.proto declares and
+    grpcio-health 1.85 leaves unimplemented (UNIMPLEMENTED and a logged
+    traceback per call)."""
+
+    def List(self, request, context):
+        return health_pb2.HealthListResponse(statuses={
+            name: self.Check(health_pb2.HealthCheckRequest(service=name), context) for name in HEALTH_SERVICES})
+
+
 class Server:
     """A running service: `server.port`, `server.stop(grace)`. Used by the
     command and, in-process, by tests and benchmarks."""
@@ -93,9 +107,9 @@ class Server:
         self.service = WarmStartService(self.models + providers(random_seed), limits)
         # Each open stream holds a worker thread, so the pool is as large as the RPC bound.
         self.grpc = grpc.server(futures.ThreadPoolExecutor(max_workers=max_concurrent, thread_name_prefix="rpc"),
-                                maximum_concurrent_rpcs=max_concurrent)
+                                interceptors=(MalformedRequests(),), maximum_concurrent_rpcs=max_concurrent)
         add_to_server(self.service, self.grpc)
-        self.health = health.HealthServicer()
+        self.health = HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc)
         reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.grpc)
         if credentials is None:
@@ -112,7 +126,7 @@ class Server:
 
     def start(self) -> "Server":
         self.grpc.start()
-        for name in ("", SERVICE_NAME):
+        for name in HEALTH_SERVICES:
             self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
         return self
 

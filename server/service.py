@@ -6,7 +6,8 @@ stage timings. Bad input never reaches the model: it is answered with
 INVALID_ARGUMENT naming the field and the limit, NOT_FOUND for an unknown
 model, RESOURCE_EXHAUSTED when the inference queue is full. A stream that
 receives a bad message is ended with that status; other streams are not
-affected.
+affected. Bytes that do not parse as a request never get here: they are
+refused by server.malformed.
 """
 
 from __future__ import annotations
@@ -24,9 +25,11 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
 from server.batching import QueueFull
 from server.predictors import GridMismatch, Predictor
+from server.rejects import reject
 
 log = logging.getLogger("deepcontact.server")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["WarmStart"].full_name
+_PREDICT, _STREAM = f"/{SERVICE_NAME}/Predict", f"/{SERVICE_NAME}/Stream"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +99,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             domain = self._domain(request.world)
             return self._step(request, domain)
         except _Reject as r:
-            self._abort(context, r, "Predict")
+            reject(context, r.code, r.message, rpc=_PREDICT)
 
     def Stream(self, request_iterator, context):
         domain = None
@@ -109,7 +112,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                                   "world: required on the first message of a stream")
                 yield self._step(request, domain)
             except _Reject as r:
-                self._abort(context, r, "Stream")
+                reject(context, r.code, r.message, rpc=_STREAM)
 
     # -- one step -------------------------------------------------------------
     def _domain(self, world: pb.World):
@@ -151,11 +154,6 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         timings.total_us = _us(total)
         metrics.observe_step(predictor.name, t1 - t0, stages, total)
         return reply
-
-    def _abort(self, context, reject: _Reject, rpc: str):
-        metrics.ERRORS.labels(code=reject.code.name).inc()
-        log.info("rejected", extra={"rpc": rpc, "code": reject.code.name, "detail": reject.message})
-        context.abort(reject.code, reject.message)
 
 
 def _us(seconds: float) -> int:
