@@ -38,6 +38,18 @@ class Limits:
     max_points: int = 100_000
 
 
+@dataclasses.dataclass(frozen=True)
+class FaultDelay:
+    """Fault injection for testing clients: hold the reply of every step whose
+    index is a multiple of `every` for `seconds` (a slow or stalled server)."""
+
+    seconds: float
+    every: int = 1
+
+    def applies(self, step: int) -> bool:
+        return self.seconds > 0 and step % self.every == 0
+
+
 class _Reject(Exception):
     def __init__(self, code: grpc.StatusCode, message: str):
         super().__init__(message)
@@ -80,9 +92,10 @@ def add_to_server(service: "WarmStartService", server: grpc.Server) -> None:
 
 
 class WarmStartService(pb_grpc.WarmStartServicer):
-    def __init__(self, predictors: list[Predictor], limits: Limits = Limits()):
+    def __init__(self, predictors: list[Predictor], limits: Limits = Limits(), fault: FaultDelay | None = None):
         self.predictors = {p.name: p for p in predictors}
         self.limits = limits
+        self.fault = fault
 
     # -- RPCs -----------------------------------------------------------------
     def ListModels(self, request, context):
@@ -143,6 +156,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         except Exception as exc:  # a bug, not the client's fault: say so, keep serving
             log.exception("predict failed", extra={"model": predictor.name, "step": request.step})
             raise _Reject(grpc.StatusCode.INTERNAL, f"{predictor.name} failed: {exc}") from None
+        if self.fault is not None and self.fault.applies(request.step):
+            time.sleep(self.fault.seconds)
         reply = wire.encode_impulses(request.step, predictor.name, impulses)
         # Filled in place: building a Timings and copying it in costs more.
         timings = reply.timings
