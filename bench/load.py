@@ -119,10 +119,9 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
                 if exc.backing_off:  # nothing was sent; wait out the reconnect backoff
                     time.sleep(0.005)
                     continue
-                code = exc.code.name if exc.code is not None else "OTHER"
-                if "while waiting for step" in str(exc):
+                if exc.reason == "WRONG_STEP":
                     wrong_order += 1
-                errors[code] = errors.get(code, 0) + 1
+                errors[exc.reason] = errors.get(exc.reason, 0) + 1
                 time.sleep(0.002)  # do not spin on a refusing server
             k += 1
     with lock:
