@@ -215,6 +215,13 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
     }
 
 
+def _has_contacts(replay: Path) -> bool:
+    from training.dataset import Dataset
+
+    with Dataset(replay) as ds:
+        return bool((ds.steps["point_count"] > 0).any())
+
+
 # -- configurations ------------------------------------------------------------
 
 def _free_port() -> int:
@@ -234,6 +241,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.replay is not None and not args.replay.exists():
         print(f"deepcontact bench load: {args.replay}: no such data file", file=sys.stderr)
+        return 2
+    if args.replay is not None and not _has_contacts(args.replay):
+        print(f"deepcontact bench load: {args.replay}: no steps with contacts to send", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     if args.server:

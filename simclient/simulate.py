@@ -246,9 +246,22 @@ def run(args: argparse.Namespace) -> int:
                    "server": args.server, "deadline_ms": args.deadline_ms,
                    "command": "deepcontact " + " ".join(sys.argv[1:])})
     write_json_atomic(args.out, result)
-    s = result["summary"]
-    lat = f", latency p50 {s['p50_latency_ms']:.2f} ms p99 {s['p99_latency_ms']:.2f} ms" if s["p50_latency_ms"] else ""
-    print(f"{args.warm_start} seed {args.seed}: mean {s['mean_velocity_iterations']:.1f}, median "
-          f"{s['median_velocity_iterations']:.0f} velocity iterations over {s['steps_with_contacts']} steps"
-          f"{lat}, {s['fallback_steps']} fallbacks -> {args.out}")
+    print(f"{args.warm_start} seed {args.seed}: {summary_line(result['summary'])} -> {args.out}")
     return 0
+
+
+def summary_line(s: dict) -> str:
+    """One line from summarize()'s dict; its statistics are None where no step had contacts."""
+    if not s["steps_with_contacts"]:
+        text = f"{s['steps']} steps, no steps with contacts (nothing to warm-start)"
+    else:
+        text = (f"mean {s['mean_velocity_iterations']:.1f}, median {s['median_velocity_iterations']:.0f} "
+                f"velocity iterations over {s['steps_with_contacts']} steps with contacts")
+    if s["p50_latency_ms"] is not None:
+        text += f", latency p50 {s['p50_latency_ms']:.2f} ms p99 {s['p99_latency_ms']:.2f} ms"
+    text += f", {s['fallback_steps']} fallbacks"
+    if s["fallbacks_by_reason"]:
+        text += " (" + ", ".join(f"{n} {reason}" for reason, n in sorted(s["fallbacks_by_reason"].items())) + ")"
+    if s["reconnects"]:
+        text += f", {s['reconnects']} reconnects"
+    return text

@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
+
+# A command that meets what it did not expect prints one line (deepcontact.cli); in the
+# tests it raises instead, so the test fails with the traceback.
+os.environ.setdefault("DEEPCONTACT_DEBUG", "1")
 
 
 @pytest.fixture(scope="session")
