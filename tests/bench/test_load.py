@@ -8,7 +8,6 @@ import pytest
 
 from deepcontact.cli import main
 from server.process import ServerProcess
-from tests.server.conftest import write_conv_model
 
 
 @pytest.fixture(scope="module")
@@ -18,15 +17,8 @@ def replay_file(tmp_path_factory):
     return path
 
 
-@pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("models")
-    write_conv_model(folder, "tiny")
-    return folder
-
-
-def test_load_levels_report_throughput_latency_and_no_misordered_replies(models, replay_file, tmp_path):
-    with ServerProcess(models) as server:
+def test_load_levels_report_throughput_latency_and_no_misordered_replies(model_dir, replay_file, tmp_path):
+    with ServerProcess(model_dir) as server:
         assert main(["bench", "load", "--server", server.address, "--model", "tiny", "--clients", "1,3",
                      "--duration", "2", "--replay", str(replay_file), "--processes", "2",
                      "--out", str(tmp_path)]) == 0
@@ -39,8 +31,8 @@ def test_load_levels_report_throughput_latency_and_no_misordered_replies(models,
     assert (tmp_path / "latency_vs_load.png").exists()
 
 
-def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(models, replay_file, tmp_path):
-    with ServerProcess(models, "--max-concurrent", "1") as server:
+def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(model_dir, replay_file, tmp_path):
+    with ServerProcess(model_dir, "--max-concurrent", "1") as server:
         assert main(["bench", "load", "--server", server.address, "--model", "tiny", "--clients", "3",
                      "--duration", "2", "--replay", str(replay_file), "--processes", "1",
                      "--out", str(tmp_path)]) == 0
@@ -50,8 +42,8 @@ def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(model
     assert r["wrong_order_or_step"] == 0 and r["steps"] > 0
 
 
-def test_live_simulations_can_drive_the_load(models, tmp_path):
-    with ServerProcess(models) as server:
+def test_live_simulations_can_drive_the_load(model_dir, tmp_path):
+    with ServerProcess(model_dir) as server:
         assert main(["bench", "load", "--server", server.address, "--model", "tiny", "--clients", "2",
                      "--duration", "1", "--processes", "1", "--out", str(tmp_path)]) == 0
     (r,) = json.loads((tmp_path / "load.json").read_text())["results"]

@@ -8,7 +8,6 @@ import json
 import pytest
 
 from deepcontact.cli import main
-from tests.server.conftest import write_conv_model
 
 
 @pytest.fixture(scope="module")
@@ -17,13 +16,6 @@ def no_contacts(tmp_path_factory):
     path = tmp_path_factory.mktemp("data") / "falling.h5"
     assert main(["generate", "--seeds", "5", "--steps", "3", "--workers", "1", "--out", str(path), "--quiet"]) == 0
     return path
-
-
-@pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("models")
-    write_conv_model(folder, "tiny")
-    return folder
 
 
 def run(capsys, argv: list[str]) -> tuple[int, str, str]:
@@ -59,8 +51,8 @@ def test_simulate_without_contacts_says_so_and_keeps_nulls(capsys, tmp_path, sce
     ("train", ["--train", "{data}", "--val", "{data}", "--out", "{tmp}/run"]),
     ("evaluate", ["--model", "{models}/tiny.onnx", "--data", "{data}"]),
 ], ids=lambda x: x if isinstance(x, str) else None)
-def test_commands_refuse_what_they_cannot_use_in_one_line(capsys, tmp_path, no_contacts, models, words, argv):
-    fill = {"tmp": tmp_path, "models": models, "data": no_contacts}
+def test_commands_refuse_what_they_cannot_use_in_one_line(capsys, tmp_path, no_contacts, model_dir, words, argv):
+    fill = {"tmp": tmp_path, "models": model_dir, "data": no_contacts}
     code, _, err = run(capsys, words.split() + [a.format(**fill) for a in argv])
     assert code == 2 and one_line_error(err, words), err
 

@@ -17,22 +17,14 @@ from simclient.client import StepFailed, WarmStartClient
 from simclient.scene import SceneSpec
 from simclient.simulate import run_simulation
 from simclient.warmstarts import make_provider
-from tests.server.conftest import thesis_steps, write_conv_model  # noqa: F401 (a fixture)
 
 DEADLINE_MS = 100.0
 FAULT_DELAY_MS, FAULT_EVERY = 300, 3
 
 
 @pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("models")
-    write_conv_model(folder, "tiny")
-    return folder
-
-
-@pytest.fixture(scope="module")
-def slow_server(models):
-    with ServerProcess(models, "--fault-delay-ms", str(FAULT_DELAY_MS), "--fault-every", str(FAULT_EVERY)) as srv:
+def slow_server(model_dir):
+    with ServerProcess(model_dir, "--fault-delay-ms", str(FAULT_DELAY_MS), "--fault-every", str(FAULT_EVERY)) as srv:
         yield srv
 
 
@@ -42,16 +34,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_a_restarted_server_gets_its_learned_warm_starts_back(models):
+def test_a_restarted_server_gets_its_learned_warm_starts_back(model_dir):
     bind = f"127.0.0.1:{_free_port()}"
-    servers = [ServerProcess(models, bind=bind).start()]
+    servers = [ServerProcess(model_dir, bind=bind).start()]
     spec = dataclasses.replace(SceneSpec.thesis(), steps=400)
     kill_at, down_s = 40, 1.0
     back_at: list[float] = []  # when the new server answered its health check
 
     def restart():
         time.sleep(down_s)
-        servers.append(ServerProcess(models, bind=bind).start())
+        servers.append(ServerProcess(model_dir, bind=bind).start())
         back_at.append(time.monotonic())
 
     restarter = threading.Thread(target=restart)
