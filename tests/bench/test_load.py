@@ -26,6 +26,7 @@ def test_load_levels_report_throughput_latency_and_no_misordered_replies(model_d
     assert [r["clients"] for r in results] == [1, 3]
     for r in results:
         assert r["steps"] > 0 and r["steps_per_s"] > 0
+        assert r["sent"] == r["steps"] + sum(r["errors"].values())
         assert r["latency_ms"]["p50"] <= r["latency_ms"]["p99"] <= r["latency_ms"]["p99.9"]
         assert r["wrong_order_or_step"] == 0 and r["errors"] == {}
     assert (tmp_path / "latency_vs_load.png").exists()
@@ -40,6 +41,7 @@ def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(model
     assert r["errors"].get("RESOURCE_EXHAUSTED", 0) > 0
     assert set(r["errors"]) <= {"RESOURCE_EXHAUSTED"}  # refused promptly, not timed out
     assert r["wrong_order_or_step"] == 0 and r["steps"] > 0
+    assert r["sent"] == r["steps"] + sum(r["errors"].values())  # refusals are counted, not lost
 
 
 def test_live_simulations_can_drive_the_load(model_dir, tmp_path):
