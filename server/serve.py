@@ -178,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
                         max_queue=args.max_queue, batch_max=args.batch_max, batch_delay_us=args.batch_delay_us,
                         intra_op_threads=args.intra_op_threads, inter_op_threads=args.inter_op_threads,
                         limits=Limits(args.max_bodies, args.max_points), random_seed=args.random_seed,
-                        credentials=credentials, fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every))
+                        credentials=credentials,
+                        fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every) if args.fault_delay_ms else None)
     except (ModelCardError, OSError, ValueError) as exc:
         print(f"deepcontact serve: {exc}", file=sys.stderr)
         return 2
