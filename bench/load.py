@@ -244,6 +244,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"deepcontact bench load: --clients takes positive integers, e.g. 1,4,16,64 (got {args.clients!r})",
               file=sys.stderr)
         return 2
+    if args.duration <= 0:
+        print("deepcontact bench load: --duration must be > 0", file=sys.stderr)
+        return 2
     if args.replay is not None and not args.replay.exists():
         print(f"deepcontact bench load: {args.replay}: no such data file", file=sys.stderr)
         return 2

@@ -48,6 +48,8 @@ def test_simulate_without_contacts_says_so_and_keeps_nulls(capsys, tmp_path, sce
     ("bench server", ["--steps", "3", "--models", "{models}", "--model", "tiny"]),
     ("bench server", ["--steps", "0", "--models", "{models}", "--model", "tiny"]),
     ("bench load", ["--server", "127.0.0.1:9", "--model", "tiny", "--replay", "{data}", "--out", "{tmp}/load"]),
+    ("bench load", ["--server", "127.0.0.1:9", "--model", "tiny", "--duration", "0", "--out", "{tmp}/load"]),
+    ("bench soak", ["--duration", "0", "--out", "{tmp}/soak"]),
     ("train", ["--train", "{data}", "--val", "{data}", "--out", "{tmp}/run"]),
     ("evaluate", ["--model", "{models}/tiny.onnx", "--data", "{data}"]),
 ], ids=lambda x: x if isinstance(x, str) else None)
