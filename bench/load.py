@@ -9,9 +9,11 @@ so one GIL does not cap the load. Steps come from a recorded file
 (`--replay FILE.h5`, cheap to generate load from) or, by default, from live
 thesis simulations, one per stream.
 
-Per level: steps per second, latency p50/p90/p99/p99.9 (HdrHistogram, µs
-resolution), errors by gRPC status code, the server's stage timings, and a
-check that no stream ever got a reply out of order or for another step.
+Per level: steps sent and answered (sent = answered + errors), steps per
+second, latency p50/p90/p99/p99.9 (HdrHistogram, µs resolution), errors by
+reason (simclient.client.StepFailed: gRPC status code, WRONG_STEP, ...), the
+server's stage timings, and a check that no stream ever got a reply out of
+order or for another step. `deepcontact bench soak` runs one long level.
 
 Without --server the command starts the servers it compares itself: one
 server process without micro-batching, one with it, and --server-processes
@@ -110,6 +112,7 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
                 dt = time.perf_counter() - t0
                 if reply.step != k or reply.point_count != len(points):
                     wrong_order += 1
+                    errors["WRONG_STEP"] = errors.get("WRONG_STEP", 0) + 1
                 else:
                     ok += 1
                     latency.record_value(max(1, int(dt * 1e6)))
@@ -119,13 +122,13 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
                 if exc.backing_off:  # nothing was sent; wait out the reconnect backoff
                     time.sleep(0.005)
                     continue
-                code = exc.code.name if exc.code is not None else "OTHER"
-                if "while waiting for step" in str(exc):
+                if exc.reason == "WRONG_STEP":
                     wrong_order += 1
-                errors[code] = errors.get(code, 0) + 1
+                errors[exc.reason] = errors.get(exc.reason, 0) + 1
                 time.sleep(0.002)  # do not spin on a refusing server
-            k += 1
+            k += 1  # sent: answered (ok) or counted in errors
     with lock:
+        out["sent"] += k
         out["ok"] += ok
         out["wrong_order"] += wrong_order
         for code, n in errors.items():
@@ -137,7 +140,7 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
 def _process_worker(target, model, replay, stream_indices, deadline_s, ready, start_time, duration, result_path):
     from hdrh.histogram import HdrHistogram
 
-    out = {"ok": 0, "wrong_order": 0, "errors": {},
+    out = {"sent": 0, "ok": 0, "wrong_order": 0, "errors": {},
            "latency": HdrHistogram(1, HIGHEST_US, 3), "server_total": HdrHistogram(1, HIGHEST_US, 3),
            "server_inference": HdrHistogram(1, HIGHEST_US, 3)}
     lock = threading.Lock()
@@ -193,8 +196,9 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
         print(f"warning: {n_proc - len(parts)} load processes did not report", file=sys.stderr)
     hist = {name: HdrHistogram(1, HIGHEST_US, 3) for name in ("latency", "server_total", "server_inference")}
     errors: dict[str, int] = {}
-    ok = wrong = 0
+    sent = ok = wrong = 0
     for part in parts:
+        sent += part["sent"]
         ok += part["ok"]
         wrong += part["wrong_order"]
         for code, n in part["errors"].items():
@@ -208,12 +212,19 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
     lat = hist["latency"]
     return {
         "clients": clients, "processes": n_proc, "duration_s": duration,
-        "steps": ok, "steps_per_s": ok / duration,
+        "sent": sent, "steps": ok, "steps_per_s": ok / duration,
         "latency_ms": {"p50": pct(lat, 50), "p90": pct(lat, 90), "p99": pct(lat, 99), "p99.9": pct(lat, 99.9)},
         "server_ms": {"total_p50": pct(hist["server_total"], 50), "inference_p50": pct(hist["server_inference"], 50),
                       "total_p99": pct(hist["server_total"], 99)},
         "errors": errors, "wrong_order_or_step": wrong,
     }
+
+
+def _has_contacts(replay: Path) -> bool:
+    from training.dataset import Dataset
+
+    with Dataset(replay) as ds:
+        return bool((ds.steps["point_count"] > 0).any())
 
 
 # -- configurations ------------------------------------------------------------
@@ -233,8 +244,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"deepcontact bench load: --clients takes positive integers, e.g. 1,4,16,64 (got {args.clients!r})",
               file=sys.stderr)
         return 2
+    if args.duration <= 0:
+        print("deepcontact bench load: --duration must be > 0", file=sys.stderr)
+        return 2
     if args.replay is not None and not args.replay.exists():
         print(f"deepcontact bench load: {args.replay}: no such data file", file=sys.stderr)
+        return 2
+    if args.replay is not None and not _has_contacts(args.replay):
+        print(f"deepcontact bench load: {args.replay}: no steps with contacts to send", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     if args.server:

@@ -51,7 +51,17 @@ def record_steps(seed: int, steps: int):
 
 def run(args: argparse.Namespace) -> int:
     from server.process import ServerProcess
+    from simclient.client import StepFailed
 
+    if args.steps < 1 or args.rounds < 2:
+        print("deepcontact bench server: --steps must be >= 1 and --rounds >= 2 (the first round warms up)",
+              file=sys.stderr)
+        return 2
+    recorded = [s for s in record_steps(args.seed, args.steps) if len(s[1]) > 0]
+    if not recorded:
+        print(f"deepcontact bench server: no steps with contacts in the first {args.steps} steps of seed "
+              f"{args.seed} (bodies still falling); give more --steps", file=sys.stderr)
+        return 2
     try:
         server = ServerProcess(args.models).start()
     except (RuntimeError, TimeoutError) as exc:
@@ -64,7 +74,6 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         server.stop()
         return 2
-    recorded = [s for s in record_steps(args.seed, args.steps) if len(s[1]) > 0]
     world = wire.encode_world((0.0, 0.0), (15.0, 15.0))
     stages = {k: [] for k in ("decode", "p2g", "inference", "g2p", "total", "outside_inference")}
     round_trip = []
@@ -84,6 +93,9 @@ def run(args: argparse.Namespace) -> int:
                                         ("g2p", t.g2p_us), ("total", t.total_us),
                                         ("outside_inference", t.total_us - t.inference_us)):
                         stages[name].append(value)
+    except StepFailed as exc:
+        print(f"deepcontact bench server: a step failed: {exc}", file=sys.stderr)
+        return 1
     finally:
         server.stop()
     n_points = [len(p) for _, p in recorded]

@@ -3,12 +3,14 @@
 Each subcommand lives in the module that does the work and exposes
 `add_arguments(parser)` and `run(args) -> int`; the modules are imported only
 when their subcommand runs, so `deepcontact --help` stays fast (no TensorFlow).
+A command ends with its summary or a one-line error, never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # (path of words, module, one-line help)
@@ -26,6 +28,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
     (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
     (("bench", "load"), "bench.load", "latency and throughput with many simulations streaming at once"),
+    (("bench", "soak"), "bench.soak", "a long load on one server: nothing lost, memory flat (RSS over time)"),
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
 ]
@@ -42,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (engine, generate, iterations, load, server, transfer)"}
+    group_help = {("bench",): "benchmarks (engine, generate, iterations, load, server, soak, transfer)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]
@@ -50,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
                 sub = groups[prefix[:-1]].add_parser(prefix[-1], help=group_help.get(prefix, ""))
                 groups[prefix] = sub.add_subparsers(dest=f"command_{depth}", metavar="COMMAND", required=True)
         sub = groups[words[:-1]].add_parser(words[-1], help=help_text, description=help_text)
-        sub.set_defaults(_module=module)
+        sub.set_defaults(_module=module, _words=words)
         _LazyArguments.attach(sub, module)
     return parser
 
@@ -78,3 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:
+        # Commands answer what they expect with their own one-line errors; this is
+        # for what they did not expect (a bug). DEEPCONTACT_DEBUG=1 shows where.
+        if os.environ.get("DEEPCONTACT_DEBUG"):
+            raise
+        print(f"deepcontact {' '.join(args._words)}: unexpected error: {type(exc).__name__}: {exc} "
+              "(DEEPCONTACT_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return 1

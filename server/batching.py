@@ -56,11 +56,13 @@ class MicroBatcher:
             self._cond.notify()
         return fut.result()
 
-    def close(self) -> None:
+    def close(self, timeout: float = 5.0) -> None:
+        """Refuse new inputs; the batcher thread (a daemon) runs what is
+        queued and ends. Waits for it at most `timeout` seconds."""
         with self._cond:
             self._closed = True
             self._cond.notify()
-        self._thread.join(timeout=5)
+        self._thread.join(timeout=timeout)
 
     def _take_batch(self) -> list[tuple[np.ndarray, Future]] | None:
         with self._cond:

@@ -4,8 +4,12 @@
 
 Loads every ONNX model in the folder with its card, adds the providers
 (zero, random, bad, grid-identity), and serves WarmStart with gRPC health
-checking and server reflection. SIGTERM or SIGINT: stop accepting, let open
-streams drain for `--grace` seconds, exit.
+checking and server reflection.
+
+SIGTERM or SIGINT: health reports NOT_SERVING at once, new RPCs are refused,
+open streams may finish for `--grace` seconds, then what is left is
+cancelled and the process exits, within grace + 1 s whatever clients sent
+before. A second signal exits at once.
 """
 
 from __future__ import annotations
@@ -27,8 +31,9 @@ from grpc_reflection.v1alpha import reflection
 from deepcontact.modelcard import ModelCardError
 from server import metrics
 from server.batching import MicroBatcher
+from server.malformed import MalformedRequests
 from server.predictors import load_models, providers
-from server.service import SERVICE_NAME, Limits, WarmStartService, add_to_server
+from server.service import SERVICE_NAME, FaultDelay, Limits, WarmStartService, add_to_server
 
 log = logging.getLogger("deepcontact.server")
 
@@ -69,8 +74,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="serve Prometheus metrics on this port at /metrics (default 0: off)")
     parser.add_argument("--tls-cert", type=Path, help="PEM certificate chain: serve TLS (with --tls-key)")
     parser.add_argument("--tls-key", type=Path, help="PEM private key for --tls-cert")
-    parser.add_argument("--grace", type=float, default=5.0, help="seconds open streams may drain on shutdown (default 5)")
+    parser.add_argument("--grace", type=float, default=5.0,
+                        help="on SIGTERM/SIGINT, seconds open streams may go on before they are cancelled and the "
+                             "process exits (default 5); a second signal exits at once")
+    parser.add_argument("--fault-delay-ms", type=float, default=0.0, metavar="MS",
+                        help="testing clients: hold each reply this long, as a slow server would (default 0: off)")
+    parser.add_argument("--fault-every", type=int, default=1, metavar="N",
+                        help="with --fault-delay-ms: only steps whose index is a multiple of N (default 1: all)")
     parser.add_argument("--log-format", choices=("json", "text"), default="json", help="log lines (default json)")
+
+
+# How long after the grace period cancelled calls may take to end.
+STOP_MARGIN_S = 0.5
+HEALTH_SERVICES = ("", SERVICE_NAME)  # the server as a whole, and WarmStart
+
+
+class HealthServicer(health.HealthServicer):
+    """grpcio-health's servicer with List, which health.proto declares and
+    grpcio-health 1.85 leaves unimplemented (UNIMPLEMENTED and a logged
+    traceback per call)."""
+
+    def List(self, request, context):
+        return health_pb2.HealthListResponse(statuses={
+            name: self.Check(health_pb2.HealthCheckRequest(service=name), context) for name in HEALTH_SERVICES})
 
 
 class Server:
@@ -80,7 +106,8 @@ class Server:
     def __init__(self, *, models: Path | None, bind: str = "127.0.0.1:0", max_concurrent: int = 64,
                  max_queue: int = 256, batch_max: int = 0, batch_delay_us: int = 500,
                  intra_op_threads: int = 1, inter_op_threads: int = 1, limits: Limits = Limits(),
-                 random_seed: int = 0, credentials: grpc.ServerCredentials | None = None):
+                 random_seed: int = 0, credentials: grpc.ServerCredentials | None = None,
+                 fault: FaultDelay | None = None):
         self.models = load_models(models, intra_op_threads=intra_op_threads,
                                   inter_op_threads=inter_op_threads) if models else []
         self.batchers = []
@@ -90,12 +117,12 @@ class Server:
                                  max_queue=max_queue)
                 m.infer = b
                 self.batchers.append(b)
-        self.service = WarmStartService(self.models + providers(random_seed), limits)
+        self.service = WarmStartService(self.models + providers(random_seed), limits, fault)
         # Each open stream holds a worker thread, so the pool is as large as the RPC bound.
         self.grpc = grpc.server(futures.ThreadPoolExecutor(max_workers=max_concurrent, thread_name_prefix="rpc"),
-                                maximum_concurrent_rpcs=max_concurrent)
+                                interceptors=(MalformedRequests(),), maximum_concurrent_rpcs=max_concurrent)
         add_to_server(self.service, self.grpc)
-        self.health = health.HealthServicer()
+        self.health = HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc)
         reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.grpc)
         if credentials is None:
@@ -112,16 +139,20 @@ class Server:
 
     def start(self) -> "Server":
         self.grpc.start()
-        for name in ("", SERVICE_NAME):
+        for name in HEALTH_SERVICES:
             self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
         return self
 
-    def stop(self, grace: float = 0.0) -> None:
-        """Report NOT_SERVING, refuse new RPCs, let open ones finish within grace."""
+    def stop(self, grace: float = 0.0) -> bool:
+        """Report NOT_SERVING, refuse new RPCs, let open ones finish within
+        grace seconds, cancel the rest. Returns whether every RPC ended; waits
+        no longer than grace + STOP_MARGIN_S, so a call gRPC never finishes
+        cannot hold the caller."""
         self.health.enter_graceful_shutdown()
-        self.grpc.stop(grace).wait()
+        ended = self.grpc.stop(grace).wait(grace + STOP_MARGIN_S)
         for b in self.batchers:
-            b.close()
+            b.close(timeout=0.1)
+        return ended
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,6 +163,9 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.models.is_dir():
         print(f"deepcontact serve: {args.models} is not a folder of models", file=sys.stderr)
+        return 2
+    if args.grace < 0 or args.fault_delay_ms < 0 or args.fault_every < 1:
+        print("deepcontact serve: --grace and --fault-delay-ms must be >= 0, --fault-every >= 1", file=sys.stderr)
         return 2
     credentials = None
     if args.tls_cert or args.tls_key:
@@ -144,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
                         max_queue=args.max_queue, batch_max=args.batch_max, batch_delay_us=args.batch_delay_us,
                         intra_op_threads=args.intra_op_threads, inter_op_threads=args.inter_op_threads,
                         limits=Limits(args.max_bodies, args.max_points), random_seed=args.random_seed,
-                        credentials=credentials)
+                        credentials=credentials,
+                        fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every) if args.fault_delay_ms else None)
     except (ModelCardError, OSError, ValueError) as exc:
         print(f"deepcontact serve: {exc}", file=sys.stderr)
         return 2
@@ -157,13 +192,36 @@ def run(args: argparse.Namespace) -> int:
         os.replace(tmp, args.port_file)
     log.info("serving", extra={"address": server.address, "pid": os.getpid(),
                                "models": sorted(server.service.predictors), "tls": credentials is not None,
-                               "batch_max": args.batch_max})
+                               "batch_max": args.batch_max, "fault_delay_ms": args.fault_delay_ms})
 
     stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        if stop.is_set():  # the operator will not wait for the drain
+            log.warning("second signal: exiting now", extra={"signal": signal.Signals(signum).name})
+            _exit(128 + signum)
+        stop.set()
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_signal)
     stop.wait()
     log.info("shutting down", extra={"grace_s": args.grace})
-    server.stop(args.grace)
-    log.info("stopped")
-    return 0
+    if server.stop(args.grace):
+        log.info("stopped")
+    else:
+        log.warning("stopped with RPCs that did not end after cancellation")
+    _exit(0)
+
+
+def _exit(code: int) -> None:
+    """Flush the log and end the process now.
+
+    Not a return to the interpreter: its exit joins every thread of the RPC
+    pool (ThreadPoolExecutor threads are not daemons), so one handler stuck
+    in a model, a sleep or a call gRPC never finished would keep a stopped
+    server alive indefinitely.
+    """
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)

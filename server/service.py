@@ -6,7 +6,8 @@ stage timings. Bad input never reaches the model: it is answered with
 INVALID_ARGUMENT naming the field and the limit, NOT_FOUND for an unknown
 model, RESOURCE_EXHAUSTED when the inference queue is full. A stream that
 receives a bad message is ended with that status; other streams are not
-affected.
+affected. Bytes that do not parse as a request never get here: they are
+refused by server.malformed.
 """
 
 from __future__ import annotations
@@ -24,15 +25,29 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
 from server.batching import QueueFull
 from server.predictors import GridMismatch, Predictor
+from server.rejects import reject
 
 log = logging.getLogger("deepcontact.server")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["WarmStart"].full_name
+_PREDICT, _STREAM = f"/{SERVICE_NAME}/Predict", f"/{SERVICE_NAME}/Stream"
 
 
 @dataclasses.dataclass(frozen=True)
 class Limits:
     max_bodies: int = 10_000
     max_points: int = 100_000
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultDelay:
+    """Fault injection for testing clients: hold the reply of every step whose
+    index is a multiple of `every` for `seconds` (a slow or stalled server)."""
+
+    seconds: float
+    every: int = 1
+
+    def applies(self, step: int) -> bool:
+        return self.seconds > 0 and step % self.every == 0
 
 
 class _Reject(Exception):
@@ -77,9 +92,10 @@ def add_to_server(service: "WarmStartService", server: grpc.Server) -> None:
 
 
 class WarmStartService(pb_grpc.WarmStartServicer):
-    def __init__(self, predictors: list[Predictor], limits: Limits = Limits()):
+    def __init__(self, predictors: list[Predictor], limits: Limits = Limits(), fault: FaultDelay | None = None):
         self.predictors = {p.name: p for p in predictors}
         self.limits = limits
+        self.fault = fault
 
     # -- RPCs -----------------------------------------------------------------
     def ListModels(self, request, context):
@@ -96,7 +112,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             domain = self._domain(request.world)
             return self._step(request, domain)
         except _Reject as r:
-            self._abort(context, r, "Predict")
+            reject(context, r.code, r.message, rpc=_PREDICT)
 
     def Stream(self, request_iterator, context):
         domain = None
@@ -109,7 +125,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                                   "world: required on the first message of a stream")
                 yield self._step(request, domain)
             except _Reject as r:
-                self._abort(context, r, "Stream")
+                reject(context, r.code, r.message, rpc=_STREAM)
 
     # -- one step -------------------------------------------------------------
     def _domain(self, world: pb.World):
@@ -140,6 +156,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         except Exception as exc:  # a bug, not the client's fault: say so, keep serving
             log.exception("predict failed", extra={"model": predictor.name, "step": request.step})
             raise _Reject(grpc.StatusCode.INTERNAL, f"{predictor.name} failed: {exc}") from None
+        if self.fault is not None and self.fault.applies(request.step):
+            time.sleep(self.fault.seconds)
         reply = wire.encode_impulses(request.step, predictor.name, impulses)
         # Filled in place: building a Timings and copying it in costs more.
         timings = reply.timings
@@ -151,11 +169,6 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         timings.total_us = _us(total)
         metrics.observe_step(predictor.name, t1 - t0, stages, total)
         return reply
-
-    def _abort(self, context, reject: _Reject, rpc: str):
-        metrics.ERRORS.labels(code=reject.code.name).inc()
-        log.info("rejected", extra={"rpc": rpc, "code": reject.code.name, "detail": reject.message})
-        context.abort(reject.code, reject.message)
 
 
 def _us(seconds: float) -> int:

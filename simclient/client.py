@@ -8,8 +8,12 @@ reply before the next one, so the request iterator handed to gRPC is fed from
 a queue one message at a time (a plain generator would be drained eagerly and
 the round trips would include queueing). A step that does not come back in
 time, or a broken stream, raises `StepFailed`; the caller falls back for that
-step, and the next `step()` reopens the stream (with backoff) and resends the
-world.
+step, and the next `step()` reopens the stream and resends the world. After
+a failure, reopening waits out an exponential backoff (50 ms doubling to 2 s
+by default; steps meanwhile fail at once, unsent), and the channel reconnects
+at least every 0.5 s, so a restarted server gets its learned warm starts
+back within about the backoff cap (+ 0.5 s) of coming up. A reply that
+misses its deadline is never used: its stream is dropped with it.
 """
 
 from __future__ import annotations
@@ -24,15 +28,26 @@ from deepcontact.v1 import warmstart_pb2 as pb
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 
 _END = object()
+# During an outage the channel tries to connect at least this often (a TCP connect, cheap).
+CHANNEL_RECONNECT_MAX_S = 0.5
 
 
 class StepFailed(RuntimeError):
-    """No usable reply for this step: deadline, server error, or no server."""
+    """No usable reply for this step: deadline, server error, or no server.
 
-    def __init__(self, reason: str, code: grpc.StatusCode | None = None, *, backing_off: bool = False):
-        super().__init__(reason)
+    `reason` is a short key for counting: the gRPC status code's name
+    (DEADLINE_EXCEEDED for a missed deadline), BACKING_OFF (not sent: the
+    stream is waiting out its reconnect backoff), STREAM_ENDED or WRONG_STEP.
+    """
+
+    def __init__(self, message: str, code: grpc.StatusCode | None = None, *, reason: str | None = None):
+        super().__init__(message)
         self.code = code
-        self.backing_off = backing_off  # not sent: the stream is waiting out its reconnect backoff
+        self.reason = reason or (code.name if code is not None else "OTHER")
+
+    @property
+    def backing_off(self) -> bool:
+        return self.reason == "BACKING_OFF"
 
 
 class WarmStartClient:
@@ -46,12 +61,19 @@ class WarmStartClient:
     def __init__(self, target: str, *, world: pb.World | None = None,
                  credentials: grpc.ChannelCredentials | None = None,
                  backoff_s: tuple[float, float] = (0.05, 2.0)):
-        options = [("grpc.lb_policy_name", "round_robin"), ("grpc.enable_retries", 0)]
+        self._backoff_min, self._backoff_max = backoff_s
+        options = [("grpc.lb_policy_name", "round_robin"), ("grpc.enable_retries", 0),
+                   # The channel reconnects on its own schedule, by default 1 s growing 1.6x to 120 s:
+                   # after a long outage it would still be waiting when the server is back, and our
+                   # streams fail fast on it. Bounded here, it is connected again by the time our
+                   # own backoff lets the next stream try.
+                   ("grpc.initial_reconnect_backoff_ms", int(1e3 * self._backoff_min)),
+                   ("grpc.min_reconnect_backoff_ms", int(1e3 * self._backoff_min)),
+                   ("grpc.max_reconnect_backoff_ms", int(1e3 * min(self._backoff_max, CHANNEL_RECONNECT_MAX_S)))]
         self.channel = (grpc.secure_channel(target, credentials, options) if credentials
                         else grpc.insecure_channel(target, options))
         self.stub = pb_grpc.WarmStartStub(self.channel)
         self.world = world
-        self._backoff_min, self._backoff_max = backoff_s
         self._backoff = 0.0
         self._retry_at = 0.0
         self._outbox: queue.Queue | None = None
@@ -73,10 +95,14 @@ class WarmStartClient:
 
     def wait_ready(self, timeout: float) -> bool:
         """True once the channel connects within timeout (seconds)."""
+        ready = grpc.channel_ready_future(self.channel)
         try:
-            grpc.channel_ready_future(self.channel).result(timeout=timeout)
+            ready.result(timeout=timeout)
             return True
         except grpc.FutureTimeoutError:
+            # Unsubscribes it: its polling thread would otherwise outlive the channel
+            # and print a traceback when the channel closes.
+            ready.cancel()
             return False
 
     def list_models(self, timeout: float = 5.0) -> list[pb.ModelInfo]:
@@ -101,10 +127,11 @@ class WarmStartClient:
             raise StepFailed(f"{got.code().name}: {got.details()}", got.code())
         if got is _END:
             self._close_stream(failed=True)
-            raise StepFailed("the server ended the stream")
+            raise StepFailed("the server ended the stream", reason="STREAM_ENDED")
         if got.step != request.step:
             self._close_stream(failed=True)
-            raise StepFailed(f"reply for step {got.step} while waiting for step {request.step}")
+            raise StepFailed(f"reply for step {got.step} while waiting for step {request.step}",
+                             reason="WRONG_STEP")
         self._backoff = 0.0
         return got
 
@@ -113,7 +140,7 @@ class WarmStartClient:
         now = time.monotonic()
         if now < self._retry_at:
             raise StepFailed(f"reconnecting in {1e3 * (self._retry_at - now):.0f} ms", grpc.StatusCode.UNAVAILABLE,
-                             backing_off=True)
+                             reason="BACKING_OFF")
         outbox: queue.Queue = queue.Queue()
         inbox: queue.Queue = queue.Queue()
 

@@ -7,13 +7,16 @@ Per step: collide, export, get the warm start (locally, or over one
 bidirectional stream for the whole simulation), inject, solve, record.
 Faults never stop a simulation: a step whose reply misses the deadline, or
 meets a broken or absent server, runs with Box2D's builtin warm start and
-counts as a fallback; the stream reopens with backoff; every step runs and
-the results file is always written (temporary name, then rename).
+counts as a fallback, by reason; the stream reopens with backoff (counted as
+reconnects) and the learned warm start comes back when the server does;
+every step runs and the results file is always written (temporary name,
+then rename).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import sys
 import tempfile
@@ -44,6 +47,8 @@ class StepRecord:
     provider_ms: float  # time to obtain the warm start (round trip or local computation)
     solve_ms: float
     fallback: bool
+    fallback_reason: str | None  # StepFailed.reason, or NO_SERVER; None when not a fallback
+    reconnect: bool  # this step's request went on a stream reopened after the first
 
 
 def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=None,
@@ -67,21 +72,22 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
         t0 = time.perf_counter()
         bodies, points = engine.bodies(), engine.contacts()
         client_s = time.perf_counter() - t0
-        latency_ms = server_us = None
-        fallback = False
+        latency_ms = server_us = fallback_reason = None
+        fallback = reconnect = False
         tp = time.perf_counter()
         if provider.uses_server:
             warm = None
             if len(points) == 0:
                 pass  # nothing to warm-start; no round trip
             elif client is None:
-                fallback = True
+                fallback, fallback_reason = True, "NO_SERVER"
             else:
                 oracle = engine.oracle() if provider.sends_oracle else None
                 tq = time.perf_counter()
                 request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"],
                                            impulses=oracle)
                 t2 = time.perf_counter()
+                streams = client.reconnects
                 try:
                     reply = client.step(request, timeout)
                     t3 = time.perf_counter()
@@ -92,9 +98,10 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
                     server_us = {"decode": tm.decode_us, "p2g": tm.p2g_us, "inference": tm.inference_us,
                                  "g2p": tm.g2p_us, "total": tm.total_us}
                     client_s += (t2 - tq) + (t4 - t3)
-                except StepFailed:
-                    fallback = True
+                except StepFailed as exc:
+                    fallback, fallback_reason = True, exc.reason
                     latency_ms = 1e3 * (time.perf_counter() - t2)
+                reconnect = client.reconnects > streams
         else:
             warm = provider.warm_start(engine, bodies, points, k)
         provider_s = time.perf_counter() - tp
@@ -115,7 +122,7 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
             residual_trace=[float(x) for x in stats.residual_trace],
             mse_normal=mse_n, mse_tangent=mse_t, latency_ms=latency_ms, server_us=server_us,
             client_us=1e6 * client_s, provider_ms=1e3 * provider_s, solve_ms=stats.solve_ms,
-            fallback=fallback))
+            fallback=fallback, fallback_reason=fallback_reason, reconnect=reconnect))
         if progress is not None:
             progress(k)
     return {"per_step": _columns(records), "summary": summarize(records)}
@@ -148,6 +155,8 @@ def summarize(records: list[StepRecord]) -> dict:
         "p50_latency_ms": stat(np.median, lat),
         "p99_latency_ms": stat(lambda a: np.percentile(a, 99), lat),
         "fallback_steps": sum(r.fallback for r in records),
+        "fallbacks_by_reason": dict(collections.Counter(r.fallback_reason for r in records if r.fallback)),
+        "reconnects": sum(r.reconnect for r in records),
         "median_client_us": stat(np.median, client),
         "total_solve_ms": float(sum(r.solve_ms for r in records)),
     }
@@ -235,9 +244,22 @@ def run(args: argparse.Namespace) -> int:
                    "server": args.server, "deadline_ms": args.deadline_ms,
                    "command": "deepcontact " + " ".join(sys.argv[1:])})
     write_json_atomic(args.out, result)
-    s = result["summary"]
-    lat = f", latency p50 {s['p50_latency_ms']:.2f} ms p99 {s['p99_latency_ms']:.2f} ms" if s["p50_latency_ms"] else ""
-    print(f"{args.warm_start} seed {args.seed}: mean {s['mean_velocity_iterations']:.1f}, median "
-          f"{s['median_velocity_iterations']:.0f} velocity iterations over {s['steps_with_contacts']} steps"
-          f"{lat}, {s['fallback_steps']} fallbacks -> {args.out}")
+    print(f"{args.warm_start} seed {args.seed}: {summary_line(result['summary'])} -> {args.out}")
     return 0
+
+
+def summary_line(s: dict) -> str:
+    """One line from summarize()'s dict; its statistics are None where no step had contacts."""
+    if not s["steps_with_contacts"]:
+        text = f"{s['steps']} steps, no steps with contacts (nothing to warm-start)"
+    else:
+        text = (f"mean {s['mean_velocity_iterations']:.1f}, median {s['median_velocity_iterations']:.0f} "
+                f"velocity iterations over {s['steps_with_contacts']} steps with contacts")
+    if s["p50_latency_ms"] is not None:
+        text += f", latency p50 {s['p50_latency_ms']:.2f} ms p99 {s['p99_latency_ms']:.2f} ms"
+    text += f", {s['fallback_steps']} fallbacks"
+    if s["fallbacks_by_reason"]:
+        text += " (" + ", ".join(f"{n} {reason}" for reason, n in sorted(s["fallbacks_by_reason"].items())) + ")"
+    if s["reconnects"]:
+        text += f", {s['reconnects']} reconnects"
+    return text

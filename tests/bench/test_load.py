@@ -8,7 +8,6 @@ import pytest
 
 from deepcontact.cli import main
 from server.process import ServerProcess
-from tests.server.conftest import write_conv_model
 
 
 @pytest.fixture(scope="module")
@@ -18,15 +17,8 @@ def replay_file(tmp_path_factory):
     return path
 
 
-@pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("models")
-    write_conv_model(folder, "tiny")
-    return folder
-
-
-def test_load_levels_report_throughput_latency_and_no_misordered_replies(models, replay_file, tmp_path):
-    with ServerProcess(models) as server:
+def test_load_levels_report_throughput_latency_and_no_misordered_replies(model_dir, replay_file, tmp_path):
+    with ServerProcess(model_dir) as server:
         assert main(["bench", "load", "--server", server.address, "--model", "tiny", "--clients", "1,3",
                      "--duration", "2", "--replay", str(replay_file), "--processes", "2",
                      "--out", str(tmp_path)]) == 0
@@ -34,13 +26,14 @@ def test_load_levels_report_throughput_latency_and_no_misordered_replies(models,
     assert [r["clients"] for r in results] == [1, 3]
     for r in results:
         assert r["steps"] > 0 and r["steps_per_s"] > 0
+        assert r["sent"] == r["steps"] + sum(r["errors"].values())
         assert r["latency_ms"]["p50"] <= r["latency_ms"]["p99"] <= r["latency_ms"]["p99.9"]
         assert r["wrong_order_or_step"] == 0 and r["errors"] == {}
     assert (tmp_path / "latency_vs_load.png").exists()
 
 
-def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(models, replay_file, tmp_path):
-    with ServerProcess(models, "--max-concurrent", "1") as server:
+def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(model_dir, replay_file, tmp_path):
+    with ServerProcess(model_dir, "--max-concurrent", "1") as server:
         assert main(["bench", "load", "--server", server.address, "--model", "tiny", "--clients", "3",
                      "--duration", "2", "--replay", str(replay_file), "--processes", "1",
                      "--out", str(tmp_path)]) == 0
@@ -48,10 +41,11 @@ def test_past_the_servers_bound_refusals_are_counted_as_resource_exhausted(model
     assert r["errors"].get("RESOURCE_EXHAUSTED", 0) > 0
     assert set(r["errors"]) <= {"RESOURCE_EXHAUSTED"}  # refused promptly, not timed out
     assert r["wrong_order_or_step"] == 0 and r["steps"] > 0
+    assert r["sent"] == r["steps"] + sum(r["errors"].values())  # refusals are counted, not lost
 
 
-def test_live_simulations_can_drive_the_load(models, tmp_path):
-    with ServerProcess(models) as server:
+def test_live_simulations_can_drive_the_load(model_dir, tmp_path):
+    with ServerProcess(model_dir) as server:
         assert main(["bench", "load", "--server", server.address, "--model", "tiny", "--clients", "2",
                      "--duration", "1", "--processes", "1", "--out", str(tmp_path)]) == 0
     (r,) = json.loads((tmp_path / "load.json").read_text())["results"]

@@ -1,5 +1,6 @@
 """A real server on loopback with a small real ONNX model (built with onnx.helper,
-so the tests need no TensorFlow), and real thesis-world steps to send it."""
+so the tests need no TensorFlow; the model folder and the thesis steps to send
+it are in tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import onnx
 import pytest
 from onnx import TensorProto, helper
 
-from deepcontact import wire
 from deepcontact.gridspec import GridSpec
 from deepcontact.modelcard import ModelCard
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
@@ -43,14 +43,6 @@ def write_conv_model(folder, name="tiny", fixed_grid=False, combine="replace", s
 
 
 @pytest.fixture(scope="session")
-def model_dir(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("models")
-    write_conv_model(folder, "tiny")
-    write_conv_model(folder, "tiny-fixed", fixed_grid=True)
-    return folder
-
-
-@pytest.fixture(scope="session")
 def server(model_dir):
     srv = Server(models=model_dir, bind="127.0.0.1:0").start()
     yield srv
@@ -61,21 +53,3 @@ def server(model_dir):
 def stub(server):
     with grpc.insecure_channel(server.address) as channel:
         yield pb_grpc.WarmStartStub(channel)
-
-
-@pytest.fixture(scope="session")
-def thesis_steps():
-    """(world message, [(bodies, points)]) of a few settled thesis steps, with final impulses."""
-    from simclient.scene import SceneSpec, settled_world
-
-    spec = SceneSpec.thesis()
-    engine = settled_world(spec, 901, 150)
-    steps = []
-    for _ in range(5):
-        engine.collide()
-        bodies = engine.bodies()
-        engine.solve()
-        steps.append((bodies, engine.contacts()))
-    lower, upper = spec.domain
-    edges = np.array([[0, 0, 15, 0], [0, 0, 0, 15], [15, 0, 15, 15]], np.float32)
-    return wire.encode_world(lower, upper, edges), steps

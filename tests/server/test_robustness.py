@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import grpc
 import numpy as np
+import pytest
+from google.protobuf.message import DecodeError
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -41,13 +43,18 @@ def test_random_and_malformed_messages_never_take_the_server_down(stub, server, 
             call()
         except grpc.RpcError as err:
             assert err.code() in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.NOT_FOUND)
-    # Bytes that are not a StepRequest at all.
+    # Raw bytes: what does not parse as a StepRequest is INVALID_ARGUMENT, on either RPC.
+    try:
+        pb.StepRequest.FromString(raw)
+        expected = (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.NOT_FOUND)
+    except DecodeError:
+        expected = (grpc.StatusCode.INVALID_ARGUMENT,)
     with grpc.insecure_channel(server.address) as channel:
-        predict = channel.unary_unary("/deepcontact.v1.WarmStart/Predict")
-        try:
-            predict(raw, timeout=5)
-        except grpc.RpcError as err:
-            assert err.code() != grpc.StatusCode.UNAVAILABLE
+        for call in (lambda: channel.unary_unary("/deepcontact.v1.WarmStart/Predict")(raw, timeout=5),
+                     lambda: list(channel.stream_stream("/deepcontact.v1.WarmStart/Stream")(iter([raw]), timeout=5))):
+            with pytest.raises(grpc.RpcError) as err:
+                call()
+            assert err.value.code() in expected
     # And a valid step is still answered correctly.
     world, steps = thesis_steps
     bodies, points = steps[0]
