@@ -56,7 +56,7 @@ def _time_us(fn, repeats: int) -> dict[str, float]:
 def run(args: argparse.Namespace) -> int:
     if args.repeats < 1:
         raise SystemExit("bench transfer: --repeats must be at least 1")
-    from deepcontact import transfer
+    from deepcontact import features, transfer
     from deepcontact.gridspec import GridSpec
     from simclient.scene import SceneSpec, settled_world
 
@@ -68,13 +68,13 @@ def run(args: argparse.Namespace) -> int:
     points = np.ascontiguousarray(contacts["point"])
     spec = GridSpec.for_domain(*scene.domain, resolution=0.25, h=0.5)
 
-    inputs, reports = transfer.world_to_grids(bodies, contacts, spec, return_report=True)
-    target = transfer.targets_to_grids(contacts, spec)
+    inputs, reports = features.world_to_grids(bodies, contacts, spec, return_report=True)
+    target = features.targets_to_grids(contacts, spec)
     _, g2p_report = transfer.g2p(target, points, spec)
     timings = {
-        "p2g_inputs": _time_us(lambda: transfer.world_to_grids(bodies, contacts, spec), args.repeats),
+        "p2g_inputs": _time_us(lambda: features.world_to_grids(bodies, contacts, spec), args.repeats),
         "g2p_sph": _time_us(lambda: transfer.g2p(target, points, spec), args.repeats),
-        "p2g_targets": _time_us(lambda: transfer.targets_to_grids(contacts, spec), args.repeats),
+        "p2g_targets": _time_us(lambda: features.targets_to_grids(contacts, spec), args.repeats),
         "g2p_bilinear": _time_us(lambda: transfer.g2p(target, points, spec, method="bilinear"), args.repeats),
     }
 

@@ -8,10 +8,9 @@ what order), and how each channel is normalized.  One spec is written into
 every exported model's card and read back by the server, so serving transfers
 exactly as training did; ``to_json``/``from_json`` round-trip it exactly.
 
-Channels are data, not code: :data:`CHANNELS` maps a channel name to the
-particle source it is read from (``"bodies"`` or ``"contacts"``) and a function
-computing its per-particle value from the engine's structured arrays.  Adding a
-channel is one :class:`Channel` entry (see :func:`register_channel`).
+Channels are named here and defined in :mod:`deepcontact.channels` (plain
+definitions imported by training and serving alike); the spec only checks
+that the names it lists exist there.
 
 Conventions
 -----------
@@ -33,25 +32,13 @@ import math
 from dataclasses import dataclass, field, fields, replace
 from functools import lru_cache
 from types import MappingProxyType
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-__all__ = [
-    "BODY_DYNAMIC",
-    "CHANNELS",
-    "Channel",
-    "DEFAULT_INPUTS",
-    "DEFAULT_TARGETS",
-    "GridSpec",
-    "KERNELS",
-    "SOURCES",
-    "Source",
-    "WALL_SIDES",
-    "channel_values",
-    "particle_positions",
-    "register_channel",
-]
+from deepcontact.channels import CHANNELS, DEFAULT_INPUTS, DEFAULT_TARGETS
+
+__all__ = ["GridSpec", "KERNELS", "WALL_SIDES"]
 
 #: Format version written into every serialized spec; bump on incompatible change.
 SPEC_VERSION = 1
@@ -59,176 +46,8 @@ SPEC_VERSION = 1
 #: Kernel names understood by :mod:`deepcontact.transfer` (thesis eq. 5.2-5.4).
 KERNELS = ("poly6", "spiky", "gaussian")
 
-#: ``type`` value of a dynamic body in the engine's body array (Box2D b2_dynamicBody).
-BODY_DYNAMIC = 2
-
 #: Sides of the grid that can carry the static box's wall mass (the box has no top).
 WALL_SIDES = ("bottom", "left", "right", "top")
-
-
-# --------------------------------------------------------------------------- #
-# Particle sources and channels
-# --------------------------------------------------------------------------- #
-
-
-@dataclass(frozen=True)
-class Source:
-    """Where particles of one kind come from.
-
-    Attributes
-    ----------
-    name:
-        ``"bodies"`` or ``"contacts"``.
-    position_field:
-        Field of the structured array holding the particle position, float (2,) m.
-    select:
-        Optional ``array -> bool mask (N,)`` keeping only the records that are
-        particles (static bodies are walls, not particles).
-    """
-
-    name: str
-    position_field: str
-    select: Callable[[np.ndarray], np.ndarray] | None = None
-
-    def records(self, array: np.ndarray) -> np.ndarray:
-        """The records of ``array`` that are particles of this source."""
-        if self.select is None or len(array) == 0:
-            return array
-        return array.take(np.flatnonzero(self.select(array)))  # faster than boolean indexing
-
-
-#: Particle sources.  Only dynamic bodies are splatted: static bodies (type 0)
-#: are the box, represented by the wall mass instead.
-SOURCES: Mapping[str, Source] = MappingProxyType(
-    {
-        "bodies": Source("bodies", "position", lambda b: b["type"] == BODY_DYNAMIC),
-        "contacts": Source("contacts", "point"),
-    }
-)
-
-
-@dataclass(frozen=True)
-class Channel:
-    """One grid channel: which particles carry it and how to read its value.
-
-    Attributes
-    ----------
-    name:
-        Channel name as used in :attr:`GridSpec.inputs` / :attr:`GridSpec.targets`.
-    source:
-        Key of :data:`SOURCES` the particles come from.
-    extract:
-        ``records -> (N,) values`` for the (already selected) records.
-    unit:
-        Unit of the per-particle value, for documentation.
-    description:
-        One line, for documentation.
-    walls:
-        If true, :func:`deepcontact.transfer.world_to_grids` adds
-        :attr:`GridSpec.wall_mass` to the nodes on the static box's edges
-        (thesis §8.1: static bodies have no mass in Box2D, so the box's edge
-        nodes get a mass of 100, "more than one hundred times the mass of the
-        bodies").
-    """
-
-    name: str
-    source: str
-    extract: Callable[[np.ndarray], np.ndarray]
-    unit: str = ""
-    description: str = ""
-    walls: bool = False
-
-
-def _field(name: str, component: int | None = None) -> Callable[[np.ndarray], np.ndarray]:
-    if component is None:
-        return lambda a: a[name]
-    return lambda a: a[name][:, component]
-
-
-_CHANNELS: dict[str, Channel] = {}
-
-#: Registry of known channels, name -> :class:`Channel` (read-only view).
-CHANNELS: Mapping[str, Channel] = MappingProxyType(_CHANNELS)
-
-
-def register_channel(channel: Channel, *, replace_existing: bool = False) -> Channel:
-    """Add ``channel`` to :data:`CHANNELS` and return it.
-
-    Raises ValueError for an unknown source or a name already registered
-    (unless ``replace_existing``).
-    """
-    if channel.source not in SOURCES:
-        raise ValueError(f"channel {channel.name!r}: unknown source {channel.source!r}; known: {sorted(SOURCES)}")
-    if channel.name in _CHANNELS and not replace_existing:
-        raise ValueError(f"channel {channel.name!r} is already registered")
-    _CHANNELS[channel.name] = channel
-    return channel
-
-
-for _c in (
-    # Bodies (dynamic only), at the body's centre of mass position.
-    Channel("mass", "bodies", _field("mass"), "kg", "body mass; static box edges get GridSpec.wall_mass", walls=True),
-    Channel("vx", "bodies", _field("velocity", 0), "m/s", "linear velocity, x"),
-    Channel("vy", "bodies", _field("velocity", 1), "m/s", "linear velocity, y"),
-    Channel("omega", "bodies", _field("angular_velocity"), "rad/s", "angular velocity"),
-    Channel("angle", "bodies", _field("angle"), "rad", "body angle"),
-    Channel("inertia", "bodies", _field("inertia"), "kg m^2", "rotational inertia about the centre of mass"),
-    Channel("radius", "bodies", _field("radius"), "m", "shape radius"),
-    # Contact points, at the world contact point.
-    Channel("normal_x", "contacts", _field("normal", 0), "1", "contact normal (A to B), x"),
-    Channel("normal_y", "contacts", _field("normal", 1), "1", "contact normal (A to B), y"),
-    Channel("separation", "contacts", _field("separation"), "m", "signed separation (negative: penetration)"),
-    Channel("builtin_normal", "contacts", _field("builtin", 0), "N s", "engine's built-in warm start, normal"),
-    Channel("builtin_tangent", "contacts", _field("builtin", 1), "N s", "engine's built-in warm start, tangent"),
-    Channel("warm_start_normal", "contacts", _field("warm_start", 0), "N s", "warm start used, normal"),
-    Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),
-    Channel("impulse_normal", "contacts", _field("impulse", 0), "N s", "final solver impulse, normal"),
-    Channel("impulse_tangent", "contacts", _field("impulse", 1), "N s", "final solver impulse, tangent"),
-    # Targets of residual models: what the solver adds to Box2D's own warm start.
-    Channel("correction_normal", "contacts", lambda c: c["impulse"][:, 0] - c["builtin"][:, 0], "N s",
-            "final impulse minus the builtin warm start, normal"),
-    Channel("correction_tangent", "contacts", lambda c: c["impulse"][:, 1] - c["builtin"][:, 1], "N s",
-            "final impulse minus the builtin warm start, tangent"),
-):
-    register_channel(_c)
-del _c
-
-#: Thesis §8.1 inputs: four body attributes, then the two contact normal components.
-DEFAULT_INPUTS = ("mass", "vx", "vy", "omega", "normal_x", "normal_y")
-#: Thesis §8.1 targets: normal and tangent impulse at the contact points.
-DEFAULT_TARGETS = ("impulse_normal", "impulse_tangent")
-
-
-def particle_positions(source: str, array: np.ndarray) -> np.ndarray:
-    """Positions (N, 2) float64 m of the particles of ``source`` in ``array``."""
-    src = SOURCES[source]
-    return np.asarray(src.records(array)[src.position_field], dtype=np.float64).reshape(-1, 2)
-
-
-def channel_values(names: Sequence[str], array: np.ndarray, *, select: bool = True) -> np.ndarray:
-    """Per-particle values (N, len(names)) float64 of channels that share one source.
-
-    ``array`` is the engine's structured array for that source (bodies or
-    contacts).  With ``select`` (default) records that are not particles
-    (static bodies) are skipped first, so rows line up with
-    :func:`particle_positions`; pass ``select=False`` for records already
-    selected with ``SOURCES[source].records``.
-    """
-    if not names:
-        raise ValueError("channel_values needs at least one channel")
-    unknown = [n for n in names if n not in CHANNELS]
-    if unknown:
-        raise ValueError(f"unknown channels {unknown}; known channels: {sorted(CHANNELS)}")
-    sources = {CHANNELS[n].source for n in names}
-    if len(sources) != 1:
-        raise ValueError(f"channels {list(names)} come from several sources {sorted(sources)}")
-    records = SOURCES[sources.pop()].records(array) if select else array
-    # Filled channel-major (each row a contiguous copy of one field) and
-    # returned as an (N, C) view: the transfer code works on the (C, N) layout.
-    out = np.empty((len(names), len(records)), dtype=np.float64)
-    for j, n in enumerate(names):  # loop over channels, not particles
-        out[j] = CHANNELS[n].extract(records)
-    return out.T
 
 
 # --------------------------------------------------------------------------- #
@@ -306,7 +125,7 @@ class GridSpec:
         One of :data:`KERNELS`: ``"poly6"`` (default, thesis), ``"spiky"``,
         ``"gaussian"`` (sigma = h/3, truncated at h).
     inputs, targets:
-        Channel names, in grid-channel order (keys of :data:`CHANNELS`).
+        Channel names, in grid-channel order (keys of :data:`deepcontact.channels.CHANNELS`).
         Targets must be contact-point channels (they are transferred back to
         the contact points).
     normalization:
@@ -315,7 +134,7 @@ class GridSpec:
     wall_mass:
         Mass, kg, added to the nodes on the static box's edges in every
         ``walls=True`` channel (``"mass"``) by
-        :func:`deepcontact.transfer.world_to_grids`; 0 disables it.  Thesis
+        :func:`deepcontact.features.world_to_grids`; 0 disables it.  Thesis
         §8.1 uses 100.
     walls:
         Grid sides carrying the wall mass, from :data:`WALL_SIDES`; the thesis

@@ -14,14 +14,15 @@ data generation, training, the server and the Grid baseline.
   least one particle in range; the rest is reported.
 * :func:`g2p` with ``method="bilinear"`` (thesis §5.4.1): standard bilinear
   interpolation of the four surrounding nodes.
-* :func:`world_to_grids` / :func:`targets_to_grids` build the CNN's input and
-  target grids from the engine's structured arrays, channel by channel as
-  listed in the :class:`~deepcontact.gridspec.GridSpec`.
+* :func:`p2g_sets` splats several sets of particles (bodies, contact points,
+  several worlds) with one weight computation: what
+  :mod:`deepcontact.features` builds the CNN's grids with.
 * :func:`plan` computes the kernel weights of a set of particles once, for
   any number of P2G and SPH G2P transfers (:class:`TransferPlan`); P2G and
   G2P of the same particles otherwise compute the same weights twice.
-  ``world_to_grids(..., return_plan=True)`` hands back the contact points'
-  plan from the input splat, so the server's step computes them once.
+  ``deepcontact.features.world_to_grids(..., return_plan=True)`` hands back
+  the contact points' plan from the input splat, so the server's step
+  computes them once.
 
 Kernels (thesis eq. 5.2-5.4, 2-D, ``r`` the particle-node distance):
 
@@ -72,7 +73,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from deepcontact.gridspec import CHANNELS, KERNELS, SOURCES, GridSpec
+from deepcontact.gridspec import KERNELS, GridSpec
 
 try:
     from deepcontact import _transfer as _compiled
@@ -84,17 +85,17 @@ except ImportError as exc:  # pragma: no cover - a checkout that was never set u
 
 __all__ = [
     "DOMAIN_TOLERANCE",
+    "ParticleSet",
     "TransferPlan",
     "TransferReport",
+    "channel_columns",
     "g2p",
     "kernel",
     "kernel_shape",
     "p2g",
     "p2g_batch",
+    "p2g_sets",
     "plan",
-    "targets_to_grids",
-    "world_to_grids",
-    "worlds_to_grids",
 ]
 
 #: Default slack, m, before a particle counts as outside the domain.  A contact
@@ -536,7 +537,7 @@ def _split_outside(pos: np.ndarray, spec: GridSpec, outside: str, tolerance: flo
 # --------------------------------------------------------------------------- #
 
 
-class _Set(NamedTuple):
+class ParticleSet(NamedTuple):
     """One set of particles: rows ``start:stop`` of the stacked positions and
     values, splatted into channels ``cols`` of world ``world``'s grid."""
 
@@ -553,7 +554,7 @@ class _Set(NamedTuple):
         return self.cols.stop - self.cols.start if isinstance(self.cols, slice) else len(self.cols)
 
 
-def _columns(cols: Sequence[int]) -> slice | list[int]:
+def channel_columns(cols: Sequence[int]) -> slice | list[int]:
     """A slice for a contiguous run of columns (cheaper to index with), else the list."""
     cols = list(cols)
     if cols == list(range(cols[0], cols[-1] + 1)):
@@ -561,10 +562,10 @@ def _columns(cols: Sequence[int]) -> slice | list[int]:
     return cols
 
 
-def _p2g_sets(
+def p2g_sets(
     pos: np.ndarray,
     values: np.ndarray,
-    sets: Sequence[_Set],
+    sets: Sequence[ParticleSet],
     spec: GridSpec,
     batch: int,
     outside: str,
@@ -583,6 +584,7 @@ def _p2g_sets(
     ``sets[plan_set]`` (sharing the weights computed here; one world only),
     or None.
     """
+    _check_mode(outside, tolerance)
     st = _stencil_for(spec)
     if batch * st.cells >= 2**31:
         raise ValueError(f"a batch of {batch} grids is too large for one transfer; split it")
@@ -705,7 +707,6 @@ def p2g_batch(
         raise ValueError(f"positions and values list different numbers of worlds: {len(positions)} != {len(values)}")
     if len(positions) == 0:
         raise ValueError("p2g_batch needs at least one world")
-    _check_mode(outside, tolerance)
     sets, all_pos, all_vals = [], [], []
     start = 0
     for b, (p, v) in enumerate(zip(positions, values)):  # loop over worlds
@@ -714,11 +715,11 @@ def p2g_batch(
         vals = _as_values(v, len(pos), label + " values")
         if all_vals and vals.shape[1] != all_vals[0].shape[1]:
             raise ValueError(f"world {b} has {vals.shape[1]} value channels, world 0 has {all_vals[0].shape[1]}")
-        sets.append(_Set(b, slice(0, vals.shape[1]), start, start + len(pos), label))
+        sets.append(ParticleSet(b, slice(0, vals.shape[1]), start, start + len(pos), label))
         all_pos.append(pos)
         all_vals.append(vals)
         start += len(pos)
-    grids, reports, _ = _p2g_sets(
+    grids, reports, _ = p2g_sets(
         np.concatenate(all_pos), np.concatenate(all_vals), sets, spec, len(sets), outside, tolerance
     )
     return grids, [r for (r,) in reports]
@@ -855,8 +856,9 @@ class TransferPlan:
     Results equal :func:`p2g` and :func:`g2p` (``method="sph"``) called with
     the same positions, ``outside`` and ``tolerance``.  A plan does not keep
     the positions; it holds about 12 bytes per particle and stencil entry.
-    :func:`world_to_grids` with ``return_plan=True`` gives the plan of a
-    world's contact points as a by-product of the input splat.
+    :func:`deepcontact.features.world_to_grids` with ``return_plan=True``
+    gives the plan of a world's contact points as a by-product of the input
+    splat.
 
     Attributes
     ----------
@@ -945,205 +947,3 @@ def plan(
     pos_in, keep, out_idx = _split_outside(pos, spec, outside, tolerance, "particles")
     entries, _ = _stencil_entries(pos_in, spec, _stencil_for(spec), None, tolerance)
     return TransferPlan(spec, len(pos), keep, out_idx, entries)
-
-
-# --------------------------------------------------------------------------- #
-# Worlds -> grids
-# --------------------------------------------------------------------------- #
-
-
-def _grouped(names: tuple[str, ...]) -> tuple[tuple[str, tuple[int, ...], tuple[str, ...]], ...]:
-    """Channels grouped by source: ((source, column indices, names), ...), in first-use order."""
-    for n in names:
-        if n not in CHANNELS:
-            raise ValueError(f"unknown channel {n!r}; known channels: {sorted(CHANNELS)}")
-    # Runs on every call with one of a handful of channel lists: cached, keyed
-    # on the sources too, since a channel can be registered anew.
-    return _grouped_cached(names, tuple(CHANNELS[n].source for n in names))
-
-
-@lru_cache(maxsize=64)
-def _grouped_cached(names: tuple[str, ...], sources: tuple[str, ...]):
-    groups: dict[str, tuple[list[int], list[str]]] = {}
-    for j, (n, s) in enumerate(zip(names, sources)):
-        cols, ns = groups.setdefault(s, ([], []))
-        cols.append(j)
-        ns.append(n)
-    return tuple((s, tuple(cols), tuple(ns)) for s, (cols, ns) in groups.items())
-
-
-def _worlds_to_grids(
-    worlds,
-    spec: GridSpec,
-    channels,
-    walls: bool,
-    outside: str,
-    tolerance: float,
-    plan_source: str | None = None,
-    reports: bool = True,
-):
-    """:func:`worlds_to_grids`, plus, for one world, the :class:`TransferPlan`
-    of ``plan_source`` ("bodies" or "contacts") if a channel splats it:
-    ``(grids, reports (None unless reports), plan or None)``."""
-    channels = tuple(spec.inputs if channels is None else channels)
-    if not channels:
-        raise ValueError("worlds_to_grids needs at least one channel")
-    if len(worlds) == 0:
-        raise ValueError("worlds_to_grids needs at least one world")
-    groups = _grouped(channels)
-    _check_mode(outside, tolerance)
-    # Every set's records, then one (N, 2) position array and one (N, C)
-    # value array for all of them, filled field by field: no per-set arrays
-    # to build and stack.
-    chosen = []
-    for b, world in enumerate(worlds):  # loop over worlds
-        for source, cols, names in groups:
-            arr = world[0] if source == "bodies" else world[1]
-            if arr is None:
-                raise ValueError(f"world {b}: channels {list(names)} need {source}, got None")
-            chosen.append((b, source, cols, names, _records(SOURCES[source], arr)))
-    n = sum([len(c[4]) for c in chosen])
-    pos = np.empty((n, 2))
-    values = np.zeros((n, len(channels)))
-    sets = []
-    plan_set = None
-    start = 0
-    for b, source, cols, names, records in chosen:  # loop over worlds and sources
-        stop = start + len(records)
-        p = records[SOURCES[source].position_field]
-        if p.shape != (stop - start, 2):
-            raise ValueError(f"{source} positions must have shape (N, 2), got {p.shape}")
-        pos[start:stop] = p
-        for j, name in zip(cols, names):  # loop over channels
-            values[start:stop, j] = CHANNELS[name].extract(records)
-        label = source if len(worlds) == 1 else f"world {b} {source}"
-        if source == plan_source and len(worlds) == 1:
-            plan_set = len(sets)
-        sets.append(_Set(b, _columns(cols), start, stop, label, names))
-        start = stop
-    grids, per_world, plan_ = _p2g_sets(pos, values, sets, spec, len(worlds), outside, tolerance, plan_set, reports)
-    if walls and spec.wall_mass != 0.0:
-        _add_wall_mass(grids, spec, channels)
-    if per_world is None:
-        return grids, None, plan_
-    sources = [s for s, _, _ in groups]
-    return grids, [dict(zip(sources, r)) for r in per_world], plan_
-
-
-def _add_wall_mass(grids: np.ndarray, spec: GridSpec, channels: tuple[str, ...]) -> None:
-    """:meth:`GridSpec.add_wall_mass` of ``grids`` (B, ny, nx, C) float32, in place.
-
-    The same nodes, channels and float32 sums, through one precomputed flat
-    index instead of a (world, node, channel) one: about three times faster.
-    """
-    idx = _wall_index(spec, channels)
-    flat = grids.reshape(-1)
-    if len(grids) == 1:
-        flat[idx] += spec.wall_mass
-    else:
-        flat[(idx + np.arange(0, flat.size, spec.n_nodes * len(channels))[:, None]).reshape(-1)] += spec.wall_mass
-
-
-@lru_cache(maxsize=64)
-def _wall_index(spec: GridSpec, channels: tuple[str, ...]) -> np.ndarray:
-    """Flat indices into one (ny, nx, C) grid of the wall nodes' ``walls=True`` channels."""
-    nodes = np.flatnonzero(spec.wall_mask())
-    cols = [j for j, n in enumerate(channels) if CHANNELS[n].walls]
-    idx = (nodes[:, None] * len(channels) + np.array(cols, dtype=np.intp)).reshape(-1)
-    idx.flags.writeable = False
-    return idx
-
-
-def _records(source, array: np.ndarray) -> np.ndarray:
-    """``source.records(array)``, without the copy when every record is a particle
-    (the server's bodies are all dynamic)."""
-    if source.select is None or len(array) == 0:
-        return array
-    selected = source.select(array)
-    return array if _all(selected) else array.take(np.flatnonzero(selected))
-
-
-def worlds_to_grids(
-    worlds: Sequence[tuple[np.ndarray | None, np.ndarray | None]],
-    spec: GridSpec,
-    channels: Sequence[str] | None = None,
-    *,
-    walls: bool = True,
-    outside: str = "raise",
-    tolerance: float = DOMAIN_TOLERANCE,
-) -> tuple[np.ndarray, list[dict[str, TransferReport]]]:
-    """Grids of several worlds, (B, ny, nx, len(channels)) float32, raw (not normalized).
-
-    ``worlds`` lists ``(bodies, contacts)`` structured arrays as exported by
-    the engine (see :mod:`deepcontact.gridspec` for the fields used; a source
-    no channel needs may be None).  ``channels`` defaults to ``spec.inputs``.
-    Each source is splatted once for all its channels, and all worlds and
-    sources share one weight computation.  With ``walls`` (default) the
-    static box's wall mass is added to ``walls=True`` channels (see
-    :meth:`GridSpec.add_wall_mass`).  Returns the grids and, per world, a
-    report per source (``{"bodies": ..., "contacts": ...}``).
-    """
-    grids, reports, _ = _worlds_to_grids(worlds, spec, channels, walls, outside, tolerance)
-    return grids, reports
-
-
-def world_to_grids(
-    bodies: np.ndarray,
-    contacts: np.ndarray,
-    spec: GridSpec,
-    *,
-    walls: bool = True,
-    outside: str = "raise",
-    tolerance: float = DOMAIN_TOLERANCE,
-    return_report: bool = False,
-    return_plan: bool = False,
-):
-    """The CNN input grid of one world: (ny, nx, len(spec.inputs)) float32, raw.
-
-    ``bodies`` and ``contacts`` are the engine's structured arrays (static
-    bodies are skipped; contact points are splatted at ``point``).  Channels
-    are computed from :data:`deepcontact.gridspec.CHANNELS` in
-    ``spec.inputs`` order; the static box's edge nodes get
-    ``spec.wall_mass`` in the mass channel unless ``walls=False``.  Apply
-    ``spec.normalize(grid)`` before feeding the CNN.
-
-    With ``return_report`` also returns ``{"bodies": report, "contacts":
-    report}``; with ``return_plan`` also the :class:`TransferPlan` of the
-    contact points, reusing the weights of this splat, so that
-    ``plan.g2p(output)`` equals ``g2p(output, contacts["point"], spec,
-    outside=outside, tolerance=tolerance)`` at a fraction of the cost (the
-    server's step).  The result is ``grid``, ``(grid, reports)``, ``(grid,
-    plan)`` or ``(grid, reports, plan)``.
-    """
-    grids, reports, contact_plan = _worlds_to_grids(
-        [(bodies, contacts)], spec, spec.inputs, walls, outside, tolerance,
-        "contacts" if return_plan else None, return_report,
-    )
-    out = [grids[0]]
-    if return_report:
-        out.append(reports[0])
-    if return_plan:
-        if contact_plan is None:  # no input channel reads the contact points
-            contact_plan = plan(contacts["point"], spec, outside=outside, tolerance=tolerance)
-        out.append(contact_plan)
-    return out[0] if len(out) == 1 else tuple(out)
-
-
-def targets_to_grids(
-    contacts: np.ndarray,
-    spec: GridSpec,
-    *,
-    outside: str = "raise",
-    tolerance: float = DOMAIN_TOLERANCE,
-    return_report: bool = False,
-):
-    """The training target grid of one world: (ny, nx, len(spec.targets)) float32, raw.
-
-    Splats the contact points' ``spec.targets`` channels (normal and tangent
-    final impulse, N s, by default).  With ``return_report`` returns
-    ``(grid, report)``.
-    """
-    grids, reports, _ = _worlds_to_grids(
-        [(None, contacts)], spec, spec.targets, False, outside, tolerance, None, return_report
-    )
-    return (grids[0], reports[0]["contacts"]) if return_report else grids[0]

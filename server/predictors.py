@@ -27,7 +27,8 @@ import numpy as np
 
 from deepcontact.gridspec import GridSpec
 from deepcontact.modelcard import ModelCard, ModelCardError
-from deepcontact.transfer import plan, world_to_grids
+from deepcontact.features import world_to_grids
+from deepcontact.transfer import plan
 
 Domain = tuple[tuple[float, float], tuple[float, float]]
 

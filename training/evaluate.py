@@ -32,10 +32,12 @@ from typing import Any
 
 import numpy as np
 
-from deepcontact.gridspec import GridSpec, channel_values, particle_positions
+from deepcontact.channels import Step, channel_values, particle_positions
+from deepcontact.features import targets_to_grids, world_to_grids
+from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
 from deepcontact.modelcard import ModelCard, ModelCardError
-from deepcontact.transfer import g2p, targets_to_grids, world_to_grids
+from deepcontact.transfer import g2p
 from training.grids import TRANSFER, GridDataError, iter_steps, open_dataset, point_errors, select_steps, spec_for_scene
 
 
@@ -160,8 +162,9 @@ def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int =
         except ValueError as exc:
             row = steps[i]
             raise EvaluateError(f"{data_path}: seed {row['seed']} step {row['step']}: {exc}") from None
-        pending.append((grid, target, particle_positions("contacts", points)))
-        truth.append(channel_values(names, points))
+        step = Step(bodies, points)
+        pending.append((grid, target, particle_positions("contacts", step)))
+        truth.append(channel_values(names, step))
         builtin.append(points["builtin"])
         step_of_point.append(np.full(len(points), steps[i]["step"], np.int32))
         if len(pending) == batch_size:

@@ -31,8 +31,10 @@ from typing import Any, Callable, Iterator
 import h5py
 import numpy as np
 
-from deepcontact.gridspec import GridSpec, channel_values, particle_positions
-from deepcontact.transfer import DOMAIN_TOLERANCE, g2p, targets_to_grids, world_to_grids
+from deepcontact.channels import Step, channel_values, particle_positions
+from deepcontact.features import targets_to_grids, world_to_grids
+from deepcontact.gridspec import GridSpec
+from deepcontact.transfer import DOMAIN_TOLERANCE, g2p
 from training.dataset import Dataset, DatasetError
 
 CACHE_VERSION = 1
@@ -194,8 +196,9 @@ def build_grid_set(path: str | os.PathLike, spec: GridSpec, index: np.ndarray, o
                 row = steps[i]
                 raise GridDataError(f"{path}: seed {row['seed']} step {row['step']}: {exc}") from None
             rows = slice(offsets[k], offsets[k + 1])
-            p_pos[rows] = particle_positions("contacts", points)
-            p_tgt[rows] = channel_values(spec.targets, points)
+            step = Step(bodies, points)
+            p_pos[rows] = particle_positions("contacts", step)
+            p_tgt[rows] = channel_values(spec.targets, step)
             p_bui[rows] = points["builtin"]
             if progress is not None:
                 progress(1)

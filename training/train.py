@@ -47,7 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from deepcontact.gridspec import DEFAULT_INPUTS, DEFAULT_TARGETS, GridSpec
+from deepcontact.channels import DEFAULT_INPUTS, DEFAULT_TARGETS
+from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
 from training.grids import (
     TRANSFER,

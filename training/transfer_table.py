@@ -55,18 +55,18 @@ def settled_particles(seed: int, steps: int):
     Returns (body positions (B, 2) m, masses (B,) kg, contact points (P, 2)
     m, normal impulses (P,) N s).
     """
-    from deepcontact.gridspec import BODY_DYNAMIC, particle_positions
+    from deepcontact.channels import Step, channel_values, particle_positions
     from simclient.scene import SceneSpec, settled_world
 
     engine = settled_world(SceneSpec.thesis(), seed, steps)
     engine.collide()
     engine.solve()  # fills the contact points' final impulses
-    bodies, contacts = engine.bodies(), engine.contacts()
+    step = Step(engine.bodies(), engine.contacts())
     return (
-        particle_positions("bodies", bodies),
-        bodies["mass"][bodies["type"] == BODY_DYNAMIC].astype(np.float64),
-        particle_positions("contacts", contacts),
-        contacts["impulse"][:, 0].astype(np.float64),
+        particle_positions("bodies", step),
+        channel_values(["mass"], step)[:, 0],
+        particle_positions("contacts", step),
+        channel_values(["impulse_normal"], step)[:, 0],
     )
 
 

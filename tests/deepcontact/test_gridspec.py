@@ -1,4 +1,4 @@
-"""GridSpec: geometry, validation, JSON round trip, channel registry, walls."""
+"""GridSpec: geometry, validation, JSON round trip, walls, normalization."""
 
 from __future__ import annotations
 
@@ -8,15 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from deepcontact import gridspec
-from deepcontact.gridspec import CHANNELS, DEFAULT_INPUTS, DEFAULT_TARGETS, Channel, GridSpec, channel_values
-
-BODY_FIELDS = [
-    ("index", "<i4"), ("type", "<i4"), ("position", "<f4", (2,)), ("angle", "<f4"),
-    ("velocity", "<f4", (2,)), ("angular_velocity", "<f4"), ("mass", "<f4"), ("inertia", "<f4"),
-    ("shape", "<i4"), ("radius", "<f4"),
-]  # fmt: skip
-
+from deepcontact.channels import DEFAULT_INPUTS, DEFAULT_TARGETS
+from deepcontact.gridspec import SPEC_VERSION, GridSpec
 
 def test_thesis_grid_is_61_by_61_and_includes_both_ends():
     spec = GridSpec.for_domain((0.0, 0.0), (15.0, 15.0), resolution=0.25, h=0.5)
@@ -64,7 +57,7 @@ def test_json_round_trip_is_exact():
     assert again == spec
     assert again.to_json() == text
     assert GridSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
-    assert json.loads(text)["version"] == gridspec.SPEC_VERSION
+    assert json.loads(text)["version"] == SPEC_VERSION
 
 
 def test_spec_is_frozen_and_hashable():
@@ -141,32 +134,6 @@ def test_wall_mask_is_bottom_row_and_side_columns_without_top():
     spec.add_wall_mass(grid)
     np.testing.assert_array_equal(grid[..., 0], 100.0 * expected)  # the mass channel
     assert not grid[..., 1:].any()
-
-
-def test_channel_values_skip_static_bodies():
-    bodies = np.zeros(3, dtype=BODY_FIELDS)
-    bodies["type"] = [0, 2, 2]  # the static box, then two dynamic bodies
-    bodies["mass"] = [0.0, 1.5, 2.5]
-    bodies["velocity"] = [[9, 9], [1, 2], [3, 4]]
-    values = channel_values(["mass", "vy"], bodies)
-    np.testing.assert_array_equal(values, [[1.5, 2.0], [2.5, 4.0]])
-    np.testing.assert_array_equal(gridspec.particle_positions("bodies", bodies), np.zeros((2, 2)))
-    with pytest.raises(ValueError, match="several sources"):
-        channel_values(["mass", "normal_x"], bodies)
-
-
-def test_adding_a_channel_is_one_registry_entry(monkeypatch):
-    # Registered inside the test only (monkeypatch undoes it).
-    monkeypatch.setitem(
-        gridspec._CHANNELS, "speed2", Channel("speed2", "bodies", lambda b: (b["velocity"] ** 2).sum(axis=1), "m^2/s^2")
-    )
-    spec = GridSpec.thesis(inputs=DEFAULT_INPUTS + ("speed2",))
-    assert GridSpec.from_json(spec.to_json()) == spec
-    bodies = np.zeros(2, dtype=BODY_FIELDS)
-    bodies["type"] = 2
-    bodies["velocity"] = [[3, 4], [1, 0]]
-    np.testing.assert_array_equal(channel_values(["speed2"], bodies)[:, 0], [25.0, 1.0])
-    assert "builtin_normal" in CHANNELS  # the thesis's alternative inputs are already there
 
 
 def test_normalize_and_denormalize_invert_each_other():

@@ -13,7 +13,8 @@ from deepcontact import wire
 from deepcontact.gridspec import GridSpec
 from deepcontact.modelcard import ModelCard
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
-from deepcontact.transfer import g2p, p2g, world_to_grids
+from deepcontact.features import world_to_grids
+from deepcontact.transfer import g2p, p2g
 from server.predictors import GridIdentityPredictor, ModelPredictor, _Normalization
 from tests.server.conftest import write_conv_model
 

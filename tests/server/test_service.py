@@ -10,7 +10,8 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from deepcontact import wire
 from deepcontact.gridspec import GridSpec
 from deepcontact.modelcard import ModelCard
-from deepcontact.transfer import g2p, p2g, world_to_grids
+from deepcontact.features import world_to_grids
+from deepcontact.transfer import g2p, p2g
 from deepcontact.v1 import warmstart_pb2 as pb
 
 

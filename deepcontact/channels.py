@@ -1,0 +1,241 @@
+"""Grid channels: what each channel of a model's input or target grids holds.
+
+A channel is one value per particle, splatted onto the grid by the transfer
+(deepcontact.features). Particles come from one of three sources of a step:
+
+    "bodies"    the dynamic bodies, at their position
+    "contacts"  this step's contact points, at their world point
+    "previous"  the previous step's contact points (after its solve), at theirs
+
+and a channel reads its value from a `Step`: the step's records plus what is
+derived from them (contact velocities, deepcontact.kinematics) and what only
+recorded data has (the oracle's impulses, for training targets). The
+definitions below are plain data, imported by training and serving alike: a
+model card that names a channel is served with exactly this definition.
+
+    step = Step(bodies, contacts, previous=None, physics=Physics.thesis())
+    values = channel_values(("vn_builtin", "separation"), step)   # (P, 2)
+
+Units are SI: m, s, kg, N s for impulses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from types import MappingProxyType
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_velocities
+from deepcontact.records import CONTACT_DTYPE
+
+__all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "SOURCES", "Channel", "Source", "Step",
+           "channel_values", "particle_positions"]
+
+
+class Step:
+    """One step as the channels see it.
+
+    bodies: (B,) BODY_DTYPE indexed by the contacts' body_a/body_b (the
+        engine's records, static bodies included).
+    contacts: (P,) CONTACT_DTYPE of this step (builtin is Box2D's warm start;
+        impulse is filled only in recorded data).
+    previous: (P',) CONTACT_DTYPE of the previous step after its solve, or
+        None (first step, or a single request): temporal channels are then 0.
+    physics: gravity and time step, for the contact velocities.
+    oracle: (P, 2) float32 this step's impulses solved from zero to
+        convergence (recorded data only), for oracle targets.
+
+    Derived arrays are computed once, when a channel first asks.
+    """
+
+    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "_velocities", "_after_builtin")
+
+    def __init__(self, bodies: np.ndarray | None, contacts: np.ndarray | None, previous: np.ndarray | None = None,
+                 physics: Physics = Physics(), oracle: np.ndarray | None = None):
+        self.bodies, self.contacts, self.previous = bodies, contacts, previous
+        self.physics, self.oracle = physics, oracle
+        self._velocities = self._after_builtin = None
+
+    def velocities(self) -> np.ndarray:
+        """(P, 2) m/s: relative (normal, tangent) velocity after gravity."""
+        if self._velocities is None:
+            self._velocities = contact_velocities(self._bodies("contact velocities"), self.contacts,
+                                                  physics=self.physics)
+        return self._velocities
+
+    def velocities_after_builtin(self) -> np.ndarray:
+        """(P, 2) m/s: the same after Box2D's builtin warm start is applied: what the
+        solver's first sweep sees when it warm-starts as Box2D does."""
+        if self._after_builtin is None:
+            self._after_builtin = contact_velocities(self._bodies("contact velocities"), self.contacts,
+                                                     self.contacts["builtin"], self.physics)
+        return self._after_builtin
+
+    def oracle_impulses(self) -> np.ndarray:
+        if self.oracle is None:
+            raise ValueError("oracle channels need the oracle's impulses (data generated with --oracle)")
+        return self.oracle
+
+    def _bodies(self, what: str) -> np.ndarray:
+        if self.bodies is None:
+            raise ValueError(f"{what} need the step's bodies")
+        return self.bodies
+
+
+@dataclasses.dataclass(frozen=True)
+class Source:
+    """Where the particles of a channel come from.
+
+    records: step -> the structured array of the particles' records (all of
+        them; `select` then keeps the particles).
+    position_field: the records' field holding the particle position (m).
+    select: optional records -> bool mask (N,) of the records that are particles.
+    """
+
+    name: str
+    records: Callable[[Step], np.ndarray | None]
+    position_field: str
+    select: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def particles(self, step: Step) -> np.ndarray:
+        """The particle records of this source in `step` (no copy when all are particles)."""
+        array = self.records(step)
+        if array is None:
+            if self.name == "previous":  # no previous step: no particles, the channels stay 0
+                return _NO_CONTACTS
+            raise ValueError(f"channels of source {self.name!r} need the step's {self.name}")
+        if self.select is None or len(array) == 0:
+            return array
+        keep = self.select(array)
+        # The ufunc reduction, not keep.all(): this runs on the server's every step.
+        return array if np.logical_and.reduce(keep, axis=None) else array.take(np.flatnonzero(keep))
+
+
+@dataclasses.dataclass(frozen=True)
+class Channel:
+    """One grid channel.
+
+    extract: (particle records, step) -> (N,) values, one per particle.
+    walls: the static box's edge nodes get GridSpec.wall_mass in this channel
+        (thesis §8.1: static bodies have no mass in Box2D, so the box's edge
+        nodes get 100, "more than one hundred times the mass of the bodies").
+    """
+
+    name: str
+    source: str
+    extract: Callable[[np.ndarray, Step], np.ndarray]
+    unit: str = ""
+    description: str = ""
+    walls: bool = False
+
+
+def _field(name: str, component: int | None = None) -> Callable[[np.ndarray, Step], np.ndarray]:
+    if component is None:
+        return lambda a, step: a[name]
+    return lambda a, step: a[name][:, component]
+
+
+def _derived(method: str, component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
+    return lambda a, step: getattr(step, method)()[:, component]
+
+
+def _oracle_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
+    return lambda a, step: step.oracle_impulses()[:, component] - a["builtin"][:, component]
+
+
+def _new_point(a: np.ndarray, step: Step) -> np.ndarray:
+    # Box2D carries no impulse into a point it did not have last step: builtin is then exactly 0.
+    return (~a["builtin"].any(axis=1)).astype(np.float64)
+
+
+_NO_CONTACTS = np.zeros(0, CONTACT_DTYPE)
+
+SOURCES: Mapping[str, Source] = MappingProxyType({
+    "bodies": Source("bodies", lambda s: s.bodies, "position", lambda b: b["type"] == BODY_DYNAMIC),
+    "contacts": Source("contacts", lambda s: s.contacts, "point"),
+    "previous": Source("previous", lambda s: s.previous, "point"),
+})
+
+_DEFINITIONS = (
+    # Bodies (dynamic only), at the body's position.
+    Channel("mass", "bodies", _field("mass"), "kg", "body mass; static box edges get GridSpec.wall_mass", walls=True),
+    Channel("vx", "bodies", _field("velocity", 0), "m/s", "linear velocity, x"),
+    Channel("vy", "bodies", _field("velocity", 1), "m/s", "linear velocity, y"),
+    Channel("omega", "bodies", _field("angular_velocity"), "rad/s", "angular velocity"),
+    Channel("angle", "bodies", _field("angle"), "rad", "body angle"),
+    Channel("inertia", "bodies", _field("inertia"), "kg m^2", "rotational inertia about the centre of mass"),
+    Channel("radius", "bodies", _field("radius"), "m", "shape radius"),
+    # Contact points, at the world contact point.
+    Channel("normal_x", "contacts", _field("normal", 0), "1", "contact normal (A to B), x"),
+    Channel("normal_y", "contacts", _field("normal", 1), "1", "contact normal (A to B), y"),
+    Channel("separation", "contacts", _field("separation"), "m", "signed separation (negative: penetration)"),
+    Channel("builtin_normal", "contacts", _field("builtin", 0), "N s", "engine's built-in warm start, normal"),
+    Channel("builtin_tangent", "contacts", _field("builtin", 1), "N s", "engine's built-in warm start, tangent"),
+    Channel("new_point", "contacts", _new_point, "1", "1 for a point new this step (no builtin warm start), else 0"),
+    Channel("vn", "contacts", _derived("velocities", 0), "m/s",
+            "relative normal velocity after this step's gravity (> 0 separates)"),
+    Channel("vt", "contacts", _derived("velocities", 1), "m/s", "relative tangent velocity after gravity"),
+    Channel("vn_builtin", "contacts", _derived("velocities_after_builtin", 0), "m/s",
+            "relative normal velocity after gravity and the builtin warm start: the solver's first residual"),
+    Channel("vt_builtin", "contacts", _derived("velocities_after_builtin", 1), "m/s",
+            "relative tangent velocity after gravity and the builtin warm start"),
+    Channel("warm_start_normal", "contacts", _field("warm_start", 0), "N s", "warm start used, normal"),
+    Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),
+    Channel("impulse_normal", "contacts", _field("impulse", 0), "N s", "final solver impulse, normal"),
+    Channel("impulse_tangent", "contacts", _field("impulse", 1), "N s", "final solver impulse, tangent"),
+    # Targets of residual models: what the solver adds to Box2D's own warm start.
+    Channel("correction_normal", "contacts", lambda c, s: c["impulse"][:, 0] - c["builtin"][:, 0], "N s",
+            "final impulse minus the builtin warm start, normal"),
+    Channel("correction_tangent", "contacts", lambda c, s: c["impulse"][:, 1] - c["builtin"][:, 1], "N s",
+            "final impulse minus the builtin warm start, tangent"),
+    Channel("oracle_normal", "contacts", _derived("oracle_impulses", 0), "N s",
+            "this step solved from zero to convergence (the oracle), normal"),
+    Channel("oracle_tangent", "contacts", _derived("oracle_impulses", 1), "N s", "the oracle's impulse, tangent"),
+    Channel("oracle_correction_normal", "contacts", _oracle_minus_builtin(0), "N s",
+            "the oracle's impulse minus the builtin warm start, normal"),
+    Channel("oracle_correction_tangent", "contacts", _oracle_minus_builtin(1), "N s",
+            "the oracle's impulse minus the builtin warm start, tangent"),
+    # The previous step's contact points, at their own positions.
+    Channel("previous_builtin_normal", "previous", _field("builtin", 0), "N s",
+            "last step's builtin warm start (the impulse of two steps ago), normal"),
+    Channel("previous_builtin_tangent", "previous", _field("builtin", 1), "N s",
+            "last step's builtin warm start, tangent"),
+)
+
+#: Every channel by name (read-only).
+CHANNELS: Mapping[str, Channel] = MappingProxyType({c.name: c for c in _DEFINITIONS})
+if len(CHANNELS) != len(_DEFINITIONS):  # pragma: no cover - a definition error
+    raise ImportError("deepcontact.channels: two channels share a name")
+
+#: Thesis §8.1 inputs: four body attributes, then the two contact normal components.
+DEFAULT_INPUTS = ("mass", "vx", "vy", "omega", "normal_x", "normal_y")
+#: Thesis §8.1 targets: normal and tangent impulse at the contact points.
+DEFAULT_TARGETS = ("impulse_normal", "impulse_tangent")
+
+
+def particle_positions(source: str, step: Step) -> np.ndarray:
+    """Positions (N, 2) float64 m of the particles of `source` in `step`."""
+    src = SOURCES[source]
+    return np.asarray(src.particles(step)[src.position_field], dtype=np.float64).reshape(-1, 2)
+
+
+def channel_values(names: Sequence[str], step: Step) -> np.ndarray:
+    """Per-particle values (N, len(names)) float64 of channels that share one source;
+    rows line up with `particle_positions(source, step)`."""
+    if not names:
+        raise ValueError("channel_values needs at least one channel")
+    unknown = [n for n in names if n not in CHANNELS]
+    if unknown:
+        raise ValueError(f"unknown channels {unknown}; known channels: {sorted(CHANNELS)}")
+    sources = {CHANNELS[n].source for n in names}
+    if len(sources) != 1:
+        raise ValueError(f"channels {list(names)} come from several sources {sorted(sources)}")
+    records = SOURCES[sources.pop()].particles(step)
+    # Filled channel-major (each row a contiguous copy of one field) and
+    # returned as an (N, C) view: the transfer works on the (C, N) layout.
+    out = np.empty((len(names), len(records)), dtype=np.float64)
+    for j, n in enumerate(names):  # loop over channels, not particles
+        out[j] = CHANNELS[n].extract(records, step)
+    return out.T

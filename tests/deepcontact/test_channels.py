@@ -1,0 +1,73 @@
+"""Channels (deepcontact.channels): plain definitions read from a step's records."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deepcontact.channels import CHANNELS, SOURCES, Step, channel_values, particle_positions
+from deepcontact.kinematics import Physics
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
+
+
+def two_bodies_on_the_floor():
+    """The static box (row 0) and two discs of 1 kg at rest, one contact each with the floor."""
+    bodies = np.zeros(3, BODY_DTYPE)
+    bodies["type"] = [0, 2, 2]
+    bodies["position"] = [[0, 0], [1, 0.5], [3, 0.5]]
+    bodies["mass"] = [0, 1.0, 1.0]
+    bodies["inertia"] = [0, 0.125, 0.125]
+    bodies["velocity"] = [[9, 9], [1, 2], [3, 4]]  # a static body's velocity is never read
+    contacts = np.zeros(2, CONTACT_DTYPE)
+    contacts["body_a"], contacts["body_b"] = 0, [1, 2]
+    contacts["point"] = [[1, 0], [3, 0]]
+    contacts["normal"] = [0, 1]  # from the floor (A) up into the disc (B)
+    contacts["builtin"] = [[0.098, 0.0], [0.0, 0.0]]  # the second point is new this step
+    contacts["separation"] = [-0.01, 0.002]
+    return bodies, contacts
+
+
+def test_body_channels_skip_static_bodies():
+    bodies, contacts = two_bodies_on_the_floor()
+    step = Step(bodies, contacts)
+    np.testing.assert_array_equal(channel_values(["mass", "vy"], step), [[1.0, 2.0], [1.0, 4.0]])
+    np.testing.assert_array_equal(particle_positions("bodies", step), [[1, 0.5], [3, 0.5]])
+    with pytest.raises(ValueError, match="several sources"):
+        channel_values(["mass", "normal_x"], step)
+
+
+def test_contact_channels_read_the_records_and_what_follows_from_them():
+    bodies, contacts = two_bodies_on_the_floor()
+    bodies["velocity"][1:] = 0.0
+    step = Step(bodies, contacts, physics=Physics(0.01, (0.0, -9.8)))
+    values = channel_values(["separation", "new_point", "vn", "vn_builtin"], step)
+    np.testing.assert_allclose(values[:, 0], [-0.01, 0.002], rtol=1e-6)
+    np.testing.assert_array_equal(values[:, 1], [0.0, 1.0])
+    # Gravity brings both discs towards the floor at 0.098 m/s; the first one's
+    # builtin impulse of 0.098 N s on 1 kg cancels that exactly.
+    np.testing.assert_allclose(values[:, 2], [-0.098, -0.098], atol=1e-6)
+    np.testing.assert_allclose(values[:, 3], [0.0, -0.098], atol=1e-6)
+
+
+def test_oracle_targets_need_the_oracle():
+    bodies, contacts = two_bodies_on_the_floor()
+    with pytest.raises(ValueError, match="--oracle"):
+        channel_values(["oracle_correction_normal"], Step(bodies, contacts))
+    oracle = np.array([[0.1, 0.0], [0.05, 0.01]], np.float32)
+    got = channel_values(["oracle_correction_normal", "oracle_tangent"], Step(bodies, contacts, oracle=oracle))
+    np.testing.assert_allclose(got, [[0.002, 0.0], [0.05, 0.01]], atol=1e-7)
+
+
+def test_previous_channels_read_the_last_steps_points_and_are_empty_without_them():
+    bodies, contacts = two_bodies_on_the_floor()
+    assert len(channel_values(["previous_builtin_normal"], Step(bodies, contacts))) == 0
+    step = Step(bodies, contacts, previous=contacts[:1])
+    np.testing.assert_allclose(channel_values(["previous_builtin_normal"], step)[:, 0], [0.098])
+    np.testing.assert_array_equal(particle_positions("previous", step), [[1, 0]])
+
+
+def test_every_channel_has_a_known_source_a_unit_and_a_description():
+    for name, channel in CHANNELS.items():
+        assert channel.name == name and channel.source in SOURCES
+        assert channel.unit and channel.description
+    assert [n for n, c in CHANNELS.items() if c.walls] == ["mass"]

@@ -1,0 +1,37 @@
+"""Contact velocities (deepcontact.kinematics) agree with Box2D's own solver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deepcontact.kinematics import Physics, contact_velocities
+from simclient.scene import SceneSpec, settled_world
+
+
+def test_the_oracles_impulses_leave_no_normal_velocity_at_touching_points():
+    # Box2D's converged solution of this step is what the solver drives the
+    # relative normal velocity of every touching point to zero with, and the
+    # tangent velocity of every sticking one.
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    engine.collide()
+    bodies, points, exact = engine.bodies(), engine.contacts(), engine.oracle()
+    before = contact_velocities(bodies, points, physics=Physics.thesis())
+    after = contact_velocities(bodies, points, exact, Physics.thesis())
+    touching = exact[:, 0] > 1e-3
+    sticking = touching & (np.abs(exact[:, 1]) < 0.49 * exact[:, 0])  # friction 0.5
+    assert touching.sum() > 100 and sticking.sum() > 50
+    assert np.abs(before[touching, 0]).max() > 0.05  # gravity alone would push bodies into each other
+    assert np.abs(after[touching, 0]).max() < 1e-4 and np.abs(after[sticking, 1]).max() < 1e-4
+    assert after[:, 0].min() > -1e-4  # nothing left approaching
+
+
+def test_no_points_and_bad_body_indices():
+    engine = settled_world(SceneSpec.thesis(), 901, 1)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    assert contact_velocities(bodies, points[:0]).shape == (0, 2)
+    points = np.zeros(1, points.dtype)
+    points["body_b"] = len(bodies)
+    with pytest.raises(ValueError, match="outside"):
+        contact_velocities(bodies, points)
