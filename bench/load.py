@@ -91,13 +91,15 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
 
     from deepcontact import wire
     from simclient.client import StepFailed, WarmStartClient
+    from simclient.scene import SceneSpec
 
     latency = HdrHistogram(1, HIGHEST_US, 3)
     server_total = HdrHistogram(1, HIGHEST_US, 3)
     server_inference = HdrHistogram(1, HIGHEST_US, 3)
     errors: dict[str, int] = {}
     ok = wrong_order = 0
-    world = wire.encode_world((0.0, 0.0), (15.0, 15.0))
+    thesis = SceneSpec.thesis()  # the worlds these steps come from
+    world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics)
     with WarmStartClient(target, world=world, backoff_s=(0.01, 0.2)) as client:
         start_at, stop_at = timing()
         while time.time() < start_at:

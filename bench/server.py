@@ -52,6 +52,7 @@ def record_steps(seed: int, steps: int):
 def run(args: argparse.Namespace) -> int:
     from server.process import ServerProcess
     from simclient.client import StepFailed
+    from simclient.scene import SceneSpec
 
     if args.steps < 1 or args.rounds < 2:
         print("deepcontact bench server: --steps must be >= 1 and --rounds >= 2 (the first round warms up)",
@@ -74,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         server.stop()
         return 2
-    world = wire.encode_world((0.0, 0.0), (15.0, 15.0))
+    thesis = SceneSpec.thesis()  # the worlds these steps come from
+    world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics)
     stages = {k: [] for k in ("decode", "p2g", "inference", "g2p", "total", "outside_inference")}
     round_trip = []
     try:

@@ -30,7 +30,7 @@ import numpy as np
 from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_velocities
 from deepcontact.records import CONTACT_DTYPE
 
-__all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "SOURCES", "Channel", "Source", "Step",
+__all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "NEEDS", "SOURCES", "Channel", "Source", "Step",
            "channel_values", "particle_positions"]
 
 
@@ -121,6 +121,8 @@ class Channel:
     walls: the static box's edge nodes get GridSpec.wall_mass in this channel
         (thesis §8.1: static bodies have no mass in Box2D, so the box's edge
         nodes get 100, "more than one hundred times the mass of the bodies").
+    needs: what a request must carry beyond bodies and points for this
+        channel (names from NEEDS); the server refuses requests without it.
     """
 
     name: str
@@ -129,6 +131,7 @@ class Channel:
     unit: str = ""
     description: str = ""
     walls: bool = False
+    needs: tuple[str, ...] = ()
 
 
 def _field(name: str, component: int | None = None) -> Callable[[np.ndarray, Step], np.ndarray]:
@@ -152,6 +155,16 @@ def _new_point(a: np.ndarray, step: Step) -> np.ndarray:
 
 _NO_CONTACTS = np.zeros(0, CONTACT_DTYPE)
 
+#: What a channel may need from a request, beyond the bodies and points (see the proto).
+NEEDS = {
+    "point_bodies": "each point's two bodies (StepRequest.point_bodies)",
+    "body_inertia": "the bodies' inertia (StepRequest.body_inertia)",
+    "physics": "the time step and gravity (World.dt, World.gravity_x/y)",
+    "point_separation": "the points' separation (StepRequest.point_separation)",
+    "builtin": "Box2D's builtin warm start (StepRequest.builtin)",
+}
+_VELOCITY = ("point_bodies", "physics")
+
 SOURCES: Mapping[str, Source] = MappingProxyType({
     "bodies": Source("bodies", lambda s: s.bodies, "position", lambda b: b["type"] == BODY_DYNAMIC),
     "contacts": Source("contacts", lambda s: s.contacts, "point"),
@@ -170,17 +183,24 @@ _DEFINITIONS = (
     # Contact points, at the world contact point.
     Channel("normal_x", "contacts", _field("normal", 0), "1", "contact normal (A to B), x"),
     Channel("normal_y", "contacts", _field("normal", 1), "1", "contact normal (A to B), y"),
-    Channel("separation", "contacts", _field("separation"), "m", "signed separation (negative: penetration)"),
-    Channel("builtin_normal", "contacts", _field("builtin", 0), "N s", "engine's built-in warm start, normal"),
-    Channel("builtin_tangent", "contacts", _field("builtin", 1), "N s", "engine's built-in warm start, tangent"),
-    Channel("new_point", "contacts", _new_point, "1", "1 for a point new this step (no builtin warm start), else 0"),
+    Channel("separation", "contacts", _field("separation"), "m", "signed separation (negative: penetration)",
+            needs=("point_separation",)),
+    Channel("builtin_normal", "contacts", _field("builtin", 0), "N s", "engine's built-in warm start, normal",
+            needs=("builtin",)),
+    Channel("builtin_tangent", "contacts", _field("builtin", 1), "N s", "engine's built-in warm start, tangent",
+            needs=("builtin",)),
+    Channel("new_point", "contacts", _new_point, "1", "1 for a point new this step (no builtin warm start), else 0",
+            needs=("builtin",)),
     Channel("vn", "contacts", _derived("velocities", 0), "m/s",
-            "relative normal velocity after this step's gravity (> 0 separates)"),
-    Channel("vt", "contacts", _derived("velocities", 1), "m/s", "relative tangent velocity after gravity"),
+            "relative normal velocity after this step's gravity (> 0 separates)", needs=_VELOCITY),
+    Channel("vt", "contacts", _derived("velocities", 1), "m/s", "relative tangent velocity after gravity",
+            needs=_VELOCITY),
     Channel("vn_builtin", "contacts", _derived("velocities_after_builtin", 0), "m/s",
-            "relative normal velocity after gravity and the builtin warm start: the solver's first residual"),
+            "relative normal velocity after gravity and the builtin warm start: the solver's first residual",
+            needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("vt_builtin", "contacts", _derived("velocities_after_builtin", 1), "m/s",
-            "relative tangent velocity after gravity and the builtin warm start"),
+            "relative tangent velocity after gravity and the builtin warm start",
+            needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("warm_start_normal", "contacts", _field("warm_start", 0), "N s", "warm start used, normal"),
     Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),
     Channel("impulse_normal", "contacts", _field("impulse", 0), "N s", "final solver impulse, normal"),
@@ -213,6 +233,11 @@ if len(CHANNELS) != len(_DEFINITIONS):  # pragma: no cover - a definition error
 DEFAULT_INPUTS = ("mass", "vx", "vy", "omega", "normal_x", "normal_y")
 #: Thesis §8.1 targets: normal and tangent impulse at the contact points.
 DEFAULT_TARGETS = ("impulse_normal", "impulse_tangent")
+
+
+def needs(names: Sequence[str]) -> tuple[str, ...]:
+    """What requests must carry for these channels (keys of NEEDS), sorted."""
+    return tuple(sorted({need for n in names for need in CHANNELS[n].needs}))
 
 
 def particle_positions(source: str, step: Step) -> np.ndarray:

@@ -12,12 +12,14 @@ import functools
 
 import numpy as np
 
+from deepcontact.kinematics import Physics
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 from deepcontact.v1 import warmstart_pb2 as pb
 
 BODY_COLUMNS = ("x", "y", "angle", "vx", "vy", "omega", "mass", "radius")
 POINT_COLUMNS = ("x", "y", "normal_x", "normal_y")
 F32 = np.dtype("<f4")
+I32 = np.dtype("<i4")
 
 # x.all() runs a Python-level wrapper in NumPy; decoding is on the server's
 # per-step path, so the ufunc reduction is called directly.
@@ -36,11 +38,14 @@ class WireError(ValueError):
 # -- client side -------------------------------------------------------------
 
 def encode_world(lower: tuple[float, float], upper: tuple[float, float],
-                 edges: np.ndarray | None = None) -> pb.World:
-    """Domain (m) and static edges (E, 4) float (x0, y0, x1, y1)."""
+                 edges: np.ndarray | None = None, physics: Physics | None = None) -> pb.World:
+    """Domain (m), static edges (E, 4) float (x0, y0, x1, y1) and the step's physics."""
     edges = np.zeros((0, 4), F32) if edges is None else np.ascontiguousarray(edges, F32).reshape(-1, 4)
-    return pb.World(x_min=lower[0], y_min=lower[1], x_max=upper[0], y_max=upper[1],
-                    edge_count=len(edges), edges=edges.tobytes())
+    world = pb.World(x_min=lower[0], y_min=lower[1], x_max=upper[0], y_max=upper[1],
+                     edge_count=len(edges), edges=edges.tobytes())
+    if physics is not None:
+        world.dt, (world.gravity_x, world.gravity_y) = physics.dt, physics.gravity
+    return world
 
 
 def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *,
@@ -48,11 +53,14 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
                 impulses: np.ndarray | None = None) -> pb.StepRequest:
     """A step from engine records.
 
-    bodies: (B,) BODY_DTYPE (static bodies are left out: walls travel in World).
-    points: (P,) CONTACT_DTYPE in export order.
+    bodies: (B,) BODY_DTYPE in creation order, as the engine exports them
+        (static bodies are left out: walls travel in World).
+    points: (P,) CONTACT_DTYPE in export order; their bodies travel as rows of
+        the dynamic bodies (-1 for static), with the separation.
     builtin, impulses: optional (P, 2) float (normal, tangent), N s.
     """
-    dyn = bodies[bodies["type"] != 0]
+    moving = bodies["type"] != 0
+    dyn = bodies[moving]
     b = np.empty((len(dyn), len(BODY_COLUMNS)), F32)
     b[:, 0:2] = dyn["position"]
     b[:, 2] = dyn["angle"]
@@ -63,8 +71,15 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
     p = np.empty((len(points), len(POINT_COLUMNS)), F32)
     p[:, 0:2] = points["point"]
     p[:, 2:4] = points["normal"]
+    # The engine's body index is its row in `bodies`; on the wire a point names rows of the dynamic bodies.
+    row_of = np.cumsum(moving, dtype=np.int32) - 1
+    row_of[~moving] = -1
+    rows = np.stack([row_of[points["body_a"]], row_of[points["body_b"]]], axis=1)
     msg = pb.StepRequest(step=step, model=model, body_count=len(dyn), bodies=b.tobytes(),
-                         point_count=len(points), points=p.tobytes())
+                         point_count=len(points), points=p.tobytes(),
+                         point_bodies=rows.astype(I32).tobytes(),
+                         point_separation=np.ascontiguousarray(points["separation"], F32).tobytes(),
+                         body_inertia=np.ascontiguousarray(dyn["inertia"], F32).tobytes())
     if world is not None:
         msg.world.CopyFrom(world)
     if builtin is not None:
@@ -87,14 +102,15 @@ def decode_impulses(reply: pb.Impulses) -> tuple[np.ndarray, np.ndarray]:
 # -- server side -------------------------------------------------------------
 
 def _array(msg, field: str, rows: int, cols: int, *, optional: bool = False,
-           check: bool = True) -> np.ndarray | None:
+           check: bool = True, dtype: np.dtype = F32) -> np.ndarray | None:
     raw = getattr(msg, field)
     if optional and not raw:
         return None
-    expected = rows * cols * F32.itemsize
+    expected = rows * cols * dtype.itemsize
     if len(raw) != expected:
-        raise WireError(field, f"{len(raw)} bytes, expected {rows} x {cols} float32 = {expected}")
-    a = np.frombuffer(raw, F32).reshape(rows, cols)
+        kind = "float32" if dtype == F32 else "int32"
+        raise WireError(field, f"{len(raw)} bytes, expected {rows} x {cols} {kind} = {expected}")
+    a = np.frombuffer(raw, dtype).reshape(rows, cols)
     if check:
         _check_finite(a, field)
     return a
@@ -113,6 +129,15 @@ def decode_world(world: pb.World) -> tuple[tuple[float, float], tuple[float, flo
         raise WireError("world", f"domain ({lo[0]}, {lo[1]}) - ({hi[0]}, {hi[1]}) is empty or not finite")
     edges = _array(world, "edges", world.edge_count, 4)
     return lo, hi, edges
+
+
+def decode_physics(world: pb.World) -> Physics:
+    """The step's time and gravity; Physics() (no time, no gravity) when the client sent none."""
+    values = (world.dt, world.gravity_x, world.gravity_y)
+    if not np.isfinite(values).all() or world.dt < 0:
+        raise WireError("world", f"dt {world.dt} and gravity ({world.gravity_x}, {world.gravity_y}) must be "
+                                 "finite, dt >= 0")
+    return Physics(float(world.dt), (float(world.gravity_x), float(world.gravity_y)))
 
 
 def _word(dtype: np.dtype, field: str, component: int = 0) -> int:
@@ -144,6 +169,11 @@ _POINT_RUNS = _runs([_word(CONTACT_DTYPE, f, c) for f, c in (
     ("point", 0), ("point", 1), ("normal", 0), ("normal", 1))])  # POINT_COLUMNS, in order
 _BUILTIN_WORDS = slice(_word(CONTACT_DTYPE, "builtin"), _word(CONTACT_DTYPE, "builtin") + 2)
 _IMPULSE_WORDS = slice(_word(CONTACT_DTYPE, "impulse"), _word(CONTACT_DTYPE, "impulse") + 2)
+_SEPARATION_WORD = _word(CONTACT_DTYPE, "separation")
+_INERTIA_WORD = _word(BODY_DTYPE, "inertia")
+_BODY_AB_WORDS = slice(CONTACT_DTYPE.fields["body_a"][1] // 4, CONTACT_DTYPE.fields["body_a"][1] // 4 + 2)
+if CONTACT_DTYPE.fields["body_b"][1] != CONTACT_DTYPE.fields["body_a"][1] + 4:  # pragma: no cover
+    raise ImportError("deepcontact.wire expects body_b right after body_a in CONTACT_DTYPE")
 _INDEX_WORD = BODY_DTYPE.fields["index"][1] // 4
 _TYPE_WORD = BODY_DTYPE.fields["type"][1] // 4
 if BODY_DTYPE.itemsize % 4 or CONTACT_DTYPE.itemsize % 4:  # pragma: no cover - records are all 4-byte words
@@ -161,36 +191,55 @@ def _zero_records(dtype: np.dtype, n: int) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def decode_step(msg: pb.StepRequest, *, max_bodies: int, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Records for the transfer: bodies (B,) BODY_DTYPE (all dynamic) and
-    points (P,) CONTACT_DTYPE with point, normal, builtin and impulse filled
-    (builtin and impulse zero when absent). WireError names the bad field."""
+    """Records for the transfer and the channels, laid out as the engine's are.
+
+    bodies: (B + 1,) BODY_DTYPE, a static stand-in for every wall at row 0,
+        then the request's bodies (all dynamic), inertia filled when sent.
+    points: (P,) CONTACT_DTYPE with point, normal, builtin and impulse filled
+        (zero when absent), and, when sent, separation and body_a/body_b as
+        rows of `bodies` (0: static).
+
+    WireError names the bad field."""
     if msg.body_count > max_bodies:
         raise WireError("body_count", f"{msg.body_count} exceeds the server's limit of {max_bodies}")
     if msg.point_count > max_points:
         raise WireError("point_count", f"{msg.point_count} exceeds the server's limit of {max_points}")
-    b = _array(msg, "bodies", msg.body_count, len(BODY_COLUMNS))
-    p = _array(msg, "points", msg.point_count, len(POINT_COLUMNS), check=False)
-    builtin = _array(msg, "builtin", msg.point_count, 2, optional=True, check=False)
-    impulses = _array(msg, "impulses", msg.point_count, 2, optional=True, check=False)
+    n_bodies, n_points = msg.body_count, msg.point_count
+    b = _array(msg, "bodies", n_bodies, len(BODY_COLUMNS))
+    inertia = _array(msg, "body_inertia", n_bodies, 1, optional=True)
+    p = _array(msg, "points", n_points, len(POINT_COLUMNS), check=False)
+    builtin = _array(msg, "builtin", n_points, 2, optional=True, check=False)
+    impulses = _array(msg, "impulses", n_points, 2, optional=True, check=False)
+    separation = _array(msg, "point_separation", n_points, 1, optional=True, check=False)
+    rows = _array(msg, "point_bodies", n_points, 2, optional=True, check=False, dtype=I32)
+    if rows is not None and n_points and (rows.min() < -1 or rows.max() >= n_bodies):
+        raise WireError("point_bodies", f"names rows outside -1..{n_bodies - 1}")
 
-    bodies, words, ints = _zero_records(BODY_DTYPE, len(b))
+    bodies, words, ints = _zero_records(BODY_DTYPE, n_bodies + 1)
     for dst, src in _BODY_RUNS:
-        words[:, dst] = b[:, src]
-    ints[:, _INDEX_WORD] = np.arange(1, len(b) + 1, dtype=np.int32)
-    ints[:, _TYPE_WORD] = 2  # dynamic: static bodies travel as World edges
-    points, words, _ = _zero_records(CONTACT_DTYPE, len(p))
+        words[1:, dst] = b[:, src]
+    if inertia is not None:
+        words[1:, _INERTIA_WORD] = inertia[:, 0]
+    ints[:, _INDEX_WORD] = np.arange(n_bodies + 1, dtype=np.int32)
+    ints[1:, _TYPE_WORD] = 2  # dynamic; row 0 stays 0, static: the walls travel as World edges
+    points, words, ints = _zero_records(CONTACT_DTYPE, n_points)
     for dst, src in _POINT_RUNS:
         words[:, dst] = p[:, src]
     if builtin is not None:
         words[:, _BUILTIN_WORDS] = builtin
     if impulses is not None:
         words[:, _IMPULSE_WORDS] = impulses
-    # One finiteness check for the three point arrays (the record's other
-    # words are zeros); which one is bad matters only when one is.
+    if separation is not None:
+        words[:, _SEPARATION_WORD] = separation[:, 0]
+    # One finiteness check for the float arrays of the points (the record's
+    # other words are zeros); which one is bad matters only when one is.
     if not _all(np.isfinite(words)):
-        for field, a in (("points", p), ("builtin", builtin), ("impulses", impulses)):
+        for field, a in (("points", p), ("builtin", builtin), ("impulses", impulses),
+                         ("point_separation", separation)):
             if a is not None:
                 _check_finite(a, field)
+    if rows is not None:
+        ints[:, _BODY_AB_WORDS] = rows + 1  # after the check: these words are integers
     return bodies, points
 
 

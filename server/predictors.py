@@ -3,8 +3,13 @@
 Every predictor maps a step's records to one (normal, tangent) impulse per
 contact point, in the request's order, and says what its stages cost:
 
-    impulses, stages = predictor.predict(bodies, points, domain, step)
+    impulses, stages = predictor.predict(bodies, points, world, step, previous)
     # impulses (P, 2) float32, N s; stages {"p2g": s, "inference": s, "g2p": s}
+
+`world` is what a stream declares once (the grids' domain, the physics);
+`previous` the stream's last step's points (None on its first step and for
+single requests), for temporal channels. `predictor.requires` names what a
+request must carry beyond bodies and points (deepcontact.channels.NEEDS).
 
 `ModelPredictor` runs P2G -> ONNX -> G2P with its card's GridSpec and the
 shared transfer code (deepcontact.transfer), exactly as training did; the
@@ -25,12 +30,22 @@ from pathlib import Path
 
 import numpy as np
 
-from deepcontact.gridspec import GridSpec
-from deepcontact.modelcard import ModelCard, ModelCardError
+from deepcontact.channels import needs
 from deepcontact.features import world_to_grids
+from deepcontact.gridspec import GridSpec
+from deepcontact.kinematics import Physics
+from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.transfer import plan
 
 Domain = tuple[tuple[float, float], tuple[float, float]]
+
+
+@dataclasses.dataclass(frozen=True)
+class World:
+    """What a stream declares once: the domain its grids cover (m) and the step's physics."""
+
+    domain: Domain
+    physics: Physics = Physics()
 
 
 class GridMismatch(ValueError):
@@ -42,9 +57,10 @@ class Predictor:
     kind: str
     fixed_grid: bool = False
     gridspec: GridSpec | None = None
+    requires: tuple[str, ...] = ()
 
-    def predict(self, bodies: np.ndarray, points: np.ndarray, domain: Domain,
-                step: int) -> tuple[np.ndarray, dict[str, float]]:
+    def predict(self, bodies: np.ndarray, points: np.ndarray, world: World, step: int,
+                previous: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
         raise NotImplementedError
 
     def check_domain(self, domain: Domain) -> None:
@@ -106,9 +122,9 @@ class _DomainSpecs:
         if entry is not None:
             return entry
         b = self.base
-        spec = GridSpec.for_domain(domain[0], domain[1], b.resolution, b.h, kernel=b.kernel, inputs=b.inputs,
-                                   targets=b.targets, normalization=dict(b.normalization),
-                                   wall_mass=b.wall_mass, walls=b.walls)
+        # The base spec with only its geometry moved: no field can be left behind.
+        moved = GridSpec.for_domain(domain[0], domain[1], b.resolution, b.h)
+        spec = dataclasses.replace(b, origin=moved.origin, shape=moved.shape)
         if self.fixed and spec.shape != b.shape:
             raise GridMismatch(
                 f"model {self.name!r} takes {b.shape[0]}x{b.shape[1]} grids only; this world's domain "
@@ -145,6 +161,8 @@ class ModelPredictor(Predictor):
             raise ValueError(f"{onnx_path}: card names input {card.input_name!r} and output "
                              f"{card.output_name!r}, the model has {inputs} and {outputs}")
         self._specs = _DomainSpecs(card.gridspec, card.fixed_grid, card.name, normalization=True)
+        combined = ("builtin",) if card.combine in ("residual", "new-points") else ()
+        self.requires = tuple(sorted(set(needs(card.gridspec.inputs) + combined)))
         self.infer = self.run_session
 
     def run_session(self, x: np.ndarray) -> np.ndarray:
@@ -154,12 +172,13 @@ class ModelPredictor(Predictor):
     def check_domain(self, domain: Domain) -> None:
         self._specs.get(domain)
 
-    def predict(self, bodies, points, domain, step):
-        spec, norm = self._specs.entry(domain)
+    def predict(self, bodies, points, world, step, previous=None):
+        spec, norm = self._specs.entry(world.domain)
         t0 = time.perf_counter()
         # The contact points' stencil weights come out of the input splat and
         # serve the output transfer too.
-        grid, contacts = world_to_grids(bodies, points, spec, outside="drop", return_plan=True)
+        grid, contacts = world_to_grids(bodies, points, spec, previous=previous, physics=world.physics,
+                                        outside="drop", return_plan=True)
         x = norm.inputs(grid)  # == spec.normalize(grid, "inputs")[None]; grid is overwritten
         t1 = time.perf_counter()
         y = self.infer(x)
@@ -191,7 +210,7 @@ class ConstantPredictor(Predictor):
     tangent: float
     kind: str = "provider"
 
-    def predict(self, bodies, points, domain, step):
+    def predict(self, bodies, points, world, step, previous=None):
         out = np.empty((len(points), 2), np.float32)
         out[:, 0], out[:, 1] = self.normal, self.tangent
         return out, {}
@@ -206,7 +225,7 @@ class RandomPredictor(Predictor):
     name: str = "random"
     kind: str = "provider"
 
-    def predict(self, bodies, points, domain, step):
+    def predict(self, bodies, points, world, step, previous=None):
         rng = np.random.default_rng([self.seed, step])
         out = np.empty((len(points), 2), np.float32)
         out[:, 0] = rng.uniform(0.0, 5.0, len(points))
@@ -224,8 +243,8 @@ class GridIdentityPredictor(Predictor):
         self.gridspec = gridspec
         self._specs = _DomainSpecs(gridspec, False, self.name)
 
-    def predict(self, bodies, points, domain, step):
-        spec = self._specs.get(domain)
+    def predict(self, bodies, points, world, step, previous=None):
+        spec = self._specs.get(world.domain)
         t0 = time.perf_counter()
         # One set of weights for both directions: == g2p(p2g(point, impulse), point).
         points_plan = plan(points["point"], spec, outside="drop")

@@ -24,7 +24,8 @@ from deepcontact.v1 import warmstart_pb2 as pb
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
 from server.batching import QueueFull
-from server.predictors import GridMismatch, Predictor
+from deepcontact.channels import NEEDS
+from server.predictors import GridMismatch, Predictor, World
 from server.rejects import reject
 
 log = logging.getLogger("deepcontact.server")
@@ -109,48 +110,64 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         try:
             if not request.HasField("world"):
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "world: required on every Predict request")
-            domain = self._domain(request.world)
-            return self._step(request, domain)
+            return self._step(request, self._world(request.world))[0]
         except _Reject as r:
             reject(context, r.code, r.message, rpc=_PREDICT)
 
     def Stream(self, request_iterator, context):
-        domain = None
+        # A stream is one simulation: its world, and its last step's points for temporal channels.
+        world = previous = None
         for request in request_iterator:
             try:
                 if request.HasField("world"):
-                    domain = self._domain(request.world)
-                elif domain is None:
+                    world, previous = self._world(request.world), None
+                elif world is None:
                     raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                                   "world: required on the first message of a stream")
-                yield self._step(request, domain)
+                reply, previous = self._step(request, world, previous)
+                yield reply
             except _Reject as r:
                 reject(context, r.code, r.message, rpc=_STREAM)
 
     # -- one step -------------------------------------------------------------
-    def _domain(self, world: pb.World):
+    def _world(self, world: pb.World) -> World:
         try:
             lower, upper, _edges = wire.decode_world(world)
+            physics = wire.decode_physics(world)
         except wire.WireError as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
-        return (float(lower[0]), float(lower[1])), (float(upper[0]), float(upper[1]))
+        return World(((float(lower[0]), float(lower[1])), (float(upper[0]), float(upper[1]))), physics)
 
-    def _step(self, request: pb.StepRequest, domain) -> pb.Impulses:
+    @staticmethod
+    def _missing(predictor: Predictor, request: pb.StepRequest, world: World) -> list[str]:
+        """What the predictor needs that this request does not carry (keys of channels.NEEDS)."""
+        sent = {"point_bodies": request.point_bodies, "body_inertia": request.body_inertia,
+                "point_separation": request.point_separation, "builtin": request.builtin,
+                "physics": world.physics.dt > 0}
+        return [need for need in predictor.requires if not sent[need]]
+
+    def _step(self, request: pb.StepRequest, world: World, previous=None):
+        """(reply, the step's decoded points)."""
         # From the start of parsing when gRPC parsed this request in this thread.
         t0 = _parse_started.__dict__.pop("t", None) or time.perf_counter()
         predictor = self.predictors.get(request.model)
         if predictor is None:
             raise _Reject(grpc.StatusCode.NOT_FOUND,
                           f"model {request.model!r} is not served here; ListModels names {sorted(self.predictors)}")
+        missing = self._missing(predictor, request, world) if predictor.requires else ()
+        if missing:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                          f"model {predictor.name!r} needs {'; '.join(NEEDS[m] for m in missing)}, "
+                          "which this request lacks (a client older than the model's inputs?)")
         try:
             bodies, points = wire.decode_step(request, max_bodies=self.limits.max_bodies,
                                               max_points=self.limits.max_points)
-            predictor.check_domain(domain)
+            predictor.check_domain(world.domain)
         except (wire.WireError, GridMismatch) as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
         t1 = time.perf_counter()
         try:
-            impulses, stages = predictor.predict(bodies, points, domain, request.step)
+            impulses, stages = predictor.predict(bodies, points, world, request.step, previous)
         except QueueFull as exc:
             raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc)) from None
         except Exception as exc:  # a bug, not the client's fault: say so, keep serving
@@ -168,7 +185,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         total = time.perf_counter() - t0
         timings.total_us = _us(total)
         metrics.observe_step(predictor.name, t1 - t0, stages, total)
-        return reply
+        return reply, points
 
 
 def _us(seconds: float) -> int:

@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from deepcontact.kinematics import Physics
 from simclient.engine import Box2D, Engine, SolverConfig
 
 MAX_PLACEMENT_TRIES = 200_000
@@ -97,6 +98,11 @@ class SceneSpec:
         w, h = self.box_size
         need = self.bodies * math.pi * self.radius[1] ** 2 / (MAX_RANDOM_COVER * w)
         return float(h) if need <= h else float(need)
+
+    @property
+    def physics(self) -> Physics:
+        """The step's time and gravity, as the solver applies them (and the server's channels need)."""
+        return Physics(self.solver.dt, (0.0, -float(self.gravity)))
 
     def walls(self) -> np.ndarray:
         """The static box's edges, (3, 4) float (x0, y0, x1, y1) m: floor, left

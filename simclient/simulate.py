@@ -64,7 +64,7 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     provider.prepare(engine)
     if client is not None:
         lower, upper = spec.domain
-        client.world = wire.encode_world(lower, upper, spec.walls())
+        client.world = wire.encode_world(lower, upper, spec.walls(), spec.physics)
     records: list[StepRecord] = []
     timeout = deadline_ms / 1e3
     for k in range(spec.steps):

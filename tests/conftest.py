@@ -52,6 +52,4 @@ def thesis_steps():
         bodies = engine.bodies()
         engine.solve()
         steps.append((bodies, engine.contacts()))
-    lower, upper = spec.domain
-    edges = np.array([[0, 0, 15, 0], [0, 0, 0, 15], [15, 0, 15, 15]], np.float32)
-    return wire.encode_world(lower, upper, edges), steps
+    return wire.encode_world(*spec.domain, spec.walls(), spec.physics), steps

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deepcontact.channels import CHANNELS, SOURCES, Step, channel_values, particle_positions
+from deepcontact.channels import CHANNELS, NEEDS, SOURCES, Step, channel_values, needs, particle_positions
 from deepcontact.kinematics import Physics
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 
@@ -69,5 +69,12 @@ def test_previous_channels_read_the_last_steps_points_and_are_empty_without_them
 def test_every_channel_has_a_known_source_a_unit_and_a_description():
     for name, channel in CHANNELS.items():
         assert channel.name == name and channel.source in SOURCES
-        assert channel.unit and channel.description
+        assert channel.unit and channel.description and set(channel.needs) <= set(NEEDS)
     assert [n for n, c in CHANNELS.items() if c.walls] == ["mass"]
+
+
+def test_what_requests_must_carry_follows_from_the_channels():
+    assert needs(("mass", "vx", "normal_x")) == ()
+    assert needs(("vn",)) == ("physics", "point_bodies")
+    assert needs(("vn_builtin", "separation")) == ("body_inertia", "builtin", "physics", "point_bodies",
+                                                   "point_separation")

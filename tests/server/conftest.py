@@ -16,9 +16,9 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server.serve import Server
 
 
-def write_conv_model(folder, name="tiny", fixed_grid=False, combine="replace", seed=0):
-    """A 1x1 convolution from the 6 input channels to 2 outputs, with its card."""
-    spec = GridSpec.thesis()
+def write_conv_model(folder, name="tiny", fixed_grid=False, combine="replace", seed=0, inputs=None):
+    """A 1x1 convolution from the input channels (default the thesis's 6) to 2 outputs, with its card."""
+    spec = GridSpec.thesis() if inputs is None else GridSpec.thesis(inputs=tuple(inputs))
     cin, cout = len(spec.inputs), len(spec.targets)
     rng = np.random.default_rng(seed)
     w = rng.normal(0, 0.1, (cout, cin, 1, 1)).astype(np.float32)

@@ -10,15 +10,17 @@ import numpy as np
 import pytest
 
 from deepcontact import wire
+from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
+from deepcontact.kinematics import Physics
 from deepcontact.modelcard import ModelCard
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
-from deepcontact.features import world_to_grids
 from deepcontact.transfer import g2p, p2g
-from server.predictors import GridIdentityPredictor, ModelPredictor, _Normalization
+from server.predictors import GridIdentityPredictor, ModelPredictor, World, _Normalization
 from tests.server.conftest import write_conv_model
 
 DOMAIN = ((0.0, 0.0), (15.0, 15.0))
+WORLD = World(DOMAIN, Physics.thesis())
 NORMALIZATION = {
     "mass": (0.3, 2.5), "vx": (-0.1, 0.7), "omega": (0.05, 1.3), "normal_y": (-0.2, 0.9),
     "impulse_normal": (0.4, 1.7), "impulse_tangent": (-0.01, 0.2),
@@ -63,7 +65,7 @@ def test_a_model_step_is_the_transfer_done_by_hand(normalized_model, thesis_step
     _, steps = thesis_steps
     for bodies, points in steps:
         bodies, points = sent(bodies, with_a_point_outside(points))
-        impulses, stages = model.predict(bodies, points, DOMAIN, 0)
+        impulses, stages = model.predict(bodies, points, WORLD, 0)
         assert set(stages) == {"p2g", "inference", "g2p"}
         # Training's way: P2G, normalize, the model, denormalize, G2P (+ builtin: residual).
         spec = model._specs.get(DOMAIN)
@@ -81,7 +83,7 @@ def test_grid_identity_is_p2g_then_g2p(thesis_steps):
     bodies, points = sent(*steps[0])
     points = with_a_point_outside(points)
     predictor = GridIdentityPredictor(GridSpec.thesis())
-    got, _ = predictor.predict(bodies, points, DOMAIN, 0)
+    got, _ = predictor.predict(bodies, points, WORLD, 0)
     spec = GridSpec.thesis()
     grid, _ = p2g(points["point"], points["impulse"], spec, outside="drop")
     expected, _ = g2p(grid, points["point"], spec, outside="drop")
@@ -92,15 +94,17 @@ def reference_decode(msg):
     """decode_step written field by field."""
     b = np.frombuffer(msg.bodies, np.float32).reshape(msg.body_count, len(wire.BODY_COLUMNS))
     p = np.frombuffer(msg.points, np.float32).reshape(msg.point_count, len(wire.POINT_COLUMNS))
-    bodies = np.zeros(len(b), BODY_DTYPE)
-    bodies["index"] = np.arange(1, len(b) + 1)
-    bodies["type"] = 2
-    bodies["position"] = b[:, 0:2]
-    bodies["angle"] = b[:, 2]
-    bodies["velocity"] = b[:, 3:5]
-    bodies["angular_velocity"] = b[:, 5]
-    bodies["mass"] = b[:, 6]
-    bodies["radius"] = b[:, 7]
+    bodies = np.zeros(len(b) + 1, BODY_DTYPE)  # row 0: the walls' static stand-in
+    bodies["index"] = np.arange(len(b) + 1)
+    bodies["type"][1:] = 2
+    bodies["position"][1:] = b[:, 0:2]
+    bodies["angle"][1:] = b[:, 2]
+    bodies["velocity"][1:] = b[:, 3:5]
+    bodies["angular_velocity"][1:] = b[:, 5]
+    bodies["mass"][1:] = b[:, 6]
+    bodies["radius"][1:] = b[:, 7]
+    if msg.body_inertia:
+        bodies["inertia"][1:] = np.frombuffer(msg.body_inertia, np.float32)
     points = np.zeros(len(p), CONTACT_DTYPE)
     points["point"] = p[:, 0:2]
     points["normal"] = p[:, 2:4]
@@ -108,6 +112,11 @@ def reference_decode(msg):
         points["builtin"] = np.frombuffer(msg.builtin, np.float32).reshape(-1, 2)
     if msg.impulses:
         points["impulse"] = np.frombuffer(msg.impulses, np.float32).reshape(-1, 2)
+    if msg.point_separation:
+        points["separation"] = np.frombuffer(msg.point_separation, np.float32)
+    if msg.point_bodies:
+        rows = np.frombuffer(msg.point_bodies, np.int32).reshape(-1, 2) + 1
+        points["body_a"], points["body_b"] = rows[:, 0], rows[:, 1]
     return bodies, points
 
 
@@ -123,7 +132,19 @@ def test_steps_decode_into_the_records_field_by_field(thesis_steps, extra):
             assert g.tobytes() == e.tobytes()
 
 
-@pytest.mark.parametrize("field", ["bodies", "points", "builtin", "impulses"])
+def test_decoded_steps_keep_the_engines_body_indices_and_contact_velocities(thesis_steps):
+    from deepcontact.kinematics import contact_velocities
+
+    _, steps = thesis_steps
+    for bodies, points in steps:
+        got_bodies, got_points = wire.decode_step(wire.encode_step(0, "tiny", bodies, points),
+                                                  max_bodies=10**4, max_points=10**5)
+        np.testing.assert_array_equal(got_bodies[got_points["body_b"]]["position"], bodies[points["body_b"]]["position"])
+        np.testing.assert_array_equal(contact_velocities(got_bodies, got_points, points["builtin"], Physics.thesis()),
+                                      contact_velocities(bodies, points, points["builtin"], Physics.thesis()))
+
+
+@pytest.mark.parametrize("field", ["bodies", "points", "builtin", "impulses", "point_separation", "body_inertia"])
 def test_a_non_finite_array_is_named(thesis_steps, field):
     _, steps = thesis_steps
     bodies, points = steps[0]

@@ -13,6 +13,7 @@ from deepcontact.modelcard import ModelCard
 from deepcontact.features import world_to_grids
 from deepcontact.transfer import g2p, p2g
 from deepcontact.v1 import warmstart_pb2 as pb
+from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 
 
 def request(world, bodies, points, model, step=0, **kw):
@@ -136,10 +137,44 @@ def test_decode_time_starts_when_grpc_parses_the_request(thesis_steps):
 
     world, steps = thesis_steps
     service = WarmStartService(providers())
-    domain = service._domain(world)
+    stream_world = service._world(world)
     raw = request(world, *steps[0], "zero").SerializeToString()
     parsed = _parse_step(raw)
     time.sleep(0.02)
-    assert service._step(parsed, domain).timings.decode_us >= 20_000
+    assert service._step(parsed, stream_world)[0].timings.decode_us >= 20_000
     # Consumed once: a step that was not parsed here is timed from its own start.
-    assert service._step(parsed, domain).timings.decode_us < 20_000
+    assert service._step(parsed, stream_world)[0].timings.decode_us < 20_000
+
+
+def test_a_model_reading_contact_velocities_and_the_last_step_is_served_what_training_saw(tmp_path, thesis_steps):
+    from deepcontact.kinematics import Physics
+    from server.serve import Server
+    from tests.server.conftest import write_conv_model
+
+    inputs = ("mass", "vn_builtin", "separation", "previous_builtin_normal")
+    card = write_conv_model(tmp_path, "kinematic", inputs=inputs)
+    world, steps = thesis_steps
+    srv = Server(models=tmp_path).start()
+    try:
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            replies = list(stub.Stream(iter([request(world if k == 0 else None, b, p, "kinematic", step=k,
+                                                     builtin=p["builtin"]) for k, (b, p) in enumerate(steps[:2])])))
+            # The second step was served with the first one's points as its previous step.
+            import onnxruntime as ort
+
+            spec = card.gridspec
+            grid = world_to_grids(*steps[1], spec, previous=steps[0][1], physics=Physics.thesis())
+            y = ort.InferenceSession(str(tmp_path / "kinematic.onnx")).run(None, {"grids": spec.normalize(grid)[None]})
+            expected, _ = g2p(spec.denormalize(y[0][0], "targets"), steps[1][1]["point"], spec)
+            np.testing.assert_allclose(np.stack(wire.decode_impulses(replies[1]), 1), expected, rtol=1e-4, atol=1e-6)
+            # A client that sends neither the points' bodies nor the physics is told what is missing.
+            old = request(world, *steps[0], "kinematic", builtin=steps[0][1]["builtin"])
+            old.ClearField("point_bodies")
+            old.world.dt = 0.0
+            with pytest.raises(grpc.RpcError) as err:
+                stub.Predict(old)
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+            assert "each point's two bodies" in err.value.details() and "time step and gravity" in err.value.details()
+    finally:
+        srv.stop()
