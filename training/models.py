@@ -16,6 +16,11 @@ Both map a normalized input grid to a normalized impulse grid, NHWC float32:
   each branch resized bilinearly to the input size and summed, then 1x1
   convolutions.  No dropout.  Fully convolutional: the resize targets the
   *runtime* input size, so one model accepts any grid (``fixed_grid=False``).
+* **UNet** (the architecture Tirca's Deep-Contact moved to): an encoder of
+  3x3 convolutions with 2x2 average pools between levels, a decoder that
+  resizes each level back to the one above and concatenates it with that
+  level's encoder output (the skip that keeps contact-scale detail), then a
+  linear 1x1 output.  Fully convolutional like Pressure.
 
 Common to both (thesis §7): batch normalization after every convolution and
 dense layer except the output layer, L2 regularization (lambda 0.01) on every
@@ -40,6 +45,7 @@ from typing import Any, Mapping
 __all__ = [
     "PeakConfig",
     "PressureConfig",
+    "UNetConfig",
     "build_model",
     "config_from_dict",
     "config_to_dict",
@@ -105,7 +111,28 @@ class PeakConfig:
     fixed_grid = True
 
 
-_CONFIGS = {"pressure": PressureConfig, "peak": PeakConfig}
+@dataclass(frozen=True)
+class UNetConfig:
+    """UNet: encoder-decoder with skips, fully convolutional, any grid size.
+
+    widths: channels of each level, full resolution first (len(widths) - 1 pools).
+    convs:  3x3 convolutions per level, in the encoder and again in the decoder.
+    """
+
+    kind: str = "unet"
+    in_channels: int = 6
+    out_channels: int = 2
+    widths: tuple[int, ...] = (16, 32, 64)
+    convs: int = 2
+    kernel_size: int = 3
+    l2: float = 0.0001
+    init_std: float = 0.1
+    batch_norm: bool = True
+
+    fixed_grid = False
+
+
+_CONFIGS = {"pressure": PressureConfig, "peak": PeakConfig, "unet": UNetConfig}
 
 
 def default_config(kind: str, **overrides: Any):
@@ -147,7 +174,12 @@ def _validate(config) -> None:
     positive_ints("in_channels/out_channels/kernel_size", (config.in_channels, config.out_channels, config.kernel_size))
     if not (config.l2 >= 0 and config.init_std > 0):
         raise ValueError(f"{config.kind} config: need l2 >= 0 and init_std > 0, got {config.l2!r}, {config.init_std!r}")
-    if isinstance(config, PressureConfig):
+    if isinstance(config, UNetConfig):
+        positive_ints("widths", config.widths)
+        positive_ints("convs", (config.convs,))
+        if not config.widths:
+            raise ValueError("unet config: widths needs at least one level")
+    elif isinstance(config, PressureConfig):
         positive_ints("stem_filters/scales", (config.stem_filters, config.scales))
         positive_ints("branch_filters", config.branch_filters)
         positive_ints("head_filters", config.head_filters)
@@ -242,6 +274,8 @@ def build_model(config, name: str | None = None):
         return _build_pressure(config, name or "pressure")
     if isinstance(config, PeakConfig):
         return _build_peak(config, name or "peak")
+    if isinstance(config, UNetConfig):
+        return _build_unet(config, name or "unet")
     raise ValueError(f"not a model config: {config!r}")
 
 
@@ -332,6 +366,28 @@ def _build_peak(c: PeakConfig, name: str):
     h = keras.layers.Dropout(c.dropout, name="out_dropout")(h)
     h = L.dense(h, ny * nx * c.out_channels, "out_dense", output=True)
     out = keras.layers.Reshape((ny, nx, c.out_channels), name="impulses")(h)
+    return keras.Model(grids, out, name=name)
+
+
+def _build_unet(c: UNetConfig, name: str):
+    L = _Layers(c)
+    keras = L.keras
+    ResizeLike = resize_like_layer()
+    grids = keras.Input((None, None, c.in_channels), name="grids", dtype="float32")
+    skips, h = [], grids
+    for level, width in enumerate(c.widths):
+        if level:
+            h = L.pool(h, f"pool{level}")
+        for j in range(c.convs):
+            h = L.conv(h, width, c.kernel_size, f"enc{level}_conv{j}")
+        skips.append(h)
+    for level in range(len(c.widths) - 2, -1, -1):
+        # Back to this level's size (odd sizes included), then its encoder's features alongside.
+        h = ResizeLike(name=f"up{level}")([h, skips[level]])
+        h = keras.layers.Concatenate(name=f"skip{level}")([h, skips[level]])
+        for j in range(c.convs):
+            h = L.conv(h, c.widths[level], c.kernel_size, f"dec{level}_conv{j}")
+    out = L.conv(h, c.out_channels, 1, "impulses", output=True)
     return keras.Model(grids, out, name=name)
 
 

@@ -31,6 +31,16 @@ def test_pressure_accepts_any_grid_size():
     assert model.input_shape == (None, None, None, 6)
 
 
+def test_unet_accepts_any_grid_size_and_keeps_full_resolution_through_its_skips():
+    model = build_model(default_config("unet", in_channels=9, widths=[8, 16, 32]))
+    rng = np.random.default_rng(0)
+    for shape in [(2, 61, 61, 9), (1, 41, 101, 9), (1, 7, 5, 9)]:
+        out = model(rng.standard_normal(shape).astype(np.float32), training=False)
+        assert out.shape == shape[:3] + (2,)
+    names = [layer.name for layer in model.layers]
+    assert {"skip0", "skip1", "up0", "up1"} <= set(names) and "pool2" in names
+
+
 def test_default_pressure_is_small_and_follows_the_thesis():
     model = build_model(PressureConfig())
     params = count_parameters(model)
@@ -79,7 +89,7 @@ def test_configs_round_trip_through_json_and_reject_unknown_fields():
     with pytest.raises(ValueError, match="positive integers"):
         default_config("pressure", branch_filters=[0])
     with pytest.raises(ValueError, match="unknown model kind"):
-        default_config("unet")
+        default_config("resnet")
 
 
 def test_configs_and_evaluation_import_without_tensorflow():
