@@ -909,6 +909,24 @@ class TransferPlan:
             vals = full
         return vals, report
 
+    def g2p_operator(self) -> tuple[np.ndarray, np.ndarray]:
+        """SPH G2P as a sparse linear map, for frameworks that differentiate through it.
+
+        Returns ``(nodes (N, S) int32, weights (N, S) float32)`` such that
+        ``g2p(grid)[n] = sum_s weights[n, s] * grid.reshape(-1, C)[nodes[n, s]]``
+        (flat node index iy * nx + ix); particles that take no part (outside,
+        or no node in range) have all-zero weights.
+        """
+        e, st = self._entries, self._st
+        node_w = np.bincount(e.nodes.ravel(), e.weights.ravel(), minlength=st.cells)
+        per_node = node_w[e.nodes]
+        w = np.divide(e.weights, per_node, out=np.zeros_like(e.weights), where=per_node > 0)
+        nodes = np.zeros((self.n_particles, st.n_stencil), np.int32)
+        weights = np.zeros((self.n_particles, st.n_stencil), np.float32)
+        rows = slice(None) if self._keep is None else self._keep
+        nodes[rows], weights[rows] = e.nodes, w
+        return nodes, weights
+
     def rows(self, start: int, stop: int) -> "TransferPlan":
         """The plan of particles ``start:stop`` alone (sharing this plan's weights).
 

@@ -5,7 +5,7 @@
 Uses only what the server has: the ONNX file and its card (no TensorFlow, no
 training code path).  Per step, exactly as the card's docstring says:
 
-    grid   = world_to_grids(bodies, contacts, card.gridspec)     # raw, wall mass included
+    grid   = step_to_grids(step, card.gridspec)                  # raw, wall mass included
     pred   = onnx(card.gridspec.normalize(grid)[None])           # normalized
     values = g2p(card.gridspec.denormalize(pred[0]), points)     # N s per contact point
 
@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from deepcontact.channels import Step, channel_values, particle_positions
-from deepcontact.features import targets_to_grids, world_to_grids
+from deepcontact.channels import channel_values, particle_positions
+from deepcontact.features import step_to_grids, targets_to_grids
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
 from deepcontact.modelcard import ModelCard, ModelCardError
@@ -155,18 +155,17 @@ def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int =
         pending.clear()
 
     t_start = time.perf_counter()
-    for i, bodies, points in iter_steps(data_path, steps, index):
+    for i, step in iter_steps(data_path, steps, index):
         try:
-            grid = world_to_grids(bodies, points, spec, **opts)
-            target = targets_to_grids(points, spec, **opts)
+            grid = step_to_grids(step, spec, **opts)
+            target = targets_to_grids(step, spec, **opts)
+            truth.append(channel_values(names, step))
         except ValueError as exc:
             row = steps[i]
             raise EvaluateError(f"{data_path}: seed {row['seed']} step {row['step']}: {exc}") from None
-        step = Step(bodies, points)
         pending.append((grid, target, particle_positions("contacts", step)))
-        truth.append(channel_values(names, step))
-        builtin.append(points["builtin"])
-        step_of_point.append(np.full(len(points), steps[i]["step"], np.int32))
+        builtin.append(step.contacts["builtin"])
+        step_of_point.append(np.full(len(step.contacts), steps[i]["step"], np.int32))
         if len(pending) == batch_size:
             flush()
     if pending:

@@ -128,31 +128,32 @@ def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str 
     best = state["history"][state["best_epoch"] - 1]
     params = count_parameters(model)
     train, val = info["data"]["train"], info["data"]["val"]
-    commands = [c for c in (train.get("command"), val.get("command")) if c] + list(info["commands"])
+    commands = list(dict.fromkeys(d["command"] for d in train + val if d.get("command"))) + list(info["commands"])
     card = ModelCard(
         name=name or out.stem,
         kind=config.kind,
         onnx_file=out.name,
         gridspec=spec,
         fixed_grid=bool(config.fixed_grid),
-        combine=combine or ("residual" if all(t.startswith("correction_") for t in spec.targets) else "replace"),
+        combine=combine or ("residual" if all("correction_" in t for t in spec.targets) else "replace"),
         parameters=params["total"],
         architecture={"config": info["model"], "parameters": params, "onnx_opset": OPSET,
                       "onnx_bytes": len(data), "tensorflow": tf.__version__},
         training={
-            "scene": train["scene"],
-            "train": _data_summary(train),
-            "val": _data_summary(val),
+            "scene": train[0]["scene"],
+            "train": [_data_summary(d) for d in train],
+            "val": [_data_summary(d) for d in val],
             "settings": info["settings"],
             "transfer": info["transfer"],
             "epochs_run": state["epochs_done"],
             "best_epoch": state["best_epoch"],
             "stop_reason": state["stop_reason"],
             "train_seconds": state["train_seconds"],
-            "history": [[h["epoch"], round(h["train_grid_mse"], 6), round(h["val_grid_mse"], 6)]
+            "history": [[h["epoch"], round(h["train_loss"], 6), round(h["val_loss"], 6)]
                         for h in state["history"]],
         },
-        validation={"epoch": best["epoch"], "steps": val["steps_used"], "points": val["points"],
+        validation={"epoch": best["epoch"], "steps": sum(d["steps_used"] for d in val),
+                    "points": sum(d["points"] for d in val), "loss": best["val_loss"],
                     "grid_mse": best["val_grid_mse"], "contact": best["val_contact"],
                     "baselines": info.get("baselines", {})},
         parity_max_abs_error=parity,

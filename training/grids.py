@@ -2,15 +2,23 @@
 
 For each selected step of an HDF5 data file (``deepcontact generate``):
 
-    inputs           (N, ny, nx, Cin)  float32  world_to_grids(bodies, points, spec), raw,
+    inputs           (N, ny, nx, Cin)  float32  world_to_grids(bodies, points, spec,
+                                                 previous=last step's points, physics), raw,
                                                  wall mass included (thesis §8.1)
-    targets          (N, ny, nx, Cout) float32  targets_to_grids(points, spec), raw, N s
+    targets          (N, ny, nx, Cout) float32  targets_to_grids(step, spec), raw, N s
     point_offsets    (N + 1,)          int64    step k's points are rows offsets[k]:offsets[k+1]
     point_positions  (P, 2)            float32  contact points, m
     point_targets    (P, Cout)         float32  the spec's target channels per point (the
                                                  final impulse, N s, by default)
     point_builtin    (P, 2)            float32  Box2D's own warm start (normal, tangent), N s
+    point_new        (P,)              bool     the point is new this step (no builtin)
+    point_nodes      (P, S)            int32    SPH G2P as a sparse map (TransferPlan.g2p_operator):
+    point_weights    (P, S)            float32  value[p] = sum_s weights[p, s] grid[nodes[p, s]]
     steps            (N,)              int64    row of the file's /steps index
+
+The previous step's points feed temporal channels; the scene's gravity and
+time step, contact-velocity channels; the file's /oracle impulses (data made
+with ``generate --oracle``), oracle targets.
 
 A :class:`GridSet` is written once per run as ``.npy`` files (no pickle) under
 a temporary name and renamed, then memory-mapped, so epochs only gather
@@ -32,12 +40,14 @@ import h5py
 import numpy as np
 
 from deepcontact.channels import Step, channel_values, particle_positions
-from deepcontact.features import targets_to_grids, world_to_grids
+from deepcontact.features import step_to_grids, targets_to_grids
 from deepcontact.gridspec import GridSpec
+from deepcontact.kinematics import Physics
 from deepcontact.transfer import DOMAIN_TOLERANCE, g2p
+from simclient.scene import spec_from_dict
 from training.dataset import Dataset, DatasetError
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 #: How points beyond the domain are treated in every transfer of training and
 #: evaluation (and recorded in the model card, for the server to do the same).
@@ -47,7 +57,9 @@ CACHE_VERSION = 1
 #: rather than failing the whole file.
 TRANSFER = {"outside": "drop", "tolerance": DOMAIN_TOLERANCE, "g2p": "sph"}
 
-_ARRAYS = ("inputs", "targets", "point_offsets", "point_positions", "point_targets", "point_builtin", "steps")
+_ARRAYS = ("inputs", "targets", "point_offsets", "point_positions", "point_targets", "point_builtin", "point_new",
+           "point_nodes", "point_weights", "steps")
+_MAPPED = ("inputs", "targets", "point_nodes", "point_weights")  # the large ones: memory-mapped
 
 
 class GridDataError(ValueError):
@@ -94,27 +106,46 @@ def open_dataset(path: str | os.PathLike) -> Dataset:
         raise GridDataError(str(exc)) from None
 
 
-def iter_steps(path: str | os.PathLike, steps: np.ndarray, index: np.ndarray
-               ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """Yield ``(row, bodies, points)`` for the rows ``index`` (ascending) of ``steps``.
+def physics_of(scene: dict) -> Physics:
+    """The gravity and time step a recorded scene was simulated with."""
+    return spec_from_dict(scene).physics
 
-    Reads one simulation's span at a time: per-step reads decompress a whole
-    gzip chunk each (about 8 ms a step here), a span read once per seed.
+
+def iter_steps(path: str | os.PathLike, steps: np.ndarray, index: np.ndarray) -> Iterator[tuple[int, Step]]:
+    """Yield ``(row, step)`` for the rows ``index`` (ascending) of ``steps``.
+
+    ``step`` holds the bodies at collide time and the points after the solve,
+    the previous step's points of the same simulation (None for its first
+    step), the scene's physics, and the oracle's impulses when the file has
+    them. Reads one simulation's span at a time: per-step reads decompress a
+    whole gzip chunk each (about 8 ms a step here), a span read once per seed.
     """
     with h5py.File(path, "r") as f:
-        bodies_ds, points_ds = f["bodies"], f["points"]
+        physics = physics_of(json.loads(f.attrs["scene"]))
+        bodies_ds, points_ds, oracle_ds = f["bodies"], f["points"], f.get("oracle")
         seeds = steps["seed"][index]
         bounds = np.flatnonzero(np.diff(seeds)) + 1
         for group in np.split(index, bounds):  # loop over simulations
-            rows = steps[group]
+            first = int(group[0])
+            # One step more in front, for the previous points, when it is of the same simulation.
+            lead = first - 1 if first > 0 and steps["seed"][first - 1] == steps["seed"][first] else first
+            rows = steps[lead:int(group[-1]) + 1]
             b0 = int(rows["body_offset"].min())
             b1 = int((rows["body_offset"] + rows["body_count"]).max())
             p0 = int(rows["point_offset"].min())
             p1 = int((rows["point_offset"] + rows["point_count"]).max())
             bodies, points = bodies_ds[b0:b1], points_ds[p0:p1]
-            for i, row in zip(group, rows):  # loop over steps, not particles
-                bo, po = int(row["body_offset"]) - b0, int(row["point_offset"]) - p0
-                yield (int(i), bodies[bo:bo + int(row["body_count"])], points[po:po + int(row["point_count"])])
+            oracle = oracle_ds[p0:p1] if oracle_ds is not None else None
+
+            def span(row, offset, count, base):
+                return slice(int(row[offset]) - base, int(row[offset]) - base + int(row[count]))
+
+            for i in group:  # loop over steps, not particles
+                row = steps[i]
+                pts = span(row, "point_offset", "point_count", p0)
+                prev = points[span(steps[i - 1], "point_offset", "point_count", p0)] if i > lead else None
+                yield int(i), Step(bodies[span(row, "body_offset", "body_count", b0)], points[pts], prev, physics,
+                                   None if oracle is None else oracle[pts])
 
 
 @dataclass
@@ -127,6 +158,9 @@ class GridSet:
     point_positions: np.ndarray
     point_targets: np.ndarray
     point_builtin: np.ndarray
+    point_new: np.ndarray
+    point_nodes: np.ndarray
+    point_weights: np.ndarray
     steps: np.ndarray
     meta: dict
 
@@ -183,30 +217,38 @@ def build_grid_set(path: str | os.PathLike, spec: GridSpec, index: np.ndarray, o
         mm = np.lib.format.open_memmap
         inputs = mm(tmp / "inputs.npy", "w+", np.float32, (n, ny, nx, len(spec.inputs)))
         targets = mm(tmp / "targets.npy", "w+", np.float32, (n, ny, nx, len(spec.targets)))
+        stencil = None
         p_pos = np.empty((offsets[-1], 2), np.float32)
         p_tgt = np.empty((offsets[-1], len(spec.targets)), np.float32)
         p_bui = np.empty((offsets[-1], 2), np.float32)
-        for k, (i, bodies, points) in enumerate(iter_steps(path, steps, index)):
+        opts = {"outside": TRANSFER["outside"], "tolerance": TRANSFER["tolerance"]}
+        for k, (i, step) in enumerate(iter_steps(path, steps, index)):
             try:
-                inputs[k] = world_to_grids(bodies, points, spec, outside=TRANSFER["outside"],
-                                           tolerance=TRANSFER["tolerance"])
-                targets[k] = targets_to_grids(points, spec, outside=TRANSFER["outside"],
-                                              tolerance=TRANSFER["tolerance"])
+                inputs[k], contacts = step_to_grids(step, spec, return_plan=True, **opts)
+                targets[k] = targets_to_grids(step, spec, **opts)
+                p_tgt[offsets[k]:offsets[k + 1]] = channel_values(spec.targets, step)
             except ValueError as exc:
                 row = steps[i]
                 raise GridDataError(f"{path}: seed {row['seed']} step {row['step']}: {exc}") from None
             rows = slice(offsets[k], offsets[k + 1])
-            step = Step(bodies, points)
+            nodes, weights = contacts.g2p_operator()
+            if stencil is None:
+                shape = (int(offsets[-1]), nodes.shape[1])
+                stencil = (mm(tmp / "point_nodes.npy", "w+", np.int32, shape),
+                           mm(tmp / "point_weights.npy", "w+", np.float32, shape))
+            stencil[0][rows], stencil[1][rows] = nodes, weights
             p_pos[rows] = particle_positions("contacts", step)
-            p_tgt[rows] = channel_values(spec.targets, step)
-            p_bui[rows] = points["builtin"]
+            p_bui[rows] = step.contacts["builtin"]
             if progress is not None:
                 progress(1)
         inputs.flush()
         targets.flush()
-        del inputs, targets
+        for a in stencil:
+            a.flush()
+        del inputs, targets, stencil
         for name, arr in (("point_offsets", offsets), ("point_positions", p_pos), ("point_targets", p_tgt),
-                          ("point_builtin", p_bui), ("steps", index.astype(np.int64))):
+                          ("point_builtin", p_bui), ("point_new", ~p_bui.any(axis=1)),
+                          ("steps", index.astype(np.int64))):
             np.save(tmp / f"{name}.npy", arr, allow_pickle=False)
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         shutil.rmtree(out_dir, ignore_errors=True)
@@ -221,7 +263,7 @@ def load_grid_set(out_dir: str | os.PathLike) -> GridSet:
     """A cached GridSet, big arrays memory-mapped (read-only)."""
     out_dir = Path(out_dir)
     meta = json.loads((out_dir / "meta.json").read_text())
-    arrays = {name: np.load(out_dir / f"{name}.npy", mmap_mode="r" if name in ("inputs", "targets") else None,
+    arrays = {name: np.load(out_dir / f"{name}.npy", mmap_mode="r" if name in _MAPPED else None,
                             allow_pickle=False) for name in _ARRAYS}
     return GridSet(meta=meta, **arrays)
 
@@ -275,19 +317,28 @@ def channel_stats(grids: np.ndarray, chunk: int = 256) -> tuple[np.ndarray, np.n
     return mean + shift, np.sqrt(var)
 
 
-def normalization_from(train: GridSet, spec: GridSpec) -> dict[str, tuple[float, float]]:
-    """channel -> (mean, std) of the training grids, inputs and targets.
+def pooled_normalization(train: list[GridSet], spec: GridSpec) -> dict[str, tuple[float, float]]:
+    """channel -> (mean, std) over the nodes of every training grid of every
+    file, inputs and targets (files of other grid sizes count by their nodes).
 
     A channel that is constant in the training set gets std 1 (it carries no
     information; GridSpec requires std > 0).
     """
     norm = {}
-    for names, grids in ((spec.inputs, train.inputs), (spec.targets, train.targets)):
-        mean, std = channel_stats(grids)
-        for n, m, s in zip(names, mean, std):
-            if not np.isfinite(m) or not np.isfinite(s):
+    for names, key in ((spec.inputs, "inputs"), (spec.targets, "targets")):
+        stats = []
+        for gs in train:  # loop over files
+            grids = getattr(gs, key)
+            mean, std = channel_stats(grids)
+            stats.append((float(np.prod(grids.shape[:3])), mean, std))
+        total = sum(n for n, _, _ in stats)
+        mean = sum(n * m for n, m, _ in stats) / total
+        var = sum(n * (sd * sd + (m - mean) ** 2) for n, m, sd in stats) / total
+        for n, m, v in zip(names, mean, var):
+            if not np.isfinite(m) or not np.isfinite(v):
                 raise GridDataError(f"channel {n!r}: non-finite values in the training grids")
-            norm[n] = (float(m), float(s) if s > 1e-12 else 1.0)
+            sd = float(np.sqrt(v))
+            norm[n] = (float(m), sd if sd > 1e-12 else 1.0)
     return norm
 
 

@@ -379,6 +379,17 @@ def test_a_plan_transfers_exactly_like_p2g_and_g2p(kernel_name):
         plan(positions, spec)  # outside="raise" by default, as p2g
 
 
+def test_the_g2p_operator_is_the_plans_g2p_as_a_sparse_matrix():
+    rng = np.random.default_rng(12)
+    positions = np.concatenate([rng.uniform(0, 15, size=(200, 2)), [[16.0, 3.0]]])  # the last one is outside
+    pl = plan(positions, THESIS, outside="drop")
+    nodes, weights = pl.g2p_operator()
+    grid = rng.normal(size=(61, 61, 3)).astype(np.float32)
+    by_operator = (grid.reshape(-1, 3)[nodes] * weights[..., None]).sum(axis=1)
+    np.testing.assert_allclose(by_operator, pl.g2p(grid)[0], rtol=1e-5, atol=1e-6)
+    assert not weights[-1].any()
+
+
 def test_plan_rows_transfer_like_a_plan_of_those_particles():
     rng = np.random.default_rng(9)
     positions, _ = random_particles(rng, SMALL, 40, 1)

@@ -50,7 +50,7 @@ def test_export_writes_onnx_and_card_that_agree_with_tensorflow(pressure_run, tm
     assert card.onnx_file == "tiny.onnx" and card.kind == "pressure" and not card.fixed_grid
     assert set(card.gridspec.normalization) == {*card.gridspec.inputs, *card.gridspec.targets}
     assert card.parity_max_abs_error <= 1e-4
-    assert card.training["train"]["seeds"] == "1-2" and card.training["val"]["seeds"] == "3"
+    assert card.training["train"][0]["seeds"] == "1-2" and card.training["val"][0]["seeds"] == "3"
     assert set(card.validation["contact"]) == {"impulse_normal", "impulse_tangent"}
     assert any(c.startswith("deepcontact train") for c in card.commands)
     assert card.commands[-1].startswith("deepcontact export")

@@ -32,7 +32,7 @@ def test_a_tiny_run_writes_checkpoint_and_logs_then_resumes(data, tmp_path, caps
     out = tmp_path / "run"
     assert tiny_run(data, out, "--epochs", 1) == 0
     for name in ("run.json", "state.json", "checkpoint.weights.h5", "best.weights.h5", "optimizer.h5",
-                 "cache/train/inputs.npy", "cache/val/point_targets.npy"):
+                 "cache/train-0/inputs.npy", "cache/val-0/point_targets.npy", "cache/val-0/point_weights.npy"):
         assert (out / name).exists(), name
     assert list((out / "tb" / "train").iterdir()) and list((out / "tb" / "validation").iterdir())
     state = json.loads((out / "state.json").read_text())
@@ -46,15 +46,15 @@ def test_a_tiny_run_writes_checkpoint_and_logs_then_resumes(data, tmp_path, caps
     run = json.loads((out / "run.json").read_text())
     spec = GridSpec.from_dict(run["gridspec"])
     assert set(spec.normalization) == set(spec.inputs) | set(spec.targets)
-    inputs = np.load(out / "cache" / "train" / "inputs.npy", mmap_mode="r")
+    inputs = np.load(out / "cache" / "train-0" / "inputs.npy", mmap_mode="r")
     assert spec.normalization["vx"][0] == pytest.approx(float(inputs[..., 1].mean(dtype=np.float64)), abs=1e-6)
     assert "epoch 1:" in capsys.readouterr().out
 
-    cache_written = (out / "cache" / "train" / "meta.json").stat().st_mtime_ns
+    cache_written = (out / "cache" / "train-0" / "meta.json").stat().st_mtime_ns
     assert deepcontact_train("--out", out, "--resume", "--epochs", 2, "--quiet") == 0
     state = json.loads((out / "state.json").read_text())
     assert state["epochs_done"] == 2 and [h["epoch"] for h in state["history"]] == [1, 2]
-    assert (out / "cache" / "train" / "meta.json").stat().st_mtime_ns == cache_written  # grids reused
+    assert (out / "cache" / "train-0" / "meta.json").stat().st_mtime_ns == cache_written  # grids reused
     assert json.loads((out / "run.json").read_text())["commands"][-1].endswith("--resume")
 
     # Finished: resuming without more epochs, or starting over in the same directory, is refused.
@@ -66,8 +66,9 @@ def test_a_tiny_run_writes_checkpoint_and_logs_then_resumes(data, tmp_path, caps
 
 def test_resuming_gives_the_weights_of_an_uninterrupted_run(data, tmp_path):
     # Seeds fix the weights and the batch order per epoch; Adam's state is checkpointed too.
-    assert tiny_run(data, tmp_path / "straight", "--epochs", 2) == 0
-    assert tiny_run(data, tmp_path / "resumed", "--epochs", 1) == 0
+    # (A constant rate: the cosine's length is the first invocation's --epochs.)
+    assert tiny_run(data, tmp_path / "straight", "--epochs", 2, "--lr-schedule", "constant") == 0
+    assert tiny_run(data, tmp_path / "resumed", "--epochs", 1, "--lr-schedule", "constant") == 0
     assert deepcontact_train("--out", tmp_path / "resumed", "--resume", "--epochs", 2, "--quiet") == 0
     straight = json.loads((tmp_path / "straight" / "state.json").read_text())["history"]
     resumed = json.loads((tmp_path / "resumed" / "state.json").read_text())["history"]
@@ -115,3 +116,43 @@ def test_validation_must_use_other_seeds(data, tmp_path, capsys):
 def test_resume_without_a_run_is_refused(tmp_path, capsys):
     assert deepcontact_train("--out", tmp_path / "nothing", "--resume") == 2
     assert "no run to resume" in capsys.readouterr().err
+
+
+def test_the_points_loss_is_the_error_the_solver_receives_at_the_contact_points(data, tmp_path):
+    # Train with the points loss, then recompute its validation value by hand:
+    # the model's grid through the transfer's own G2P, against the recorded impulses.
+    from deepcontact.transfer import g2p
+    from training.models import build_model, config_from_dict
+
+    out = tmp_path / "run"
+    assert tiny_run(data, out, "--epochs", 1, "--loss", "points", "--tangent-weight", 0.5) == 0
+    run = json.loads((out / "run.json").read_text())
+    state = json.loads((out / "state.json").read_text())
+    spec = GridSpec.from_dict(run["gridspec"])
+    model = build_model(config_from_dict(run["model"]))
+    model.load_weights(out / "best.weights.h5")
+    cache = out / "cache" / "val-0"
+    inputs = np.load(cache / "inputs.npy")
+    offsets, positions = np.load(cache / "point_offsets.npy"), np.load(cache / "point_positions.npy")
+    truth = np.load(cache / "point_targets.npy")
+    pred = spec.denormalize(model(spec.normalize(inputs), training=False).numpy(), "targets")
+    at_points = np.concatenate([g2p(p, positions[a:b], spec, outside="drop")[0]
+                                for p, a, b in zip(pred, offsets[:-1], offsets[1:])])
+    err = np.square((at_points - truth) / np.asarray(run["point_scale"])) * [1.0, 0.5]
+    assert state["history"][0]["val_loss"] == pytest.approx(err.sum() / (2 * len(truth)), rel=1e-3)
+
+
+def test_training_on_worlds_of_several_box_sizes(data, tmp_path):
+    from deepcontact.cli import main
+
+    wide = tmp_path / "wide.h5"
+    assert main(["generate", "--steps", "20", "--seeds", "4", "--box-size", "20", "10", "--bodies", "40",
+                 "--out", str(wide), "--quiet"]) == 0
+    out = tmp_path / "run"
+    assert deepcontact_train("--train", data / "train.h5", "--train", wide, "--val", data / "val.h5",
+                             "--out", out, "--config", TINY, "--batch-size", 8, "--epochs", 1, "--quiet") == 0
+    assert np.load(out / "cache" / "train-1" / "inputs.npy", mmap_mode="r").shape[1:3] == (41, 81)
+    run = json.loads((out / "run.json").read_text())
+    assert [d["scene"]["box_size"] for d in run["data"]["train"]] == [[15.0, 15.0], [20.0, 10.0]]
+    # The loss cannot change on resume: it is part of what the run is.
+    assert deepcontact_train("--out", out, "--resume", "--epochs", 2, "--loss", "grid", "--quiet") == 2
