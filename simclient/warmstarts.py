@@ -11,6 +11,15 @@ Local providers (thesis §8.2 plus one it lacked):
     copy2        the oracle rounded to two decimals
     copy0        the oracle rounded to integers
     extrapolate  J(t-1) + (J(t-1) - J(t-2)) for points that persist, builtin otherwise
+Oracle experiments (where a warm start's value lies; docs/results.md):
+    oracle:persisting   the oracle at points that persist, zero at new ones
+    oracle:new          the oracle at new points, builtin where the point persists
+    oracle:normal       the oracle's normal impulse, builtin's tangent
+    oracle:tangent      builtin's normal impulse, the oracle's tangent
+    oracle:heavy        the oracle at the more heavily loaded half of the points, builtin elsewhere
+    oracle:half         builtin + half the oracle's correction (oracle - builtin)
+    oracle:grid@RES     builtin + the oracle's correction through a grid of RES m
+                        (h = 2 RES, poly6): what smoothing at that scale keeps
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -21,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate")
+ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES")
 
 
 class Provider:
@@ -93,6 +103,54 @@ class Extrapolate(Provider):
         self._keys, self._impulse_prev2 = keys, prev
 
 
+class OracleMix(Provider):
+    """The oracle's impulses where they say most, builtin elsewhere (see the module docstring)."""
+
+    def __init__(self, variant: str):
+        self.variant = variant
+        self.name = f"oracle:{variant}"
+        if variant.startswith("grid@"):
+            try:
+                res = float(variant[5:])
+            except ValueError:
+                res = -1.0
+            if not res > 0:
+                raise ValueError(f"oracle:grid@RES needs a grid spacing in m, e.g. oracle:grid@0.5, got {variant!r}")
+            self.res = res
+        elif variant not in ORACLES:
+            raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
+
+    def warm_start(self, engine, bodies, points, step):
+        exact = np.nan_to_num(engine.oracle()).astype(np.float64)  # NaN: outside every awake island
+        builtin = points["builtin"].astype(np.float64)
+        new = ~builtin.any(axis=1)
+        v = self.variant
+        if v == "persisting":
+            warm = np.where(new[:, None], 0.0, exact)
+        elif v == "new":
+            warm = np.where(new[:, None], exact, builtin)
+        elif v in ("normal", "tangent"):
+            warm = builtin.copy()
+            col = 0 if v == "normal" else 1
+            warm[:, col] = exact[:, col]
+        elif v == "heavy":
+            heavy = exact[:, 0] >= np.median(exact[:, 0])
+            warm = np.where(heavy[:, None], exact, builtin)
+        elif v == "half":
+            warm = builtin + 0.5 * (exact - builtin)
+        else:
+            from deepcontact.gridspec import GridSpec
+            from deepcontact.transfer import plan
+
+            # A grid from the scenes' origin (their box's lower-left corner) over every point.
+            reach = np.ceil(points["point"].max(axis=0) / self.res) * self.res + self.res
+            spec = GridSpec.for_domain((0.0, 0.0), tuple(np.maximum(reach, self.res)), self.res, 2 * self.res)
+            pl = plan(points["point"], spec, outside="drop")
+            warm = builtin + pl.g2p(pl.p2g(exact - builtin)[0])[0]
+        warm = warm.astype(np.float32)
+        return np.ascontiguousarray(warm[:, 0]), np.ascontiguousarray(warm[:, 1])
+
+
 class Remote(Provider):
     """A model or provider on the warm-start server (see simclient.simulate)."""
 
@@ -111,6 +169,8 @@ def make_provider(name: str) -> Provider:
         if not model:
             raise ValueError("server: needs a model name, e.g. server:pressure")
         return Remote(model)
+    if name.startswith("oracle:"):
+        return OracleMix(name.split(":", 1)[1])
     factories = {
         "none": NoWarmStart,
         "builtin": Builtin,
@@ -120,5 +180,6 @@ def make_provider(name: str) -> Provider:
         "extrapolate": Extrapolate,
     }
     if name not in factories:
-        raise ValueError(f"unknown warm start {name!r}: use one of {', '.join(LOCAL)} or server:MODEL")
+        raise ValueError(f"unknown warm start {name!r}: use one of {', '.join(LOCAL)}, oracle:VARIANT "
+                         f"({', '.join(ORACLES)}) or server:MODEL")
     return factories[name]()

@@ -40,8 +40,22 @@ def test_extrapolate_uses_the_last_two_impulses_of_persisting_points():
     np.testing.assert_allclose(tangent, [0.1, 0.0, 0.0, 0.0], atol=1e-7)
 
 
+def test_oracle_experiments_say_where_a_warm_start_pays():
+    # The oracle at persisting points is nearly the whole oracle's gain; at new points, none of it.
+    # Through a 0.25 m grid most of it survives (the thesis's Grid model); through 2 m, little.
+    its = {name: mean_iterations(name) for name in ("builtin", "oracle:persisting", "oracle:new", "oracle:grid@0.25",
+                                                    "oracle:grid@2")}
+    assert its["oracle:persisting"] < 0.6 * its["builtin"]
+    assert its["oracle:new"] > 0.9 * its["builtin"]
+    assert its["oracle:grid@0.25"] < 0.7 * its["builtin"] < its["oracle:grid@2"]
+
+
 def test_unknown_warm_starts_are_refused():
     with pytest.raises(ValueError, match="unknown warm start"):
         make_provider("magic")
     with pytest.raises(ValueError, match="model name"):
         make_provider("server:")
+    with pytest.raises(ValueError, match="unknown oracle variant"):
+        make_provider("oracle:magic")
+    with pytest.raises(ValueError, match="grid spacing"):
+        make_provider("oracle:grid@-1")
