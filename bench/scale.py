@@ -15,13 +15,16 @@ second, and the speed-up over one worker of the same command (ratio of the
 medians; and the median of the ratios taken within one repeat). Every run's
 answers are compared with the first run's: the HDF5 contents timings aside
 (training.dataset.differences), the iteration figures of summary.json
-(bench.iterations.TIMING_FIELDS aside).
+(bench.iterations.TIMING_FIELDS aside). The machine's 1-minute load average
+after each run is reported beside the times: on a shared machine it says
+how many cores the runs really had.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -89,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _measure(command: str, configs: list[str], args, tmp: Path) -> dict:
-    """{config: {"seconds": [wall s per repeat], "simulations": n, "same_answers": bool}}."""
+    """{config: {"seconds": [wall s per repeat], "load": [1-minute load average after each],
+    "simulations": n, "same_answers": bool}}."""
     steps = ["--steps", str(args.steps)] if args.steps else []
     server = None
     if command == "iterations" and "server:" in args.warm_starts:
@@ -105,7 +109,7 @@ def _measure(command: str, configs: list[str], args, tmp: Path) -> dict:
             # A long deadline: a step that misses it falls back to builtin and changes the answers.
             base = ["bench", "iterations", "--seeds", args.iteration_seeds, "--warm-starts", args.warm_starts,
                     "--deadline-ms", "1000", "--quiet", *steps] + (["--server", server.address] if server else [])
-        rows = {c: {"seconds": [], "simulations": n, "same_answers": True} for c in configs}
+        rows = {c: {"seconds": [], "load": [], "simulations": n, "same_answers": True} for c in configs}
         reference = None
         for r in range(args.repeats):
             for config in configs:
@@ -115,6 +119,8 @@ def _measure(command: str, configs: list[str], args, tmp: Path) -> dict:
                 t0 = time.perf_counter()
                 done = subprocess.run([sys.executable, "-m", "deepcontact", *argv], capture_output=True, text=True)
                 rows[config]["seconds"].append(time.perf_counter() - t0)
+                # The machine may be shared: its load during the run says how many cores were ours.
+                rows[config]["load"].append(os.getloadavg()[0])
                 if done.returncode != 0:
                     last = (done.stderr.strip().splitlines() or ["(no output)"])[-1]
                     raise RuntimeError(f"deepcontact {' '.join(argv)} failed: {last}")
@@ -169,10 +175,11 @@ def _table(command: str, rows: dict) -> str:
     first = next(iter(rows.values()))
     lines = [f"{command}: {first['simulations']} simulations per run, {len(first['seconds'])} runs per configuration",
              "", "| configuration | median wall s | simulations/s | speed-up | against | median of per-run ratios "
-             "| same answers |", "|---|---|---|---|---|---|---|"]
+             "| same answers | load average |", "|---|---|---|---|---|---|---|---|"]
     for config, row in rows.items():
         speedup = f"{row['speedup']:.2f}x" if row["against"] else "–"
         per_run = f"{row['median_of_ratios']:.2f}x" if row["against"] else "–"
         lines.append(f"| {config} | {row['median_s']:.1f} | {row['simulations'] / row['median_s']:.2f} | {speedup} | "
-                     f"{row['against'] or '–'} | {per_run} | {'yes' if row['same_answers'] else 'NO'} |")
+                     f"{row['against'] or '–'} | {per_run} | {'yes' if row['same_answers'] else 'NO'} | "
+                     f"{statistics.median(row['load']):.1f} |")
     return "\n".join(lines) + "\n"
