@@ -248,8 +248,14 @@ class _Ray:
                 ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
         except Exception as exc:  # noqa: BLE001 - unreachable, refused, bad token: all end the run the same way
             ray.shutdown()
-            where = "start a local Ray" if address == "local" else f"connect to Ray at {address}"
-            raise DispatchError(f"could not {where}: {_reason(exc)}") from exc
+            if address == "local":
+                raise DispatchError(f"could not start a local Ray: {_reason(exc)}") from exc
+            # Ray sends no token to an address named explicitly unless told to (it does for auto); a refused token
+            # then looks like a timeout.
+            hint = ("" if address == "auto" or os.environ.get("RAY_AUTH_MODE") else
+                    " (a cluster with token authentication, Ray's default, also needs RAY_AUTH_MODE=token "
+                    "and its token in RAY_AUTH_TOKEN or ~/.ray/auth_token)")
+            raise DispatchError(f"could not connect to Ray at {address}: {_reason(exc)}{hint}") from exc
         cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.width = TASKS_PER_CPU * cpus
         self.description = ("a local Ray" if address == "local" else f"Ray at {address}") + f" with {cpus} CPUs"
