@@ -6,7 +6,12 @@
 
 Runs each warm start on each seed (benchmark seeds: never used in training),
 starting `deepcontact serve --models MODELS` itself when a `server:` warm start
-is listed and no `--server` is given. Writes DIR/summary.json
+is listed and no `--server` is given. One task per (warm start, seed)
+simulation: in this process one after the other (the default), on
+`--workers N` processes, or on Ray (`--ray [ADDRESS]`, deepcontact.dispatch);
+a `server:` task opens its own stream to the server. Results are gathered in
+(warm start, seed) order, so the iteration figures are the same on every
+backend (latencies are not). Writes DIR/summary.json
 ({"warm_starts": {NAME: summary}}), DIR/results.md (the table) and the
 thesis's figures as PNG:
     fig20_contacts_iterations.png   contacts and iterations per step (Fig. 20)
@@ -18,31 +23,39 @@ thesis's figures as PNG:
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 
+from deepcontact import dispatch
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
-from simclient.scene import add_scene_arguments, spec_from_args
+from simclient.scene import add_scene_arguments, spec_from_args, spec_from_dict, spec_to_dict
 from simclient.simulate import DEFAULT_DEADLINE_MS, StepRecord, run_simulation, summarize
 from simclient.warmstarts import make_provider
 
 DEFAULT_WARM_STARTS = ("none,builtin,copy,copy2,copy0,extrapolate,"
                        "server:random,server:bad,server:grid-identity,server:pressure")
+# Summary fields that are wall-clock measurements: the only ones that differ between runs.
+TIMING_FIELDS = ("p50_latency_ms", "p99_latency_ms", "median_client_us", "total_solve_ms")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser)
     parser.add_argument("--seeds", default="901-910", help="benchmark seeds (default 901-910)")
     parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS, help=f"comma-separated (default {DEFAULT_WARM_STARTS})")
-    parser.add_argument("--server", metavar="HOST:PORT", help="use this server instead of starting one")
+    parser.add_argument("--server", metavar="HOST:PORT",
+                        help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
+                             "over replicas); server: warm starts with --ray ADDRESS need it, as the cluster's "
+                             "workers cannot reach the one started on this machine's loopback")
     parser.add_argument("--models", type=Path, default=Path("models"), help="models for the server started here (default models/)")
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
                         help=f"per-step deadline for server replies (default {DEFAULT_DEADLINE_MS:g})")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
+    dispatch.add_arguments(parser, workers_default="1, this process")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -52,17 +65,22 @@ def run(args: argparse.Namespace) -> int:
         seeds = seed_ranges.parse_seeds(args.seeds)
         names = [w.strip() for w in args.warm_starts.split(",") if w.strip()]
         providers = {name: make_provider(name) for name in names}
+        dispatch.check_arguments(args)
     except ValueError as exc:
         print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
         return 2
     training = [s for s in seeds if seed_ranges.describe(s) == "training"]
     if training:
         print(f"warning: seeds {training[:5]} are training seeds; results on them are not held out", file=sys.stderr)
+    remote = [p for p in providers.values() if p.uses_server]
+    if remote and args.server is None and args.ray not in (None, "local"):
+        print("deepcontact bench iterations: server: warm starts on a Ray cluster need --server, an address its "
+              "workers can reach (e.g. dns:///server:50051)", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
 
     server_proc = None
     target = args.server
-    remote = [p for p in providers.values() if p.uses_server]
     if remote and target is None:
         from server.process import ServerProcess
 
@@ -72,37 +90,21 @@ def run(args: argparse.Namespace) -> int:
             print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
             return 2
         target = server_proc.address
-    runs: dict[str, list[dict]] = {}
     try:
         from simclient.simulate import connect
 
-        bar = None
-        if not args.quiet:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(names) * len(seeds) * spec.steps, unit="step", desc="iterations", file=sys.stderr)
-        for name, provider in providers.items():
-            client = None
-            if provider.uses_server:
-                try:
-                    client = connect(target, provider.model, connect_timeout=10.0, allow_fallback=False)
-                except (ValueError, ConnectionError) as exc:
-                    print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
-                    return 2
+        for provider in remote:
+            # Fail before any work if the server is away or lacks a model; each task connects on its own.
             try:
-                runs[name] = []
-                for seed in seeds:
-                    if bar:
-                        bar.set_postfix_str(f"{name} seed {seed}")
-                    # A fresh provider per world: some keep state across steps.
-                    runs[name].append(run_simulation(spec, seed, make_provider(name), client=client,
-                                                     deadline_ms=args.deadline_ms,
-                                                     progress=(lambda k: bar.update(1)) if bar else None))
-            finally:
-                if client is not None:
-                    client.close()
-        if bar:
-            bar.close()
+                connect(target, provider.model, connect_timeout=10.0, allow_fallback=False).close()
+            except (ValueError, ConnectionError) as exc:
+                print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+                return 2
+        runs = simulate_all(spec, names, seeds, target=target, deadline_ms=args.deadline_ms,
+                            workers=args.workers, ray=args.ray, quiet=args.quiet)
+    except dispatch.DispatchError as exc:
+        print(f"deepcontact bench iterations: {exc}; no results written", file=sys.stderr)
+        return 1
     finally:
         if server_proc is not None:
             server_proc.stop()
@@ -119,6 +121,43 @@ def run(args: argparse.Namespace) -> int:
     print(table)
     print(f"wrote {args.out}/summary.json, results.md and figures")
     return 0
+
+
+def simulate_all(spec, names: list[str], seeds: list[int], *, target: str | None, deadline_ms: float,
+                 workers: int | None = None, ray: str | None = None, quiet: bool = True) -> dict[str, list[dict]]:
+    """Every (warm start, seed) simulation, one task each (deepcontact.dispatch).
+
+    Returns {warm start: [run_simulation result per seed, in seed order]}.
+    target: the server for `server:` warm starts. Raises DispatchError.
+    """
+    pairs = [(name, seed) for name in names for seed in seeds]
+    tasks = [dispatch.Task(f"{name} seed {seed}", (spec_to_dict(spec), name, seed, target, deadline_ms))
+             for name, seed in pairs]
+    runs: dict[str, list[dict]] = {name: [] for name in names}
+    with dispatch.Dispatcher(workers=workers, ray=ray) as dispatcher:
+        results = dispatcher.map(simulate_one, tasks, progress=None if quiet else "iterations")
+        for (name, _), text in zip(pairs, results):
+            runs[name].append(json.loads(text))
+    return runs
+
+
+def simulate_one(spec_dict: dict, name: str, seed: int, target: str | None, deadline_ms: float) -> str:
+    """One task: warm start `name` on (scene, seed); the run_simulation result as JSON text.
+
+    A `server:` warm start opens its own client to `target` for this simulation.
+    """
+    from simclient.simulate import connect
+
+    provider = make_provider(name)  # a fresh provider per world: some keep state across steps
+    client = None
+    if provider.uses_server:
+        client = connect(target, provider.model, connect_timeout=10.0, allow_fallback=False)
+    try:
+        result = run_simulation(spec_from_dict(spec_dict), seed, provider, client=client, deadline_ms=deadline_ms)
+    finally:
+        if client is not None:
+            client.close()
+    return json.dumps(result)
 
 
 def pooled_summary(results: list[dict]) -> dict:

@@ -28,6 +28,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
     (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
     (("bench", "load"), "bench.load", "latency and throughput with many simulations streaming at once"),
+    (("bench", "scale"), "bench.scale", "simulations per second with 1 and 2 workers or Ray CPUs; same answers on each"),
     (("bench", "soak"), "bench.soak", "a long load on one server: nothing lost, memory flat (RSS over time)"),
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
@@ -45,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (engine, generate, iterations, load, server, soak, transfer)"}
+    group_help = {("bench",): "benchmarks (engine, generate, iterations, load, scale, server, soak, transfer)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

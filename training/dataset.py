@@ -172,3 +172,25 @@ class Dataset:
             np.random.default_rng(seed).shuffle(index)
         for start in range(0, len(index), batch_size):
             yield [self.step(int(i)) for i in index[start:start + batch_size]]
+
+
+def differences(a: str | os.PathLike, b: str | os.PathLike) -> list[str]:
+    """Where two recorded files differ, wall-clock timings (`solve_ms`) aside.
+
+    Returns the names of the datasets, `steps` columns and root attributes
+    (`command` aside: it names the run) that differ; [] when the files hold
+    the same simulations bit for bit.
+    """
+    found = []
+    with h5py.File(a, "r") as fa, h5py.File(b, "r") as fb:
+        for name in ("scene", "seeds", "schema_version"):
+            if not np.array_equal(fa.attrs[name], fb.attrs[name]):
+                found.append(f"attribute {name}")
+        for name in ("bodies", "points", "trace"):
+            if fa[name][:].tobytes() != fb[name][:].tobytes():
+                found.append(name)
+        sa, sb = fa["steps"][:], fb["steps"][:]
+        for field in STEP_DTYPE.names:
+            if field != "solve_ms" and sa[field].tobytes() != sb[field].tobytes():
+                found.append(f"steps.{field}")
+    return found

@@ -2,27 +2,28 @@
 
     deepcontact generate --scene thesis --seeds 1-100 --out data/train.h5
 
-One process per simulation (all cores by default). Each worker writes its
-simulation to a temporary .npz (no pickle), the parent appends them to the
-HDF5 file in seed order, so the file's contents do not depend on the number
-of processes. Per step it records the bodies at collide time, the contact
-points after the solve (with the builtin warm start and the final impulse)
-and the solver's statistics.
+One task per simulation, on worker processes (all cores by default) or on
+Ray (`--ray [ADDRESS]`, deepcontact.dispatch). Each task returns its
+simulation as arrays (pool workers hand them over as a temporary .npz, Ray
+through its object store; no pickle files); the parent alone writes the
+HDF5 file, appending in seed order, so the file's contents do not depend on
+the number of processes or where they ran. Per step it records the bodies
+at collide time, the contact points after the solve (with the builtin warm
+start and the final impulse) and the solver's statistics.
 """
 
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as cf
 import os
 import shlex
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from deepcontact import dispatch
 from simclient import seeds as seed_ranges
 from simclient.engine import BODY_DTYPE, CONTACT_DTYPE
 from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_from_dict, spec_to_dict
@@ -74,19 +75,16 @@ def record_simulation(spec: SceneSpec, seed: int, record: bool = True) -> dict[s
     }
 
 
-def _worker(spec_dict: dict, seed: int, tmpdir: str) -> str:
-    arrays = record_simulation(spec_from_dict(spec_dict), seed)
-    path = Path(tmpdir) / f"seed-{seed}.npz"
-    np.savez(path, **arrays)
-    return str(path)
+def simulate_seed(spec_dict: dict, seed: int) -> dict[str, np.ndarray]:
+    """One task: record_simulation of (scene as spec_to_dict, seed)."""
+    return record_simulation(spec_from_dict(spec_dict), seed)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser)
     parser.add_argument("--seeds", required=True, help="seeds to simulate, e.g. 1-100 or 1-10,20 (training range 1-899)")
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write (e.g. data/train.h5)")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                        help="processes, one simulation each at a time (default: all cores)")
+    dispatch.add_arguments(parser, workers_default="all cores")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     parser.add_argument("--allow-bench-seeds", action="store_true",
                         help="allow benchmark (900-999), reserved (>= 10000) and unassigned seeds in this file")
@@ -97,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         spec = spec_from_args(args)
         seeds = seed_ranges.parse_seeds(args.seeds)
+        dispatch.check_arguments(args)
     except ValueError as exc:
         print(f"deepcontact generate: {exc}", file=sys.stderr)
         return 2
@@ -109,54 +108,29 @@ def run(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.overwrite:
         print(f"deepcontact generate: {args.out} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
-    if args.workers < 1:
-        print("deepcontact generate: --workers must be >= 1", file=sys.stderr)
-        return 2
 
     command = "deepcontact " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    workers = args.workers if args.ray else (args.workers or os.cpu_count() or 1)
+    tasks = [dispatch.Task(f"seed {s}", (spec_to_dict(spec), s)) for s in seeds]
     t0 = time.perf_counter()
     points = steps = 0
-    with tempfile.TemporaryDirectory(prefix="deepcontact-gen-") as tmpdir, \
-            Writer(args.out, scene=spec_to_dict(spec), seeds=seeds, command=command) as writer, \
-            _progress(len(seeds), args.quiet) as bar, \
-            cf.ProcessPoolExecutor(max_workers=args.workers) as pool:
-        futures = [pool.submit(_worker, spec_to_dict(spec), s, tmpdir) for s in seeds]
-        # Append in seed order: the file does not depend on which worker finished first.
-        for fut in futures:
-            path = fut.result()
-            with np.load(path, allow_pickle=False) as z:
-                writer.append(z["steps"], z["bodies"], z["points"], z["trace"])
-                steps += len(z["steps"])
-                points += len(z["points"])
-            os.unlink(path)
-            bar.update(1)
+    try:
+        with Writer(args.out, scene=spec_to_dict(spec), seeds=seeds, command=command) as writer, \
+                dispatch.Dispatcher(workers=workers, ray=args.ray) as dispatcher:
+            # Results come in seed order: the file does not depend on which task finished first.
+            for arrays in dispatcher.map(simulate_seed, tasks, progress=None if args.quiet else "generate"):
+                writer.append(arrays["steps"], arrays["bodies"], arrays["points"], arrays["trace"])
+                steps += len(arrays["steps"])
+                points += len(arrays["points"])
+            where = dispatcher.description
+    except dispatch.DispatchError as exc:
+        print(f"deepcontact generate: {exc}; nothing written to {args.out}", file=sys.stderr)
+        return 1
     dt = time.perf_counter() - t0
     print(f"wrote {args.out}: {len(seeds)} simulations, {steps} steps, {points} contact points "
-          f"in {dt:.1f} s ({args.workers} workers)")
+          f"in {dt:.1f} s ({where})")
     return 0
 
 
 def _short(seeds: list[int]) -> str:
     return ", ".join(map(str, seeds[:5])) + (f" ... ({len(seeds)} seeds)" if len(seeds) > 5 else "")
-
-
-class _progress:
-    """A tqdm bar on a terminal (or always unless quiet); a no-op when quiet."""
-
-    def __init__(self, total: int, quiet: bool):
-        self.bar = None
-        if not quiet:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=total, unit="sim", desc="generate", file=sys.stderr)
-
-    def __enter__(self):
-        return self
-
-    def update(self, n: int) -> None:
-        if self.bar is not None:
-            self.bar.update(n)
-
-    def __exit__(self, *exc) -> None:
-        if self.bar is not None:
-            self.bar.close()

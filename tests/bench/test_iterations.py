@@ -22,3 +22,31 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
     assert "| builtin |" in (out / "results.md").read_text()
     for fig in ("fig20_contacts_iterations.png", "fig21_convergence.png", "fig26_mse.png"):
         assert (out / fig).stat().st_size > 10_000
+
+
+def test_iteration_figures_are_the_same_in_process_on_workers_and_on_ray(tmp_path, ray_cluster):
+    from bench.iterations import TIMING_FIELDS
+    from server.process import ServerProcess
+
+    models = tmp_path / "models"
+    models.mkdir()
+    write_conv_model(models, "tiny")
+    figures = {}
+    with ServerProcess(models) as server:  # one server for the three runs; every task opens its own stream
+        for backend, flags in (("process", []), ("workers", ["--workers", "2"]), ("ray", ["--ray", ray_cluster])):
+            out = tmp_path / backend
+            assert main(["bench", "iterations", "--seeds", "901-902", "--steps", "30", "--warm-starts",
+                         "none,builtin,extrapolate,server:tiny,server:grid-identity", "--server", server.address,
+                         "--deadline-ms", "1000", "--out", str(out), "--quiet", *flags]) == 0
+            summary = json.loads((out / "summary.json").read_text())["warm_starts"]
+            figures[backend] = {name: {k: v for k, v in s.items() if k not in TIMING_FIELDS}
+                                for name, s in summary.items()}
+    assert figures["process"]["server:tiny"]["fallback_steps"] == 0
+    assert figures["workers"] == figures["process"]
+    assert figures["ray"] == figures["process"]
+
+
+def test_server_warm_starts_on_a_ray_cluster_need_a_reachable_server(tmp_path, capsys):
+    assert main(["bench", "iterations", "--seeds", "901", "--warm-starts", "builtin,server:pressure",
+                 "--ray", "ray://head:10001", "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert "--server" in capsys.readouterr().err

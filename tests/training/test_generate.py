@@ -6,8 +6,9 @@ import h5py
 import numpy as np
 import pytest
 
+from deepcontact import dispatch
 from deepcontact.cli import main
-from training.dataset import Dataset, DatasetError, Writer
+from training.dataset import Dataset, DatasetError, Writer, differences
 
 SMALL = ["--steps", "60", "--seeds", "1-3", "--quiet"]
 
@@ -38,12 +39,43 @@ def test_contents_do_not_depend_on_the_number_of_processes(tmp_path):
     one, two = tmp_path / "one.h5", tmp_path / "two.h5"
     assert generate(one, "--workers", "1") == 0
     assert generate(two, "--workers", "2") == 0
-    with h5py.File(one) as a, h5py.File(two) as b:
-        for name in ("bodies", "points", "trace"):
-            assert a[name][:].tobytes() == b[name][:].tobytes()
-        for field in a["steps"].dtype.names:
-            if field != "solve_ms":  # wall clock, the one column that may differ
-                np.testing.assert_array_equal(a["steps"][field], b["steps"][field])
+    assert differences(one, two) == []  # all but the wall-clock solve_ms, bit for bit
+
+
+def test_a_local_ray_writes_what_the_process_pool_writes(tmp_path, capsys):
+    pool, ray = tmp_path / "pool.h5", tmp_path / "ray.h5"
+    assert generate(pool, "--workers", "2") == 0
+    assert generate(ray, "--ray", "--workers", "2") == 0  # a Ray with 2 CPUs started for the run
+    assert "a local Ray with 2 CPUs" in capsys.readouterr().out
+    assert differences(pool, ray) == []
+
+
+def test_a_simulation_whose_ray_worker_dies_once_runs_again(tmp_path, monkeypatch, ray_cluster):
+    monkeypatch.setenv(dispatch.TEST_KILL_TASK, "seed 2")
+    monkeypatch.setenv(dispatch.TEST_KILL_ONCE, str(tmp_path / "killed"))
+    reference, out = tmp_path / "reference.h5", tmp_path / "train.h5"
+    assert generate(out, "--ray", ray_cluster) == 0
+    assert (tmp_path / "killed").exists()  # the first attempt did die
+    monkeypatch.delenv(dispatch.TEST_KILL_TASK)
+    assert generate(reference, "--workers", "1") == 0
+    assert differences(reference, out) == []
+
+
+@pytest.mark.parametrize("where", ["ray", "pool"])
+def test_a_seed_that_fails_is_named_and_nothing_is_written(tmp_path, monkeypatch, capsys, request, where):
+    monkeypatch.setenv(dispatch.TEST_KILL_TASK, "seed 3")  # every attempt dies
+    out = tmp_path / "train.h5"
+    backend = ["--ray", request.getfixturevalue("ray_cluster")] if where == "ray" else ["--workers", "2"]
+    assert generate(out, *backend) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "seed 3" in err and "died" in err and "nothing written" in err
+    assert list(tmp_path.iterdir()) == []  # no file under the final name, no temporary left behind
+
+
+def test_ray_missing_says_how_to_install_it(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(__import__("sys").modules, "ray", None)  # as if not installed: import fails
+    assert generate(tmp_path / "x.h5", "--ray") == 2
+    assert "pip install '.[ray]'" in capsys.readouterr().err
 
 
 def test_benchmark_and_reserved_seeds_are_refused_for_training(tmp_path, capsys):
