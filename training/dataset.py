@@ -7,6 +7,9 @@ Schema version 1 (docs/data.md has the full description):
     /points   (SP,) CONTACT_DTYPE contact points after the solve (final impulse
                                   filled), all steps concatenated
     /trace    (ST,) float32      residual traces, all steps concatenated
+    /oracle   (SP, 2) float32    optional (`generate --oracle`): each point's impulse
+                                  (normal, tangent, N s) with this step solved from zero
+                                  to convergence, rows as in /points
 
 A step row holds offsets and counts into the three concatenated datasets, so
 one step, or a slice of steps, reads without loading the file. Root attributes:
@@ -59,10 +62,12 @@ class Writer:
     leaves nothing under the final name.
     """
 
-    def __init__(self, path: str | os.PathLike, *, scene: dict, seeds: list[int], command: str):
+    def __init__(self, path: str | os.PathLike, *, scene: dict, seeds: list[int], command: str,
+                 oracle: bool = False):
         self.path = Path(path)
         self.tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part")
         self._meta = {"scene": scene, "seeds": seeds, "command": command}
+        self.oracle = oracle
         self._file: h5py.File | None = None
 
     def __enter__(self) -> "Writer":
@@ -79,13 +84,26 @@ class Writer:
                             ("trace", np.dtype("<f4"))):
             f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(_CHUNK_ROWS[name],),
                              compression="gzip", compression_opts=4, shuffle=True)
+        if self.oracle:
+            f.create_dataset("oracle", shape=(0, 2), maxshape=(None, 2), dtype="<f4",
+                             chunks=(_CHUNK_ROWS["points"], 2), compression="gzip", compression_opts=4, shuffle=True)
         self._file = f
         return self
 
-    def append(self, steps: np.ndarray, bodies: np.ndarray, points: np.ndarray, trace: np.ndarray) -> None:
+    def append(self, steps: np.ndarray, bodies: np.ndarray, points: np.ndarray, trace: np.ndarray,
+               oracle: np.ndarray | None = None) -> None:
         """Append one simulation. Offsets in `steps` are relative to this
-        simulation's arrays; they are shifted to file positions here."""
+        simulation's arrays; they are shifted to file positions here. A file
+        made with oracle=True takes the points' oracle impulses (P, 2) too."""
         f = self._file
+        if self.oracle != (oracle is not None):
+            raise ValueError("this file records the oracle: every simulation needs it" if self.oracle
+                             else "this file does not record the oracle")
+        if oracle is not None:
+            ds = f["oracle"]
+            start = ds.shape[0]
+            ds.resize((start + len(oracle), 2))
+            ds[start:] = oracle
         steps = steps.copy()
         steps["body_offset"] += f["bodies"].shape[0]
         steps["point_offset"] += f["points"].shape[0]
@@ -129,6 +147,7 @@ class Dataset:
         self.scene = json.loads(f.attrs["scene"])
         self.seeds = [int(s) for s in f.attrs["seeds"]]
         self.steps = f["steps"][:]  # the index is small: (S,) rows of 64 bytes
+        self.has_oracle = "oracle" in f
         if len(self.steps) == 0:
             raise DatasetError(f"{path}: holds no steps")
 
@@ -186,8 +205,8 @@ def differences(a: str | os.PathLike, b: str | os.PathLike) -> list[str]:
         for name in ("scene", "seeds", "schema_version"):
             if not np.array_equal(fa.attrs[name], fb.attrs[name]):
                 found.append(f"attribute {name}")
-        for name in ("bodies", "points", "trace"):
-            if fa[name][:].tobytes() != fb[name][:].tobytes():
+        for name in ("bodies", "points", "trace", "oracle"):
+            if (name in fa) != (name in fb) or (name in fa and fa[name][:].tobytes() != fb[name][:].tobytes()):
                 found.append(name)
         sa, sb = fa["steps"][:], fb["steps"][:]
         for field in STEP_DTYPE.names:

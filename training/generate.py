@@ -30,13 +30,16 @@ from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_fr
 from training.dataset import STEP_DTYPE, Writer
 
 
-def record_simulation(spec: SceneSpec, seed: int, record: bool = True) -> dict[str, np.ndarray]:
+def record_simulation(spec: SceneSpec, seed: int, record: bool = True, oracle: bool = False) -> dict[str, np.ndarray]:
     """Run one simulation with Box2D's builtin warm start.
 
     Returns (when record) steps (S,) STEP_DTYPE with offsets into this
     simulation's bodies (S*B,) BODY_DTYPE, points (P,) CONTACT_DTYPE and
-    trace (T,) float32 N s. With record=False it only runs the steps (the
-    baseline of `deepcontact bench generate`).
+    trace (T,) float32 N s; with oracle also oracle (P, 2) float32 N s, each
+    step solved from zero to convergence before it is solved as usual (the
+    world does not change; a point outside every awake island, which never
+    happens with sleeping off, keeps its final impulse). With record=False it
+    only runs the steps (the baseline of `deepcontact bench generate`).
     """
     engine = build_world(spec, seed)
     if not record:
@@ -44,13 +47,16 @@ def record_simulation(spec: SceneSpec, seed: int, record: bool = True) -> dict[s
             engine.step()
         return {}
     steps = np.zeros(spec.steps, dtype=STEP_DTYPE)
-    bodies, points, traces = [], [], []
+    bodies, points, traces, exact = [], [], [], []
     n_bodies = n_points = n_trace = 0
     for k in range(spec.steps):
         engine.collide()
         b = engine.bodies()
+        solved = engine.oracle() if oracle else None
         stats = engine.solve()
         p = engine.contacts()
+        if oracle:
+            exact.append(np.where(np.isfinite(solved), solved, p["impulse"]).astype(np.float32))
         row = steps[k]
         row["seed"], row["step"] = seed, k
         row["body_offset"], row["body_count"] = n_bodies, len(b)
@@ -67,17 +73,20 @@ def record_simulation(spec: SceneSpec, seed: int, record: bool = True) -> dict[s
         n_bodies += len(b)
         n_points += len(p)
         n_trace += len(stats.residual_trace)
-    return {
+    out = {
         "steps": steps,
         "bodies": np.concatenate(bodies) if bodies else np.zeros(0, BODY_DTYPE),
         "points": np.concatenate(points) if points else np.zeros(0, CONTACT_DTYPE),
         "trace": np.concatenate(traces).astype(np.float32) if traces else np.zeros(0, np.float32),
     }
+    if oracle:
+        out["oracle"] = np.concatenate(exact) if exact else np.zeros((0, 2), np.float32)
+    return out
 
 
-def simulate_seed(spec_dict: dict, seed: int) -> dict[str, np.ndarray]:
+def simulate_seed(spec_dict: dict, seed: int, oracle: bool = False) -> dict[str, np.ndarray]:
     """One task: record_simulation of (scene as spec_to_dict, seed)."""
-    return record_simulation(spec_from_dict(spec_dict), seed)
+    return record_simulation(spec_from_dict(spec_dict), seed, oracle=oracle)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -85,6 +94,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", required=True, help="seeds to simulate, e.g. 1-100 or 1-10,20 (training range 1-899)")
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write (e.g. data/train.h5)")
     dispatch.add_arguments(parser, workers_default="all cores")
+    parser.add_argument("--oracle", action="store_true",
+                        help="also record each step solved from zero to convergence (Copy's warm start), for oracle "
+                             "targets (oracle_* channels); about twice the time")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     parser.add_argument("--allow-bench-seeds", action="store_true",
                         help="allow benchmark (900-999), reserved (>= 10000) and unassigned seeds in this file")
@@ -111,15 +123,15 @@ def run(args: argparse.Namespace) -> int:
 
     command = "deepcontact " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     workers = args.workers if args.ray else (args.workers or os.cpu_count() or 1)
-    tasks = [dispatch.Task(f"seed {s}", (spec_to_dict(spec), s)) for s in seeds]
+    tasks = [dispatch.Task(f"seed {s}", (spec_to_dict(spec), s, args.oracle)) for s in seeds]
     t0 = time.perf_counter()
     points = steps = 0
     try:
-        with Writer(args.out, scene=spec_to_dict(spec), seeds=seeds, command=command) as writer, \
+        with Writer(args.out, scene=spec_to_dict(spec), seeds=seeds, command=command, oracle=args.oracle) as writer, \
                 dispatch.Dispatcher(workers=workers, ray=args.ray) as dispatcher:
             # Results come in seed order: the file does not depend on which task finished first.
             for arrays in dispatcher.map(simulate_seed, tasks, progress=None if args.quiet else "generate"):
-                writer.append(arrays["steps"], arrays["bodies"], arrays["points"], arrays["trace"])
+                writer.append(arrays["steps"], arrays["bodies"], arrays["points"], arrays["trace"], arrays.get("oracle"))
                 steps += len(arrays["steps"])
                 points += len(arrays["points"])
             where = dispatcher.description

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import h5py
 import numpy as np
 import pytest
@@ -115,3 +117,29 @@ def test_missing_or_foreign_files_get_a_clear_error(tmp_path):
     (tmp_path / "junk.h5").write_text("not hdf5")
     with pytest.raises(DatasetError, match="not an HDF5 file"):
         Dataset(tmp_path / "junk.h5")
+
+
+def test_the_oracle_is_recorded_beside_the_points_and_trains_residual_models(tmp_path):
+    from deepcontact.channels import channel_values
+    from simclient.scene import SceneSpec, build_world
+    from training.dataset import Dataset
+    from training.grids import iter_steps
+
+    out = tmp_path / "oracle.h5"
+    assert main(["generate", "--seeds", "3", "--steps", "80", "--oracle", "--out", str(out), "--quiet"]) == 0
+    with Dataset(out) as ds:
+        assert ds.has_oracle
+        rows = np.flatnonzero(ds.steps["point_count"] > 0)
+        steps = ds.steps
+    # Step k's oracle is the engine's own, taken before that step was solved.
+    k = int(rows[-1])
+    engine = build_world(dataclasses.replace(SceneSpec.thesis(), steps=80), 3)
+    for _ in range(k):
+        engine.step()
+    engine.collide()
+    expected = engine.oracle()
+    step = dict(iter_steps(out, steps, np.array([k])))[k]
+    np.testing.assert_array_equal(step.oracle, expected)
+    assert step.previous is not None and len(step.previous) == steps["point_count"][k - 1]
+    correction = channel_values(["oracle_correction_normal"], step)[:, 0]
+    np.testing.assert_allclose(correction, expected[:, 0] - step.contacts["builtin"][:, 0], rtol=1e-6)

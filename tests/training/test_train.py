@@ -156,3 +156,20 @@ def test_training_on_worlds_of_several_box_sizes(data, tmp_path):
     assert [d["scene"]["box_size"] for d in run["data"]["train"]] == [[15.0, 15.0], [20.0, 10.0]]
     # The loss cannot change on resume: it is part of what the run is.
     assert deepcontact_train("--out", out, "--resume", "--epochs", 2, "--loss", "grid", "--quiet") == 2
+
+
+def test_a_residual_model_of_the_oracle_with_velocity_and_temporal_inputs(data, tmp_path):
+    out = tmp_path / "run"
+    inputs = "mass,vx,vy,omega,normal_x,normal_y,builtin_normal,builtin_tangent,vn_builtin,separation,new_point," \
+             "previous_builtin_normal"
+    assert deepcontact_train("--train", data / "train-oracle.h5", "--val", data / "val-oracle.h5", "--out", out,
+                             "--model", "unet", "--config", '{"widths": [4, 8], "convs": 1}', "--inputs", inputs,
+                             "--targets", "oracle_correction_normal,oracle_correction_tangent",
+                             "--new-point-weight", 2, "--batch-size", 8, "--epochs", 1, "--quiet") == 0
+    spec = GridSpec.from_dict(json.loads((out / "run.json").read_text())["gridspec"])
+    assert spec.inputs == tuple(inputs.split(",")) and spec.targets[0] == "oracle_correction_normal"
+    grids = np.load(out / "cache" / "train-0" / "inputs.npy", mmap_mode="r")
+    assert np.abs(grids[..., 8]).max() > 0 and np.abs(grids[..., 11]).max() > 0  # velocities, last step's impulses
+    # Without the oracle in the data, oracle targets are refused with the reason.
+    assert deepcontact_train("--train", data / "train.h5", "--val", data / "val.h5", "--out", tmp_path / "no",
+                             "--targets", "oracle_correction_normal,oracle_correction_tangent", "--quiet") == 2
