@@ -11,9 +11,13 @@ simulation: in this process one after the other (the default), on
 `--workers N` processes, or on Ray (`--ray [ADDRESS]`, deepcontact.dispatch);
 a `server:` task opens its own stream to the server. Results are gathered in
 (warm start, seed) order, so the iteration figures are the same on every
-backend (latencies are not). Writes DIR/summary.json
-({"warm_starts": {NAME: summary}}), DIR/results.md (the table) and the
-thesis's figures as PNG:
+backend (latencies are not). Every ratio to builtin (mean, median and 90th
+percentile of the iterations per step) comes with its 95 % bootstrap interval
+over seeds (bench.stats); a warm start beats builtin where the whole interval
+lies below 1. Writes DIR/summary.json ({"warm_starts": {NAME: summary},
+"ratios_to_builtin": ..., "per_seed_mean_iterations": ...}), DIR/results.md
+(the table) and the thesis's figures as PNG (builtin black, other baselines
+grey and dashed, learned models coloured):
     fig20_contacts_iterations.png   contacts and iterations per step (Fig. 20)
     fig21_convergence.png           steps still iterating after k iterations,
                                     and the median residual per iteration (Fig. 21-25)
@@ -31,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact import dispatch
+from bench.stats import STATS, Ratio, ratio_interval
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
 from simclient.scene import add_scene_arguments, spec_from_args, spec_from_dict, spec_to_dict
@@ -110,10 +115,13 @@ def run(args: argparse.Namespace) -> int:
             server_proc.stop()
 
     summaries = {name: pooled_summary(r) for name, r in runs.items()}
+    ratios = ratios_to_builtin(runs)
     write_json_atomic(args.out / "summary.json", {
-        "seeds": seeds, "scene": spec.name, "deadline_ms": args.deadline_ms,
-        "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries})
-    table = markdown_table(summaries, seeds, spec.name)
+        "seeds": seeds, "scene": spec.name, "scene_spec": spec_to_dict(spec), "deadline_ms": args.deadline_ms,
+        "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries,
+        "ratios_to_builtin": {name: {k: r.to_dict() for k, r in rs.items()} for name, rs in ratios.items()},
+        "per_seed_mean_iterations": {name: [_seed_mean(r) for r in rs] for name, rs in runs.items()}})
+    table = markdown_table(summaries, seeds, spec.name, ratios)
     tmp = args.out / ".results.md.part"
     tmp.write_text(table)
     tmp.replace(args.out / "results.md")
@@ -170,26 +178,87 @@ def pooled_summary(results: list[dict]) -> dict:
     return summarize(records)
 
 
-def markdown_table(summaries: dict, seeds: list[int], scene: str) -> str:
-    builtin = summaries.get("builtin", {}).get("mean_velocity_iterations")
-    lines = [f"Scene `{scene}`, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds); iterations over steps with contacts.",
+def _iterations(run: dict) -> np.ndarray:
+    """(steps with contacts,) velocity iterations of one simulation."""
+    cols = run["per_step"]
+    return np.array([i for i, n in zip(cols["velocity_iterations"], cols["contact_points"]) if n > 0], np.int64)
+
+
+def _seed_mean(run: dict) -> float | None:
+    its = _iterations(run)
+    return float(its.mean()) if len(its) else None
+
+
+def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]]:
+    """{warm start: {"mean"|"median"|"p90": Ratio}}: each warm start's statistic over
+    Builtin's on the same seeds, with the paired bootstrap interval over seeds
+    (bench.stats); empty without a builtin run."""
+    if "builtin" not in runs:
+        return {}
+    reference = [_iterations(r) for r in runs["builtin"]]
+    return {name: {stat: ratio_interval([_iterations(r) for r in rs], reference, stat) for stat in STATS}
+            for name, rs in runs.items()}
+
+
+def markdown_table(summaries: dict, seeds: list[int], scene: str, ratios: dict | None = None) -> str:
+    ratios = ratios or {}
+    seed_text = f"seeds {seeds[0]}-{seeds[-1]}" if seeds == list(range(seeds[0], seeds[-1] + 1)) else \
+        f"seeds {', '.join(map(str, seeds))}"
+    lines = [f"Scene `{scene}`, {seed_text} ({len(seeds)} worlds); velocity iterations over steps with contacts. "
+             "Ratios to builtin with their 95 % bootstrap interval over seeds; ✓: the whole interval lies below 1.",
              "",
-             "| warm start | mean iterations | / builtin | median | p90 | MSE normal | MSE tangent | p50 latency ms | p99 latency ms | fallbacks |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| warm start | mean | / builtin | median | median / builtin | p90 | p90 / builtin | MSE normal "
+             "| MSE tangent | p50 latency ms | p99 latency ms | fallbacks |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def f(x, fmt):
         return "–" if x is None else format(x, fmt)
 
+    def r(name, stat):
+        ratio = ratios.get(name, {}).get(stat)
+        if ratio is None or name == "builtin":
+            return "1" if name == "builtin" and ratio is not None else "–"
+        return ratio.text() + (" ✓" if ratio.below_one() else "")
+
     for name, s in summaries.items():
-        mean = s["mean_velocity_iterations"]
-        ratio = mean / builtin if builtin and mean is not None else None
-        lines.append(f"| {name} | {f(s['mean_velocity_iterations'], '.1f')} | {f(ratio, '.3f')} | "
-                     f"{f(s['median_velocity_iterations'], '.0f')} | {f(s['p90_velocity_iterations'], '.0f')} | "
+        lines.append(f"| {name} | {f(s['mean_velocity_iterations'], '.1f')} | {r(name, 'mean')} | "
+                     f"{f(s['median_velocity_iterations'], '.0f')} | {r(name, 'median')} | "
+                     f"{f(s['p90_velocity_iterations'], '.0f')} | {r(name, 'p90')} | "
                      f"{f(s['mse_normal'], '.3g')} | {f(s['mse_tangent'], '.3g')} | {f(s['p50_latency_ms'], '.2f')} | "
                      f"{f(s['p99_latency_ms'], '.2f')} | {s['fallback_steps']} |")
     if not any(s["steps_with_contacts"] for s in summaries.values()):
         lines += ["", "No steps with contacts: nothing to warm-start, nothing to compare."]
     return "\n".join(lines) + "\n"
+
+
+# Baselines (the engine's own, oracles, fixed providers) in greys and broken lines, learned
+# models in colours and full lines; no two series share both.
+_BASELINE_GREYS = ("0.35", "0.55", "0.7", "0.2", "0.45", "0.62")
+_BASELINE_DASHES = ("--", ":", "-.", (0, (5, 1, 1, 1)), (0, (8, 2)))  # 5 against 6 greys: 30 looks
+_LEARNED_DASHES = ("-", (0, (6, 2)), (0, (3, 1, 1, 1, 1, 1)))
+
+
+def series_styles(names: list[str]) -> dict[str, dict]:
+    """Matplotlib line styles per warm start: builtin black and thick (the bar to
+    beat), other baselines grey and dashed, learned models (server: models
+    other than the providers) coloured and solid; every series distinct."""
+    import matplotlib
+
+    providers = {"server:zero", "server:random", "server:bad", "server:grid-identity"}
+    colours = matplotlib.colormaps["tab10"].colors + matplotlib.colormaps["Dark2"].colors
+    styles, learned, baseline = {}, 0, 0
+    for name in names:
+        if name == "builtin":
+            styles[name] = {"color": "black", "ls": "-", "lw": 1.8}
+        elif name.startswith("server:") and name not in providers:
+            styles[name] = {"color": colours[learned % len(colours)],
+                            "ls": _LEARNED_DASHES[learned // len(colours) % len(_LEARNED_DASHES)], "lw": 1.3}
+            learned += 1
+        else:
+            styles[name] = {"color": _BASELINE_GREYS[baseline % len(_BASELINE_GREYS)],
+                            "ls": _BASELINE_DASHES[baseline % len(_BASELINE_DASHES)], "lw": 1.1}
+            baseline += 1
+    return styles
 
 
 def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: float, out: Path) -> None:
@@ -204,10 +273,11 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
             warnings.simplefilter("ignore", RuntimeWarning)
             return np.nanmean(a, axis=0)
 
+    style = series_styles(list(runs))
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     for name in runs:
-        ax1.plot(per_step(name, "contact_points"), label=name, lw=1)
-        ax2.plot(per_step(name, "velocity_iterations"), label=name, lw=1)
+        ax1.plot(per_step(name, "contact_points"), label=name, **style[name])
+        ax2.plot(per_step(name, "velocity_iterations"), label=name, **style[name])
     ax1.set(xlabel="step", ylabel="contact points", title="(a) contact points per step (mean over seeds)")
     ax2.set(xlabel="step", ylabel="velocity iterations", title="(b) iterations per step (mean over seeds)")
     ax2.legend(fontsize=7)
@@ -218,13 +288,13 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     for name in runs:
         its = np.array([i for r in runs[name] for i, n in zip(r["per_step"]["velocity_iterations"],
                                                                r["per_step"]["contact_points"]) if n > 0])
-        ax1.plot(k, (its[None, :] > k[:, None]).sum(axis=1) / len(runs[name]), label=name, lw=1)
+        ax1.plot(k, (its[None, :] > k[:, None]).sum(axis=1) / len(runs[name]), label=name, **style[name])
         traces = [t for r in runs[name] for t, n in zip(r["per_step"]["residual_trace"], r["per_step"]["contact_points"])
                   if n > 0 and len(t)]
         if traces:  # none in a run without contacts: the panel stays empty
             # Finished steps repeat their last residual (thesis §8.2.1), so the median stays defined.
             padded = np.array([np.pad(t, (0, max_iterations - len(t)), mode="edge") for t in traces])
-            ax2.semilogy(np.arange(1, max_iterations + 1), np.median(padded, axis=0), label=name, lw=1)
+            ax2.semilogy(np.arange(1, max_iterations + 1), np.median(padded, axis=0), label=name, **style[name])
     ax1.set(xlabel="iteration k", ylabel="steps still iterating (per simulation)",
             title="(a) steps needing more than k iterations")
     ax2.axhline(threshold, color="k", ls=":", lw=0.8)
@@ -234,8 +304,8 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     for name in runs:
-        ax1.semilogy(per_step(name, "mse_normal"), label=name, lw=1)
-        ax2.semilogy(per_step(name, "mse_tangent"), label=name, lw=1)
+        ax1.semilogy(per_step(name, "mse_normal"), label=name, **style[name])
+        ax2.semilogy(per_step(name, "mse_tangent"), label=name, **style[name])
     ax1.set(xlabel="step", ylabel="MSE (N s)^2", title="(a) warm start vs final impulse, normal")
     ax2.set(xlabel="step", ylabel="MSE (N s)^2", title="(b) tangent")
     ax2.legend(fontsize=7)

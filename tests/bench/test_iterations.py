@@ -24,6 +24,33 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
         assert (out / fig).stat().st_size > 10_000
 
 
+def test_ratios_to_builtin_come_with_their_interval_over_seeds(tmp_path):
+    out = tmp_path / "out"
+    assert main(["bench", "iterations", "--seeds", "901-903", "--steps", "120", "--warm-starts",
+                 "none,builtin,copy2", "--out", str(out), "--quiet", "--workers", "2"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    copy2 = summary["ratios_to_builtin"]["copy2"]
+    assert copy2["mean"]["seeds"] == 3 and copy2["mean"]["low"] <= copy2["mean"]["value"] <= copy2["mean"]["high"]
+    assert copy2["mean"]["high"] < 1.0 and copy2["median"]["value"] < 1.0  # the rounded oracle beats builtin
+    assert len(summary["per_seed_mean_iterations"]["none"]) == 3
+    row = next(line for line in (out / "results.md").read_text().splitlines() if line.startswith("| copy2 |"))
+    assert "[" in row and "✓" in row
+
+
+def test_every_series_of_a_figure_has_its_own_look_and_baselines_stay_grey():
+    from bench.iterations import series_styles
+
+    names = ["none", "builtin", "copy", "copy2", "copy0", "extrapolate", "server:random", "server:bad",
+             "server:grid-identity", "server:pressure", "server:residual", "server:unet", "server:default"]
+    styles = series_styles(names)
+    looks = {(str(st["color"]), str(st["ls"])) for st in styles.values()}
+    assert len(looks) == len(names)
+    assert styles["builtin"]["color"] == "black"
+    learned = [styles[n] for n in names if n in ("server:pressure", "server:residual", "server:unet", "server:default")]
+    assert all(st["ls"] == "-" and not isinstance(st["color"], str) for st in learned)
+    assert all(isinstance(styles[n]["color"], str) and styles[n]["ls"] != "-" for n in ("none", "copy", "server:bad"))
+
+
 def test_iteration_figures_are_the_same_in_process_on_workers_and_on_ray(tmp_path, ray_cluster):
     from bench.iterations import TIMING_FIELDS
     from server.process import ServerProcess
