@@ -3,7 +3,8 @@
 Starts `deepcontact serve` with the shipped models on a free loopback port,
 waits for its health check, runs the thesis world on a held-out seed with
 `none`, `builtin` and the shipped models through the server (the thesis-style
-`pressure` and `residual-new-points`, which beats builtin), prints the table
+`pressure` and `default`, the best measured variant: models/default.json says
+which), prints the table
 (iterations per step, round-trip latency, fallbacks), writes the figures to
 the folder it names, and stops the server, also when a step fails. It is
 `deepcontact bench iterations` with a fixed small selection.
@@ -16,12 +17,14 @@ import sys
 from pathlib import Path
 
 from bench import iterations
+from deepcontact.modelcard import ModelCard
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=901, help="held-out thesis seed (default 901)")
-    parser.add_argument("--model", default="pressure,residual-new-points",
-                        help="shipped models to compare, comma-separated (default pressure,residual-new-points)")
+    parser.add_argument("--model", default="pressure,default",
+                        help="shipped models to compare, comma-separated (default pressure,default; "
+                             "default is an alias of the best measured variant)")
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
     parser.add_argument("--out", type=Path, default=Path("demo-results"), help="folder for the table and figures (default demo-results/)")
 
@@ -34,6 +37,10 @@ def run(args: argparse.Namespace) -> int:
               f"(models/pressure.onnx is rebuilt by `make default-model`)", file=sys.stderr)
         return 2
     servers = ",".join(f"server:{m}" for m in names)
+    for m in names:
+        target = ModelCard.alias_target(args.models / f"{m}.json")
+        if target:
+            print(f"deepcontact demo: {m} is {target} ({args.models}/{m}.json)", file=sys.stderr)
     parser = argparse.ArgumentParser()
     iterations.add_arguments(parser)
     bench_args = parser.parse_args([

@@ -22,6 +22,15 @@ contact point, given Box2D's builtin warm start sent in the request:
     "new-points"  the model's impulse where the point is new this step
                   (builtin exactly zero), builtin where it persists
 Several cards may name the same ONNX file, e.g. one model served two ways.
+
+An alias card serves another card's model under a second name, so that users
+get the best measured variant without choosing one:
+
+    models/default.json   {"name": "default", "alias_of": "residual-new-points",
+                           "why": "best measured variant, docs/results.md"}
+
+`ModelCard.load` resolves it to the card it names (beside it), renamed; an
+alias of an alias is refused, so the chain is one step and cannot loop.
 """
 
 from __future__ import annotations
@@ -37,6 +46,7 @@ from deepcontact.io import write_json_atomic
 
 CARD_VERSION = 1
 COMBINE = ("replace", "residual", "new-points")
+ALIAS_KEYS = frozenset({"name", "alias_of", "why"})
 
 
 class ModelCardError(ValueError):
@@ -96,14 +106,40 @@ class ModelCard:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "ModelCard":
+        """The card at path; an alias card resolved to the card it names, renamed."""
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ModelCardError(f"{path}: no model card") from None
-        except json.JSONDecodeError as exc:
-            raise ModelCardError(f"{path}: not JSON ({exc})") from None
+        data = _read_card(path)
+        if isinstance(data, dict) and "alias_of" in data:
+            unknown = set(data) - ALIAS_KEYS
+            if unknown or not isinstance(data.get("name"), str) or not isinstance(data["alias_of"], str):
+                raise ModelCardError(f"{path}: an alias card holds a name and alias_of (strings) and "
+                                     f"optionally why; got keys {sorted(data)}")
+            target_path = path.with_name(f"{data['alias_of']}.json")
+            target = _read_card(target_path)
+            if isinstance(target, dict) and "alias_of" in target:
+                raise ModelCardError(f"{path}: alias of {target_path.name}, itself an alias; "
+                                     f"name the card it points at ({target['alias_of']!r})")
+            try:
+                card = cls.from_dict(target)
+            except ModelCardError as exc:
+                raise ModelCardError(f"{target_path} (alias target of {path.name}): {exc}") from None
+            return dataclasses.replace(card, name=data["name"])
         return cls.from_dict(data)
+
+    @staticmethod
+    def alias_target(path: str | os.PathLike) -> str | None:
+        """The name an alias card at path points at; None for a full card."""
+        data = _read_card(Path(path))
+        return data.get("alias_of") if isinstance(data, dict) else None
 
     def onnx_path(self, card_path: str | os.PathLike) -> Path:
         return Path(card_path).with_name(self.onnx_file)
+
+
+def _read_card(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ModelCardError(f"{path}: no model card") from None
+    except json.JSONDecodeError as exc:
+        raise ModelCardError(f"{path}: not JSON ({exc})") from None

@@ -178,3 +178,15 @@ def test_cards_may_share_an_onnx_file_and_orphans_are_refused(tmp_path):
     (tmp_path / "base-new-points.json").unlink()
     with pytest.raises(ModelCardError, match="no model card names base.onnx"):
         load_models(tmp_path)
+
+
+def test_the_shipped_models_include_default_an_alias_served_like_its_target():
+    from pathlib import Path
+
+    from server.predictors import load_models
+
+    models = {m.name: m for m in load_models(Path(__file__).parents[2] / "models")}
+    target = ModelCard.alias_target(Path(__file__).parents[2] / "models" / "default.json")
+    assert "default" in models and target in models
+    assert models["default"].card.onnx_file == models[target].card.onnx_file
+    assert models["default"].card.combine == models[target].card.combine

@@ -1,0 +1,40 @@
+"""Model cards and alias cards (deepcontact.modelcard)."""
+
+import json
+
+import pytest
+
+from deepcontact.gridspec import GridSpec
+from deepcontact.modelcard import ModelCard, ModelCardError
+
+
+def _card(folder, name="residual-new-points"):
+    card = ModelCard(name=name, kind="pressure", onnx_file="residual.onnx", gridspec=GridSpec.thesis(),
+                     fixed_grid=False, combine="new-points")
+    card.save(folder / f"{name}.json")
+    return card
+
+
+def test_an_alias_serves_the_card_it_names_under_its_own_name(tmp_path):
+    target = _card(tmp_path)
+    (tmp_path / "default.json").write_text(json.dumps(
+        {"name": "default", "alias_of": "residual-new-points", "why": "best measured, docs/results.md"}))
+    card = ModelCard.load(tmp_path / "default.json")
+    assert card.name == "default"
+    assert card.onnx_file == "residual.onnx" and card.combine == "new-points"
+    assert card.gridspec == target.gridspec
+    assert ModelCard.alias_target(tmp_path / "default.json") == "residual-new-points"
+    assert ModelCard.alias_target(tmp_path / "residual-new-points.json") is None
+
+
+def test_a_broken_alias_says_what_is_wrong(tmp_path):
+    _card(tmp_path)
+    (tmp_path / "default.json").write_text(json.dumps({"name": "default", "alias_of": "missing"}))
+    with pytest.raises(ModelCardError, match="missing.json: no model card"):
+        ModelCard.load(tmp_path / "default.json")
+    (tmp_path / "second.json").write_text(json.dumps({"name": "second", "alias_of": "default"}))
+    with pytest.raises(ModelCardError, match="itself an alias"):
+        ModelCard.load(tmp_path / "second.json")
+    (tmp_path / "odd.json").write_text(json.dumps({"name": "odd", "alias_of": "residual-new-points", "kind": "x"}))
+    with pytest.raises(ModelCardError, match="alias card holds"):
+        ModelCard.load(tmp_path / "odd.json")
