@@ -66,6 +66,10 @@ class Predictor:
     def check_domain(self, domain: Domain) -> None:
         """Raise GridMismatch if this predictor cannot serve that domain."""
 
+    def warm_up(self, domain: Domain) -> float:
+        """Prepare to serve grids of this domain's shape; seconds spent (0 when nothing to do)."""
+        return 0.0
+
 
 class _Normalization:
     """``spec.normalize(grid, "inputs")`` and ``spec.denormalize(grid, "targets")``
@@ -164,6 +168,10 @@ class ModelPredictor(Predictor):
         combined = ("builtin",) if card.combine in ("residual", "new-points") else ()
         self.requires = tuple(sorted(set(needs(card.gridspec.inputs) + combined)))
         self.infer = self.run_session
+        self._warm_shapes: set[tuple[int, ...]] = set()
+        self._warm_lock = threading.Lock()
+        # The card's own grid first: a server that has started serves its shape at once.
+        self._warm_shape((1, *card.gridspec.shape, len(card.gridspec.inputs)))
 
     def run_session(self, x: np.ndarray) -> np.ndarray:
         """x (B, ny, nx, Cin) float32 normalized -> (B, ny, nx, Cout)."""
@@ -171,6 +179,30 @@ class ModelPredictor(Predictor):
 
     def check_domain(self, domain: Domain) -> None:
         self._specs.get(domain)
+
+    def warm_up(self, domain: Domain) -> float:
+        """ONNX Runtime plans memory and picks kernels on a session's first run of an
+        input shape, several times a normal step's cost (tens of ms for a 60x60 grid):
+        run that once on zeros when a stream declares its world, not on its first step.
+        Raises GridMismatch like check_domain."""
+        _spec, norm = self._specs.entry(domain)
+        return self._warm_shape(norm.shape_in)
+
+    def _warm_shape(self, shape: tuple[int, ...]) -> float:
+        if shape in self._warm_shapes:
+            return 0.0
+        with self._warm_lock:  # streams declaring the same new world at once warm it once
+            if shape in self._warm_shapes:
+                return 0.0
+            t0 = time.perf_counter()
+            self.run_session(np.zeros(shape, np.float32))  # straight to the session, not the batcher
+            self._warm_shapes.add(shape)
+            return time.perf_counter() - t0
+
+    @property
+    def warm_shapes(self) -> frozenset[tuple[int, ...]]:
+        """Input shapes (1, ny, nx, Cin) this model has run."""
+        return frozenset(self._warm_shapes)
 
     def predict(self, bodies, points, world, step, previous=None):
         spec, norm = self._specs.entry(world.domain)

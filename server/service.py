@@ -18,6 +18,7 @@ import threading
 import time
 
 import grpc
+import numpy as np
 
 from deepcontact import wire
 from deepcontact.v1 import warmstart_pb2 as pb
@@ -121,6 +122,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             try:
                 if request.HasField("world"):
                     world, previous = self._world(request.world), None
+                    self._warm_up(request.model, world)
                 elif world is None:
                     raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                                   "world: required on the first message of a stream")
@@ -137,6 +139,21 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         except wire.WireError as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
         return World(((float(lower[0]), float(lower[1])), (float(upper[0]), float(upper[1]))), physics)
+
+    def _warm_up(self, model: str, world: World) -> None:
+        """Ready the stream's model for its world's grid before the first step
+        (a client can declare the world in a message without points, see
+        simclient.client.WarmStartClient.declare). Errors are left to the step."""
+        predictor = self.predictors.get(model)
+        if predictor is None:
+            return
+        try:
+            seconds = predictor.warm_up(world.domain)
+        except GridMismatch:
+            return
+        if seconds:
+            log.info("warmed up %s for a new grid in %.1f ms", model, 1e3 * seconds,
+                     extra={"model": model, "domain": world.domain})
 
     @staticmethod
     def _missing(predictor: Predictor, request: pb.StepRequest, world: World) -> list[str]:
@@ -166,6 +183,10 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         except (wire.WireError, GridMismatch) as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
         t1 = time.perf_counter()
+        if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
+            reply = wire.encode_impulses(request.step, predictor.name, np.zeros((0, 2), np.float32))
+            reply.timings.decode_us = reply.timings.total_us = _us(t1 - t0)
+            return reply, points
         try:
             impulses, stages = predictor.predict(bodies, points, world, request.step, previous)
         except QueueFull as exc:

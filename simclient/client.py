@@ -109,6 +109,18 @@ class WarmStartClient:
         return list(self.stub.ListModels(pb.ListModelsRequest(), timeout=timeout).models)
 
     # -- one step ----------------------------------------------------------
+    def declare(self, model: str, timeout: float) -> bool:
+        """Open the stream now with a message that only declares the world, so
+        the server readies `model` for this world's grid (ONNX Runtime's first run
+        of a grid shape is slow) before the first step with contacts. Waits up to
+        `timeout` s; False when no reply came (the first step then opens a
+        stream as usual)."""
+        try:
+            self.step(pb.StepRequest(step=0, model=model), timeout)
+            return True
+        except StepFailed:
+            return False
+
     def step(self, request: pb.StepRequest, timeout: float) -> pb.Impulses:
         """Send one step on the stream and wait up to `timeout` s for its reply."""
         if self._replies is None:

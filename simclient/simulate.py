@@ -31,6 +31,8 @@ from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_fr
 from simclient.warmstarts import Provider, make_provider
 
 DEFAULT_DEADLINE_MS = 10.0
+# Opening a stream and readying the model for a new grid: once per simulation, not a step.
+DECLARE_TIMEOUT_S = 2.0
 
 
 @dataclasses.dataclass
@@ -65,6 +67,8 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     if client is not None:
         lower, upper = spec.domain
         client.world = wire.encode_world(lower, upper, spec.walls(), spec.physics)
+        if provider.uses_server:  # the server readies the model for this grid before step 0
+            client.declare(provider.model, DECLARE_TIMEOUT_S)
     records: list[StepRecord] = []
     timeout = deadline_ms / 1e3
     for k in range(spec.steps):

@@ -178,3 +178,21 @@ def test_a_model_reading_contact_velocities_and_the_last_step_is_served_what_tra
             assert "each point's two bodies" in err.value.details() and "time step and gravity" in err.value.details()
     finally:
         srv.stop()
+
+
+def test_a_stream_that_declares_a_new_world_gets_its_model_ready_before_the_first_step(server, thesis_steps):
+    from simclient.client import WarmStartClient
+
+    _, steps = thesis_steps
+    tiny = next(m for m in server.models if m.name == "tiny")
+    assert (1, 61, 61, len(tiny.gridspec.inputs)) in tiny.warm_shapes  # the card's grid, at start
+    wide = wire.encode_world((0.0, 0.0), (25.0, 15.0), np.zeros((0, 4), np.float32))
+    shape = (1, *GridSpec.for_domain((0.0, 0.0), (25.0, 15.0), tiny.gridspec.resolution, tiny.gridspec.h).shape,
+             len(tiny.gridspec.inputs))
+    assert shape not in tiny.warm_shapes
+    with WarmStartClient(server.address, world=wide) as client:
+        assert client.declare("tiny", timeout=10.0)  # a message without points: an empty reply
+        assert shape in tiny.warm_shapes
+        bodies, points = steps[-1]
+        reply = client.step(wire.encode_step(1, "tiny", bodies, points), timeout=10.0)
+        assert reply.point_count == len(points) and client.reconnects == 0

@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# The round-2 variants of the ablation (docs/results.md): each trained on the thesis
+# world and the scene family together (training/round2_data.sh), exported with its
+# card to models/candidates/, and, where the model predicts a correction, also
+# carded as "-new-points" (same ONNX, applied only to points new this step).
+#
+#   bash training/round2_variants.sh [VARIANT ...]     (default: all)
+#
+# Then: deepcontact bench iterations --models models/candidates --warm-starts builtin,server:NAME,...
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DC=${DEEPCONTACT:-.venv/bin/deepcontact}
+PY=${PYTHON:-.venv/bin/python}
+TRAIN_SEEDS=${TRAIN_SEEDS:-1-300}
+DATA=(--train data/thesis-oracle-train-$TRAIN_SEEDS.h5 --train data/family-oracle-train-$TRAIN_SEEDS.h5
+      --val data/thesis-oracle-val-801-820.h5 --val data/family-oracle-val-801-820.h5)
+COMMON=(--epochs 10 --patience 3 --batch-size 16 --max-steps-per-file 5000 --max-val-steps 1000 --seed 0
+        --config '{"l2": 0.0001}' --quiet)
+BASE=mass,vx,vy,omega,normal_x,normal_y,builtin_normal,builtin_tangent
+CONTACT=vn,vt,separation,new_point,previous_builtin_normal,previous_builtin_tangent
+OUT=models/candidates
+mkdir -p "$OUT"
+
+new_points_card() {  # a second card for the same ONNX: the correction only where the point is new
+    "$PY" - "$OUT/$1.json" <<'PY'
+import dataclasses, sys
+from pathlib import Path
+from deepcontact.modelcard import ModelCard
+path = Path(sys.argv[1])
+card = ModelCard.load(path)
+dataclasses.replace(card, name=card.name + "-new-points", combine="new-points").save(
+    path.with_name(card.name + "-new-points.json"))
+PY
+}
+
+variant() {  # NAME TRAIN-ARGS...
+    local name=$1; shift
+    SECONDS=0
+    rm -rf "runs/$name"
+    "$DC" train "${DATA[@]}" "${COMMON[@]}" --out "runs/$name" "$@"
+    "$DC" export "runs/$name" --out "$OUT/$name.onnx"
+    new_points_card "$name"
+    echo "$name: trained and exported in ${SECONDS} s"
+}
+
+run() {
+    case $1 in
+    # The loss at the contact points (G2P in the graph), Box2D's warm start as input, correction as target.
+    points-residual) variant $1 --model pressure --inputs $BASE --targets correction_normal,correction_tangent ;;
+    # ... plus contact kinematics (relative velocity, separation, novelty) and last step's impulses.
+    points-residual-contact) variant $1 --model pressure --inputs $BASE,$CONTACT \
+        --targets correction_normal,correction_tangent ;;
+    # ... the target is the oracle (this step solved from zero) minus builtin, not the final impulse.
+    oracle-residual-contact) variant $1 --model pressure --inputs $BASE,$CONTACT \
+        --targets oracle_correction_normal,oracle_correction_tangent ;;
+    # Capacity: Tirca's encoder-decoder with skips, same inputs and targets as points-residual-contact.
+    unet-residual-contact) variant $1 --model unet --inputs $BASE,$CONTACT \
+        --targets correction_normal,correction_tangent ;;
+    *) echo "unknown variant $1" >&2; exit 2 ;;
+    esac
+}
+
+VARIANTS=("$@")
+[ ${#VARIANTS[@]} -gt 0 ] || VARIANTS=(points-residual points-residual-contact oracle-residual-contact unet-residual-contact)
+for v in "${VARIANTS[@]}"; do run "$v"; done
