@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact import dispatch
+from bench.figures import save_figure
 from bench.stats import STATS, Ratio, ratio_interval
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
@@ -281,7 +282,7 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     ax1.set(xlabel="step", ylabel="contact points", title="(a) contact points per step (mean over seeds)")
     ax2.set(xlabel="step", ylabel="velocity iterations", title="(b) iterations per step (mean over seeds)")
     ax2.legend(fontsize=7)
-    _save(fig, out / "fig20_contacts_iterations.png")
+    save_figure(fig, out / "fig20_contacts_iterations.png")
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     k = np.arange(max_iterations + 1)
@@ -300,7 +301,7 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     ax2.axhline(threshold, color="k", ls=":", lw=0.8)
     ax2.set(xlabel="iteration", ylabel="median max |impulse change| (N s)", title="(b) median residual per iteration")
     (ax2 if ax2.get_legend_handles_labels()[0] else ax1).legend(fontsize=7)
-    _save(fig, out / "fig21_convergence.png")
+    save_figure(fig, out / "fig21_convergence.png")
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     for name in runs:
@@ -309,14 +310,6 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     ax1.set(xlabel="step", ylabel="MSE (N s)^2", title="(a) warm start vs final impulse, normal")
     ax2.set(xlabel="step", ylabel="MSE (N s)^2", title="(b) tangent")
     ax2.legend(fontsize=7)
-    _save(fig, out / "fig26_mse.png")
+    save_figure(fig, out / "fig26_mse.png")
 
 
-def _save(fig, path: Path) -> None:
-    tmp = path.with_name(f".{path.stem}.part.png")
-    fig.tight_layout()
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(path)
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)

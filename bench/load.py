@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.figures import save_figure
 from deepcontact.io import write_json_atomic
 
 HIGHEST_US = 60_000_000
@@ -338,8 +339,4 @@ def _plot(results: list[dict], path: Path) -> None:
     ax2.set(ylabel="steps / s", title="throughput")
     ax1.legend(fontsize=6)
     ax2.legend(fontsize=7)
-    fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.part.png")
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(path)
-    plt.close(fig)
+    save_figure(fig, path)

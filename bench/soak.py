@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from bench import load
+from bench.figures import save_figure
 from deepcontact.io import write_json_atomic
 
 _STEPS_LINE = re.compile(r'^deepcontact_steps_total\{[^}]*\} ([0-9.e+]+)$', re.M)
@@ -216,8 +217,4 @@ def plot(result: dict, path: Path) -> None:
     if len(t) > 1:
         ax2.step(t[1:], np.diff(answered) / np.diff(t * 60), where="pre", lw=1)
     ax2.set(xlabel="minutes", ylabel="steps answered / s")
-    fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.part.png")
-    fig.savefig(tmp, dpi=90)
-    tmp.replace(path)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)

@@ -32,6 +32,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "soak"), "bench.soak", "a long load on one server: nothing lost, memory flat (RSS over time)"),
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
+    (("bench", "walltime"), "bench.walltime", "whole step time with builtin and a served model, and the break-even, per world size"),
 ]
 
 

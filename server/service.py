@@ -171,7 +171,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         if predictor is None:
             raise _Reject(grpc.StatusCode.NOT_FOUND,
                           f"model {request.model!r} is not served here; ListModels names {sorted(self.predictors)}")
-        missing = self._missing(predictor, request, world) if predictor.requires else ()
+        # A step without points needs nothing beyond the world (e.g. a message declaring it).
+        missing = self._missing(predictor, request, world) if predictor.requires and request.point_count else ()
         if missing:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                           f"model {predictor.name!r} needs {'; '.join(NEEDS[m] for m in missing)}, "

@@ -48,6 +48,9 @@ class StepRecord:
     client_us: float  # export + encode + decode + inject, microseconds
     provider_ms: float  # time to obtain the warm start (round trip or local computation)
     solve_ms: float
+    collide_ms: float  # the engine's collision step, before the warm start
+    export_ms: float  # reading bodies and contact points out of the engine
+    inject_ms: float  # handing the warm start to the engine (0 without one)
     fallback: bool
     fallback_reason: str | None  # StepFailed.reason, or NO_SERVER; None when not a fallback
     reconnect: bool  # this step's request went on a stream reopened after the first
@@ -72,10 +75,12 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     records: list[StepRecord] = []
     timeout = deadline_ms / 1e3
     for k in range(spec.steps):
+        tc = time.perf_counter()
         engine.collide()
         t0 = time.perf_counter()
         bodies, points = engine.bodies(), engine.contacts()
-        client_s = time.perf_counter() - t0
+        client_s = export_s = time.perf_counter() - t0
+        collide_s, inject_s = t0 - tc, 0.0
         latency_ms = server_us = fallback_reason = None
         fallback = reconnect = False
         tp = time.perf_counter()
@@ -112,7 +117,8 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
         if warm is not None:
             t5 = time.perf_counter()
             engine.set_warm_start(*warm)
-            client_s += time.perf_counter() - t5
+            inject_s = time.perf_counter() - t5
+            client_s += inject_s
         stats = engine.solve()
         after = engine.contacts()
         provider.observe(after)
@@ -126,6 +132,7 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
             residual_trace=[float(x) for x in stats.residual_trace],
             mse_normal=mse_n, mse_tangent=mse_t, latency_ms=latency_ms, server_us=server_us,
             client_us=1e6 * client_s, provider_ms=1e3 * provider_s, solve_ms=stats.solve_ms,
+            collide_ms=1e3 * collide_s, export_ms=1e3 * export_s, inject_ms=1e3 * inject_s,
             fallback=fallback, fallback_reason=fallback_reason, reconnect=reconnect))
         if progress is not None:
             progress(k)

@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # The round-2 variants of the ablation (docs/results.md): each trained on the thesis
 # world and the scene family together (training/round2_data.sh), exported with its
-# card to models/candidates/, and, where the model predicts a correction, also
+# card to models/ (served like the shipped ones), and, where the model predicts a correction, also
 # carded as "-new-points" (same ONNX, applied only to points new this step).
 #
 #   bash training/round2_variants.sh [VARIANT ...]     (default: all)
 #
-# Then: deepcontact bench iterations --models models/candidates --warm-starts builtin,server:NAME,...
+# Then: deepcontact bench iterations --warm-starts builtin,server:NAME,...
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -18,7 +18,7 @@ COMMON=(--epochs 10 --patience 3 --batch-size 16 --max-steps-per-file 5000 --max
         --config '{"l2": 0.0001}' --quiet)
 BASE=mass,vx,vy,omega,normal_x,normal_y,builtin_normal,builtin_tangent
 CONTACT=vn,vt,separation,new_point,previous_builtin_normal,previous_builtin_tangent
-OUT=models/candidates
+OUT=models
 mkdir -p "$OUT"
 
 new_points_card() {  # a second card for the same ONNX: the correction only where the point is new

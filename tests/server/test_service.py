@@ -180,19 +180,28 @@ def test_a_model_reading_contact_velocities_and_the_last_step_is_served_what_tra
         srv.stop()
 
 
-def test_a_stream_that_declares_a_new_world_gets_its_model_ready_before_the_first_step(server, thesis_steps):
+def test_a_stream_that_declares_a_new_world_gets_its_model_ready_before_the_first_step(tmp_path, thesis_steps):
+    from deepcontact.kinematics import Physics
+    from server.serve import Server
     from simclient.client import WarmStartClient
+    from tests.server.conftest import write_conv_model
 
-    _, steps = thesis_steps
-    tiny = next(m for m in server.models if m.name == "tiny")
-    assert (1, 61, 61, len(tiny.gridspec.inputs)) in tiny.warm_shapes  # the card's grid, at start
-    wide = wire.encode_world((0.0, 0.0), (25.0, 15.0), np.zeros((0, 4), np.float32))
-    shape = (1, *GridSpec.for_domain((0.0, 0.0), (25.0, 15.0), tiny.gridspec.resolution, tiny.gridspec.h).shape,
-             len(tiny.gridspec.inputs))
-    assert shape not in tiny.warm_shapes
-    with WarmStartClient(server.address, world=wide) as client:
-        assert client.declare("tiny", timeout=10.0)  # a message without points: an empty reply
-        assert shape in tiny.warm_shapes
-        bodies, points = steps[-1]
-        reply = client.step(wire.encode_step(1, "tiny", bodies, points), timeout=10.0)
-        assert reply.point_count == len(points) and client.reconnects == 0
+    # A model that needs more than bodies and points: the declaring message carries none of it.
+    card = write_conv_model(tmp_path, "needy", combine="residual", inputs=("mass", "vn", "builtin_normal"))
+    world, steps = thesis_steps
+    srv = Server(models=tmp_path, bind="127.0.0.1:0").start()
+    try:
+        needy = next(m for m in srv.models if m.name == "needy")
+        assert (1, 61, 61, 3) in needy.warm_shapes  # the card's grid, at start
+        wide = wire.encode_world((0.0, 0.0), (25.0, 15.0), physics=Physics.thesis())
+        shape = (1, *GridSpec.for_domain((0.0, 0.0), (25.0, 15.0), card.gridspec.resolution,
+                                         card.gridspec.h).shape, 3)
+        assert shape not in needy.warm_shapes
+        with WarmStartClient(srv.address, world=wide) as client:
+            assert client.declare("needy", timeout=10.0)  # a message without points: an empty reply
+            assert shape in needy.warm_shapes
+            bodies, points = steps[-1]
+            reply = client.step(wire.encode_step(1, "needy", bodies, points, builtin=points["builtin"]), timeout=10.0)
+            assert reply.point_count == len(points) and client.reconnects == 0
+    finally:
+        srv.stop()

@@ -1,0 +1,215 @@
+"""`deepcontact bench walltime`: does a learned warm start make the whole step faster?
+
+    deepcontact bench walltime --sizes thesis,100,400,1600 --seeds 901-903 --out bench/results/walltime
+
+For each world size, simulates the same seeds with `builtin` and with a served
+model (`server:MODEL`, one `deepcontact serve` process on loopback started
+here) and times every step's parts (simclient.simulate.StepRecord):
+
+    builtin:  collide + solve                                 (what Box2D alone does)
+    learned:  collide + export + round trip + inject + solve  (the round trip includes
+                                                               encoding and decoding)
+
+over steps with contacts (medians over all seeds' steps, ms). The break-even
+is what the learned warm start costs per step beyond Box2D's own work
+(export + round trip + inject, median) divided by what one velocity
+iteration costs at that size (median over builtin's steps of solve time /
+velocity iterations): how many iterations per step it must save to pay for
+itself, beside how many it does save (builtin's mean iterations minus the
+model's). Sizes: `thesis` (100 bodies of 0.5 m in 15 x 15 m) and N, the
+scene family at N bodies (radius 0.3-0.55 m, friction 0.2-0.8) in a square
+box growing with N so the density stays the thesis's (15 m per 100 bodies,
+times sqrt(N / 100)); the server's grids grow with the box.
+
+The deadline is long (1 s by default) so that every step is served and
+timed, not replaced by builtin. Writes DIR/walltime.json, DIR/walltime.md
+(the table) and DIR/walltime.png (step time against bodies, one line per
+warm start).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from bench.figures import save_figure
+from deepcontact.io import write_json_atomic
+from simclient import seeds as seed_ranges
+from simclient.scene import SceneSpec
+
+FAMILY_RADIUS = (0.3, 0.55)
+FAMILY_FRICTION = (0.2, 0.8)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--sizes", default="thesis,100,400,1600",
+                        help="worlds: 'thesis' and/or body counts of the scene family (default thesis,100,400,1600)")
+    parser.add_argument("--seeds", default="901-903", help="benchmark seeds per size (default 901-903)")
+    parser.add_argument("--model", default="default", help="served model (default default, the shipped alias)")
+    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    parser.add_argument("--steps", type=int, default=250, help="steps per simulation (default 250)")
+    parser.add_argument("--deadline-ms", type=float, default=1000.0,
+                        help="per-step deadline (default 1000: every step is served and timed)")
+    parser.add_argument("--out", type=Path, default=Path("bench/results/walltime"),
+                        help="output folder (default bench/results/walltime)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def scene_for(size: str, steps: int) -> SceneSpec:
+    """The world of one size: 'thesis' or a body count of the scene family (ValueError otherwise)."""
+    if size == "thesis":
+        return dataclasses.replace(SceneSpec.thesis(), steps=steps)
+    try:
+        n = int(size)
+    except ValueError:
+        raise ValueError(f"size {size!r}: use 'thesis' or a number of bodies") from None
+    if n < 1:
+        raise ValueError(f"size {size!r}: at least one body")
+    side = round(15.0 * math.sqrt(n / 100.0), 2)
+    return SceneSpec(name=f"family-{n}", bodies=n, box_size=(side, side), radius=FAMILY_RADIUS,
+                     friction=FAMILY_FRICTION, steps=steps)
+
+
+def step_times(run: dict, learned: bool) -> dict[str, np.ndarray]:
+    """Per step with contacts (ms): the parts and the whole step, and the velocity iterations."""
+    cols = {k: np.asarray(v, float) for k, v in run["per_step"].items()
+            if k in ("contact_points", "velocity_iterations", "collide_ms", "export_ms", "provider_ms",
+                     "inject_ms", "solve_ms")}
+    keep = cols["contact_points"] > 0
+    out = {k: v[keep] for k, v in cols.items()}
+    out["overhead_ms"] = out["export_ms"] + out["provider_ms"] + out["inject_ms"] if learned else \
+        np.zeros(int(keep.sum()))
+    out["step_ms"] = out["collide_ms"] + out["overhead_ms"] + out["solve_ms"]
+    return out
+
+
+def summarize_size(builtin: list[dict], learned: list[dict]) -> dict:
+    """One size's row from builtin's and the model's runs on the same seeds."""
+    b = {k: np.concatenate([step_times(r, False)[k] for r in builtin]) for k in step_times(builtin[0], False)}
+    m = {k: np.concatenate([step_times(r, True)[k] for r in learned]) for k in step_times(learned[0], True)}
+    per_iteration = float(np.median(b["solve_ms"] / np.maximum(b["velocity_iterations"], 1)))
+    overhead = float(np.median(m["overhead_ms"]))
+    saved = float(b["velocity_iterations"].mean() - m["velocity_iterations"].mean())
+    return {
+        "steps_with_contacts": int(len(b["step_ms"])),
+        "median_contact_points": float(np.median(b["contact_points"])),
+        "builtin": {"step_ms": float(np.median(b["step_ms"])), "solve_ms": float(np.median(b["solve_ms"])),
+                    "collide_ms": float(np.median(b["collide_ms"])),
+                    "mean_iterations": float(b["velocity_iterations"].mean()),
+                    "mean_step_ms": float(b["step_ms"].mean())},
+        "learned": {"step_ms": float(np.median(m["step_ms"])), "solve_ms": float(np.median(m["solve_ms"])),
+                    "collide_ms": float(np.median(m["collide_ms"])), "overhead_ms": overhead,
+                    "round_trip_ms": float(np.median(m["provider_ms"])),
+                    "mean_iterations": float(m["velocity_iterations"].mean()),
+                    "mean_step_ms": float(m["step_ms"].mean()),
+                    "fallback_steps": int(sum(r["summary"]["fallback_steps"] for r in learned))},
+        "ms_per_iteration": per_iteration,
+        "break_even_iterations": overhead / per_iteration if per_iteration > 0 else None,
+        "saved_iterations": saved,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.process import ServerProcess
+    from simclient.simulate import connect, run_simulation
+    from simclient.warmstarts import make_provider
+
+    try:
+        seeds = seed_ranges.parse_seeds(args.seeds)
+        specs = [scene_for(s.strip(), args.steps) for s in args.sizes.split(",") if s.strip()]
+        for spec in specs:
+            spec.validate()
+    except ValueError as exc:
+        print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
+        return 2
+    if not specs or args.steps < 1:
+        print("deepcontact bench walltime: give at least one size and --steps >= 1", file=sys.stderr)
+        return 2
+    try:
+        server = ServerProcess(args.models).start()
+    except (RuntimeError, TimeoutError) as exc:
+        print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
+        return 2
+    rows = {}
+    try:
+        try:
+            connect(server.address, args.model, connect_timeout=10.0, allow_fallback=False).close()
+        except (ValueError, ConnectionError) as exc:
+            print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
+            return 2
+        from tqdm import tqdm
+
+        bar = tqdm(total=2 * len(specs) * len(seeds), unit="sim", disable=args.quiet, file=sys.stderr)
+        for spec in specs:
+            runs = {"builtin": [], "learned": []}
+            for seed in seeds:
+                runs["builtin"].append(run_simulation(spec, seed, make_provider("builtin")))
+                bar.update()
+                client = connect(server.address, args.model, connect_timeout=10.0, allow_fallback=False)
+                try:
+                    runs["learned"].append(run_simulation(spec, seed, make_provider(f"server:{args.model}"),
+                                                          client=client, deadline_ms=args.deadline_ms))
+                finally:
+                    client.close()
+                bar.update()
+            rows[spec.name] = {"bodies": spec.bodies, "box_size": list(spec.box_size), **summarize_size(**runs)}
+        bar.close()
+    finally:
+        server.stop()
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(args.out / "walltime.json", {
+        "command": "deepcontact " + " ".join(sys.argv[1:]), "model": args.model, "seeds": seeds, "sizes": rows})
+    table = markdown_table(rows, args.model, seeds)
+    tmp = args.out / ".walltime.md.part"
+    tmp.write_text(table)
+    tmp.replace(args.out / "walltime.md")
+    plot(rows, args.model, args.out / "walltime.png")
+    print(table)
+    print(f"wrote {args.out}/walltime.json, walltime.md and walltime.png")
+    return 0
+
+
+def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
+    lines = [f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} per size); medians over steps with contacts, ms. "
+             f"Learned: server:{model}.",
+             "",
+             "| world | bodies | points | builtin step | builtin solve | learned step | learned solve | round trip "
+             "| overhead | ms / iteration | break-even iterations | saved iterations | fallbacks |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in rows.items():
+        b, m = r["builtin"], r["learned"]
+        be = "–" if r["break_even_iterations"] is None else f"{r['break_even_iterations']:.0f}"
+        lines.append(f"| {name} | {r['bodies']} | {r['median_contact_points']:.0f} | {b['step_ms']:.2f} | "
+                     f"{b['solve_ms']:.2f} | {m['step_ms']:.2f} | {m['solve_ms']:.2f} | {m['round_trip_ms']:.2f} | "
+                     f"{m['overhead_ms']:.2f} | {r['ms_per_iteration']:.4f} | {be} | {r['saved_iterations']:.0f} | "
+                     f"{m['fallback_steps']} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: dict, model: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    order = sorted(rows, key=lambda n: (rows[n]["bodies"], n != "thesis"))
+    bodies = [rows[n]["bodies"] for n in order]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.loglog(bodies, [rows[n]["builtin"]["step_ms"] for n in order], "o-", color="black", label="builtin")
+    ax.loglog(bodies, [rows[n]["learned"]["step_ms"] for n in order], "s-", color="tab:blue",
+              label=f"server:{model}")
+    ax.loglog(bodies, [rows[n]["learned"]["overhead_ms"] for n in order], "s:", color="tab:blue", lw=0.8,
+              label=f"server:{model}: export + round trip + inject")
+    for n in order:
+        if n == "thesis":
+            ax.annotate("thesis", (rows[n]["bodies"], rows[n]["builtin"]["step_ms"]), fontsize=7,
+                        textcoords="offset points", xytext=(4, -10))
+    ax.set(xlabel="bodies", ylabel="median step time, ms (steps with contacts)",
+           title="Whole step: collide + warm start + solve")
+    ax.legend(fontsize=7)
+    save_figure(fig, path)
