@@ -184,12 +184,11 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         except (wire.WireError, GridMismatch) as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
         t1 = time.perf_counter()
-        if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
-            reply = wire.encode_impulses(request.step, predictor.name, np.zeros((0, 2), np.float32))
-            reply.timings.decode_us = reply.timings.total_us = _us(t1 - t0)
-            return reply, points
         try:
-            impulses, stages = predictor.predict(bodies, points, world, request.step, previous)
+            if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
+                impulses, stages = np.zeros((0, 2), np.float32), {}
+            else:
+                impulses, stages = predictor.predict(bodies, points, world, request.step, previous)
         except QueueFull as exc:
             raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc)) from None
         except Exception as exc:  # a bug, not the client's fault: say so, keep serving
