@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The round-2 variants of the ablation (docs/results.md): each trained on the thesis
-# world and the scene family together (training/round2_data.sh), exported with its
+# world and the scene family together (training/round2_data.sh; ORACLE=1 for the oracle variant), exported with its
 # card to models/ (served like the shipped ones), and, where the model predicts a correction, also
 # carded as "-new-points" (same ONNX, applied only to points new this step).
 #
@@ -12,8 +12,11 @@ cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
 PY=${PYTHON:-.venv/bin/python}
 TRAIN_SEEDS=${TRAIN_SEEDS:-1-300}
-DATA=(--train data/thesis-oracle-train-$TRAIN_SEEDS.h5 --train data/family-oracle-train-$TRAIN_SEEDS.h5
-      --val data/thesis-oracle-val-801-820.h5 --val data/family-oracle-val-801-820.h5)
+DATA=(--train data/thesis-train-$TRAIN_SEEDS.h5 --train data/family-train-$TRAIN_SEEDS.h5
+      --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5)
+ORACLE_SEEDS=${ORACLE_SEEDS:-1-60}  # oracle targets: smaller files (ORACLE=1 bash training/round2_data.sh)
+ORACLE_DATA=(--train data/thesis-oracle-train-$ORACLE_SEEDS.h5 --train data/family-oracle-train-$ORACLE_SEEDS.h5
+             --val data/thesis-oracle-val-801-806.h5 --val data/family-oracle-val-801-806.h5)
 COMMON=(--epochs 10 --patience 3 --batch-size 16 --max-steps-per-file 5000 --max-val-steps 1000 --seed 0
         --config '{"l2": 0.0001}' --quiet)
 BASE=mass,vx,vy,omega,normal_x,normal_y,builtin_normal,builtin_tangent
@@ -33,11 +36,13 @@ dataclasses.replace(card, name=card.name + "-new-points", combine="new-points").
 PY
 }
 
-variant() {  # NAME TRAIN-ARGS...
+variant() {  # NAME TRAIN-ARGS... (the data: DATA, or ORACLE_DATA when the first is --oracle-data)
     local name=$1; shift
+    local data=("${DATA[@]}")
+    if [ "${1:-}" = --oracle-data ]; then data=("${ORACLE_DATA[@]}"); shift; fi
     SECONDS=0
     rm -rf "runs/$name"
-    "$DC" train "${DATA[@]}" "${COMMON[@]}" --out "runs/$name" "$@"
+    "$DC" train "${data[@]}" "${COMMON[@]}" --out "runs/$name" "$@"
     "$DC" export "runs/$name" --out "$OUT/$name.onnx"
     new_points_card "$name"
     echo "$name: trained and exported in ${SECONDS} s"
@@ -51,7 +56,7 @@ run() {
     points-residual-contact) variant $1 --model pressure --inputs $BASE,$CONTACT \
         --targets correction_normal,correction_tangent ;;
     # ... the target is the oracle (this step solved from zero) minus builtin, not the final impulse.
-    oracle-residual-contact) variant $1 --model pressure --inputs $BASE,$CONTACT \
+    oracle-residual-contact) variant $1 --oracle-data --model pressure --inputs $BASE,$CONTACT \
         --targets oracle_correction_normal,oracle_correction_tangent ;;
     # Capacity: Tirca's encoder-decoder with skips, same inputs and targets as points-residual-contact.
     unet-residual-contact) variant $1 --model unet --inputs $BASE,$CONTACT \
