@@ -24,17 +24,6 @@ CONTACT=vn,vt,separation,new_point,previous_builtin_normal,previous_builtin_tang
 OUT=models
 mkdir -p "$OUT"
 
-new_points_card() {  # a second card for the same ONNX: the correction only where the point is new
-    "$PY" - "$OUT/$1.json" <<'PY'
-import dataclasses, sys
-from pathlib import Path
-from deepcontact.modelcard import ModelCard
-path = Path(sys.argv[1])
-card = ModelCard.load(path)
-dataclasses.replace(card, name=card.name + "-new-points", combine="new-points").save(
-    path.with_name(card.name + "-new-points.json"))
-PY
-}
 
 variant() {  # NAME TRAIN-ARGS... (the data: DATA, or ORACLE_DATA when the first is --oracle-data)
     local name=$1; shift
@@ -44,7 +33,7 @@ variant() {  # NAME TRAIN-ARGS... (the data: DATA, or ORACLE_DATA when the first
     rm -rf "runs/$name"
     "$DC" train "${data[@]}" "${COMMON[@]}" --out "runs/$name" "$@"
     "$DC" export "runs/$name" --out "$OUT/$name.onnx"
-    new_points_card "$name"
+    "$PY" -m training.new_points_card "$OUT/$name.json"
     echo "$name: trained and exported in ${SECONDS} s"
 }
 
