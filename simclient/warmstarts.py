@@ -121,6 +121,8 @@ class OracleMix(Provider):
             raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
 
     def warm_start(self, engine, bodies, points, step):
+        if len(points) == 0:
+            return None  # nothing to warm-start
         exact = np.nan_to_num(engine.oracle()).astype(np.float64)  # NaN: outside every awake island
         builtin = points["builtin"].astype(np.float64)
         new = ~builtin.any(axis=1)

@@ -50,6 +50,16 @@ def test_oracle_experiments_say_where_a_warm_start_pays():
     assert its["oracle:grid@0.25"] < 0.7 * its["builtin"] < its["oracle:grid@2"]
 
 
+def test_oracle_experiments_pass_steps_without_contacts_quietly():
+    import warnings
+
+    falling = dataclasses.replace(SceneSpec.thesis(), steps=40)  # no contact for the first steps
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for name in ("oracle:heavy", "oracle:grid@0.5"):
+            assert mean_iterations(name, falling) is not None
+
+
 def test_unknown_warm_starts_are_refused():
     with pytest.raises(ValueError, match="unknown warm start"):
         make_provider("magic")
