@@ -21,6 +21,9 @@ scene family at N bodies (radius 0.3-0.55 m, friction 0.2-0.8) in a square
 box growing with N so the density stays the thesis's (15 m per 100 bodies,
 times sqrt(N / 100)); the server's grids grow with the box.
 
+"first round trip" is the median over seeds of each simulation's first served step,
+which a server that had not run this grid size before would be slow on (the
+server warms a model up when a stream declares its world, so it should not be).
 The deadline is long (1 s by default) so that every step is served and
 timed, not replaced by builtin. Writes DIR/walltime.json, DIR/walltime.md
 (the table) and DIR/walltime.png (step time against bodies, one line per
@@ -88,6 +91,11 @@ def step_times(run: dict, learned: bool) -> dict[str, np.ndarray]:
     return out
 
 
+def _first_round_trip(run: dict) -> float:
+    """Round trip (ms) of a simulation's first served step: the one a cold server would be slow on."""
+    return next(lat for lat in run["per_step"]["latency_ms"] if lat is not None)
+
+
 def summarize_size(builtin: list[dict], learned: list[dict]) -> dict:
     """One size's row from builtin's and the model's runs on the same seeds."""
     b = {k: np.concatenate([step_times(r, False)[k] for r in builtin]) for k in step_times(builtin[0], False)}
@@ -107,7 +115,8 @@ def summarize_size(builtin: list[dict], learned: list[dict]) -> dict:
                     "round_trip_ms": float(np.median(m["provider_ms"])),
                     "mean_iterations": float(m["velocity_iterations"].mean()),
                     "mean_step_ms": float(m["step_ms"].mean()),
-                    "fallback_steps": int(sum(r["summary"]["fallback_steps"] for r in learned))},
+                    "fallback_steps": int(sum(r["summary"]["fallback_steps"] for r in learned)),
+                    "first_round_trip_ms": float(np.median([_first_round_trip(r) for r in learned]))},
         "ms_per_iteration": per_iteration,
         "break_even_iterations": overhead / per_iteration if per_iteration > 0 else None,
         "saved_iterations": saved,
@@ -179,13 +188,14 @@ def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
              f"Learned: server:{model}.",
              "",
              "| world | bodies | points | builtin step | builtin solve | learned step | learned solve | round trip "
-             "| overhead | ms / iteration | break-even iterations | saved iterations | fallbacks |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| first round trip | overhead | ms / iteration | break-even iterations | saved iterations | fallbacks |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in rows.items():
         b, m = r["builtin"], r["learned"]
         be = "–" if r["break_even_iterations"] is None else f"{r['break_even_iterations']:.0f}"
         lines.append(f"| {name} | {r['bodies']} | {r['median_contact_points']:.0f} | {b['step_ms']:.2f} | "
                      f"{b['solve_ms']:.2f} | {m['step_ms']:.2f} | {m['solve_ms']:.2f} | {m['round_trip_ms']:.2f} | "
+                     f"{m['first_round_trip_ms']:.2f} | "
                      f"{m['overhead_ms']:.2f} | {r['ms_per_iteration']:.4f} | {be} | {r['saved_iterations']:.0f} | "
                      f"{m['fallback_steps']} |")
     return "\n".join(lines) + "\n"

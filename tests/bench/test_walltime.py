@@ -31,6 +31,7 @@ def test_bench_walltime_times_both_warm_starts_on_every_size(tmp_path):
     thesis = result["sizes"]["thesis"]
     assert thesis["learned"]["fallback_steps"] == 0  # served, so timed
     assert thesis["learned"]["round_trip_ms"] > 0 and thesis["ms_per_iteration"] > 0
+    assert thesis["learned"]["first_round_trip_ms"] > 0
     # Builtin's step is Box2D's own work; the learned one adds the round trip.
     assert thesis["learned"]["step_ms"] > thesis["learned"]["solve_ms"] + thesis["learned"]["collide_ms"]
     assert thesis["break_even_iterations"] == pytest.approx(thesis["learned"]["overhead_ms"] / thesis["ms_per_iteration"])
