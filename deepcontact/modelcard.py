@@ -18,7 +18,10 @@ or any grid size (Pressure, fully convolutional).
 contact point, given Box2D's builtin warm start sent in the request:
     "replace"     the model's impulse (the thesis's models)
     "residual"    builtin + the model's output (a correction; models whose
-                  inputs include builtin_normal/builtin_tangent)
+                  inputs include builtin_normal/builtin_tangent), times the
+                  card's `correction_scale` (default 1): a scale below 1 keeps
+                  a doubtful correction from disturbing points Box2D already has
+                  nearly right
     "new-points"  the model's impulse where the point is new this step
                   (builtin exactly zero), builtin where it persists
 Several cards may name the same ONNX file, e.g. one model served two ways.
@@ -63,6 +66,7 @@ class ModelCard:
     input_name: str = "grids"
     output_name: str = "impulses"
     combine: str = "replace"  # "replace", "residual" or "new-points" (see above)
+    correction_scale: float = 1.0  # "residual": builtin + correction_scale x the model's correction
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...

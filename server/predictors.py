@@ -217,16 +217,17 @@ class ModelPredictor(Predictor):
         t2 = time.perf_counter()
         out = norm.targets(y)  # == spec.denormalize(y[0], "targets")
         impulses, _ = contacts.g2p(out)  # == g2p(out, points["point"], spec, outside="drop")
-        impulses = combine(self.card.combine, impulses, points["builtin"])
+        impulses = combine(self.card.combine, impulses, points["builtin"], self.card.correction_scale)
         t3 = time.perf_counter()
         return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
 
 
-def combine(how: str, predicted: np.ndarray, builtin: np.ndarray) -> np.ndarray:
+def combine(how: str, predicted: np.ndarray, builtin: np.ndarray, scale: float = 1.0) -> np.ndarray:
     """The warm start served, (P, 2) N s, from the model's G2P output and the
-    request's builtin warm start (both (P, 2)); see deepcontact.modelcard."""
+    request's builtin warm start (both (P, 2)); see deepcontact.modelcard.
+    scale multiplies a residual model's correction (the card's correction_scale)."""
     if how == "residual":
-        return predicted + builtin
+        return builtin + scale * predicted if scale != 1.0 else predicted + builtin
     if how == "new-points":
         new = ~builtin.any(axis=1)  # Box2D carries no impulse into a point it has not seen
         return np.where(new[:, None], predicted, builtin)

@@ -39,7 +39,7 @@ rm -rf runs/pressure
 "$DC" train --model pressure --train "$TRAIN" --val "$VAL" --out runs/pressure "${RECIPE[@]}" \
     --epochs 15 --patience 4 --max-steps-per-file 10000 --max-val-steps 2000
 "$DC" export runs/pressure --out models/pressure.onnx
-"$PY" -m training.new_points_card models/pressure.json
+"$PY" -m training.card_variant models/pressure.json --combine new-points
 echo "pressure trained after ${SECONDS} s"
 
 rm -rf runs/residual
@@ -48,7 +48,7 @@ rm -rf runs/residual
     --inputs mass,vx,vy,omega,normal_x,normal_y,builtin_normal,builtin_tangent \
     --targets correction_normal,correction_tangent
 "$DC" export runs/residual --out models/residual.onnx      # combine: residual (from the targets)
-"$PY" -m training.new_points_card models/residual.json
+"$PY" -m training.card_variant models/residual.json --combine new-points
 echo "residual trained after ${SECONDS} s"
 
 tmp=models/.default.json.part

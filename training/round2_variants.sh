@@ -33,7 +33,7 @@ variant() {  # NAME TRAIN-ARGS... (the data: DATA, or ORACLE_DATA when the first
     rm -rf "runs/$name"
     "$DC" train "${data[@]}" "${COMMON[@]}" --out "runs/$name" "$@"
     "$DC" export "runs/$name" --out "$OUT/$name.onnx"
-    "$PY" -m training.new_points_card "$OUT/$name.json"
+    "$PY" -m training.card_variant "$OUT/$name.json" --combine new-points
     echo "$name: trained and exported in ${SECONDS} s"
 }
 
@@ -50,10 +50,15 @@ run() {
     # Capacity: Tirca's encoder-decoder with skips, same inputs and targets as points-residual-contact.
     unet-residual-contact) variant $1 --model unet --inputs $BASE,$CONTACT \
         --targets correction_normal,correction_tangent ;;
+    # The correction shrunk (a card variant, no training): builtin + 0.5 or 0.25 x the correction.
+    shrink) for scale in 0.5 0.25; do
+                "$PY" -m training.card_variant "$OUT/points-residual-contact.json" --correction-scale $scale
+            done ;;
     *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }
 
 VARIANTS=("$@")
-[ ${#VARIANTS[@]} -gt 0 ] || VARIANTS=(points-residual points-residual-contact oracle-residual-contact unet-residual-contact)
+[ ${#VARIANTS[@]} -gt 0 ] || VARIANTS=(points-residual points-residual-contact shrink unet-residual-contact
+                                     oracle-residual-contact)
 for v in "${VARIANTS[@]}"; do run "$v"; done

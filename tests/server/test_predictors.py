@@ -164,6 +164,8 @@ def test_combine_serves_model_builtin_or_both():
     np.testing.assert_array_equal(combine("replace", predicted, builtin), predicted)
     np.testing.assert_array_equal(combine("residual", predicted, builtin), predicted + builtin)
     np.testing.assert_array_equal(combine("new-points", predicted, builtin), np.array([[0.5, 0.0], [2.0, 0.2], [0.0, -0.1]], np.float32))
+    # A card's correction_scale shrinks a residual model's correction.
+    np.testing.assert_allclose(combine("residual", predicted, builtin, 0.5), builtin + 0.5 * predicted)
 
 
 def test_cards_may_share_an_onnx_file_and_orphans_are_refused(tmp_path):

@@ -1,0 +1,64 @@
+"""Another card for an exported model: the same ONNX served another way.
+
+    python -m training.card_variant models/residual.json --combine new-points
+        # models/residual-new-points.json: the model only where a contact point is new
+    python -m training.card_variant models/residual.json --correction-scale 0.5
+        # models/residual-x0.5.json: builtin + half the model's correction
+
+Same ONNX file and GridSpec; another name and `combine` or `correction_scale`
+(deepcontact.modelcard). The card is written beside the original (temporary
+name, then rename).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from deepcontact.modelcard import COMBINE, ModelCard, ModelCardError
+
+
+def card_variant(path: Path, *, combine: str | None = None, correction_scale: float | None = None,
+                 name: str | None = None) -> Path:
+    """Write the variant beside the card at path; returns its path. Default name:
+    NAME-new-points (or NAME-COMBINE) and/or NAME-xSCALE."""
+    card = ModelCard.load(path)
+    changes = {}
+    suffix = ""
+    if combine is not None:
+        changes["combine"] = combine
+        suffix += f"-{combine}"
+    if correction_scale is not None:
+        if not correction_scale > 0:
+            raise ValueError(f"--correction-scale must be > 0, got {correction_scale}")
+        changes["correction_scale"] = correction_scale
+        suffix += f"-x{correction_scale:g}"
+    if not changes:
+        raise ValueError("nothing to change: give --combine and/or --correction-scale")
+    name = name or card.name + suffix
+    out = path.with_name(f"{name}.json")
+    dataclasses.replace(card, name=name, **changes).save(out)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m training.card_variant",
+                                     description="another card for an exported model (same ONNX)")
+    parser.add_argument("card", type=Path, help="the model's card, e.g. models/residual.json")
+    parser.add_argument("--combine", choices=COMBINE, help="how the output becomes the warm start")
+    parser.add_argument("--correction-scale", type=float, help="residual models: scale of the correction")
+    parser.add_argument("--name", help="the variant's name (default: derived from the changes)")
+    args = parser.parse_args(argv)
+    try:
+        out = card_variant(args.card, combine=args.combine, correction_scale=args.correction_scale, name=args.name)
+    except (ModelCardError, ValueError) as exc:
+        print(f"card_variant: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
