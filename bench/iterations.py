@@ -203,9 +203,13 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
 
 def markdown_table(summaries: dict, seeds: list[int], scene: str, ratios: dict | None = None) -> str:
     ratios = ratios or {}
-    seed_text = f"seeds {seeds[0]}-{seeds[-1]}" if seeds == list(range(seeds[0], seeds[-1] + 1)) else \
-        f"seeds {', '.join(map(str, seeds))}"
-    lines = [f"Scene `{scene}`, {seed_text} ({len(seeds)} worlds); velocity iterations over steps with contacts. "
+    if len(seeds) == 1:
+        seed_text = f"seed {seeds[0]} (1 world)"
+    elif seeds == list(range(seeds[0], seeds[-1] + 1)):
+        seed_text = f"seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds)"
+    else:
+        seed_text = f"seeds {', '.join(map(str, seeds))} ({len(seeds)} worlds)"
+    lines = [f"Scene `{scene}`, {seed_text}; velocity iterations over steps with contacts. "
              "Ratios to builtin with their 95 % bootstrap interval over seeds; ✓: the whole interval lies below 1.",
              "",
              "| warm start | mean | / builtin | median | median / builtin | p90 | p90 / builtin | MSE normal "
