@@ -15,7 +15,7 @@ import sys
 
 # (path of words, module, one-line help)
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
-    (("demo",), "deepcontact.demo", "run the main job: server, simulations, results table"),
+    (("demo",), "bench.demo", "run the main job: server, simulations, results table"),
     (("generate",), "training.generate", "record simulations into an HDF5 training file"),
     (("train",), "training.train", "fit a Pressure or Peak model on recorded simulations (resumable)"),
     (("export",), "training.export", "export a finished training run to ONNX with its model card"),

@@ -7,7 +7,8 @@ waits for its health check, runs the thesis world on a held-out seed with
 which), prints the table
 (iterations per step, round-trip latency, fallbacks), writes the figures to
 the folder it names, and stops the server, also when a step fails. It is
-`deepcontact bench iterations` with a fixed small selection.
+`deepcontact bench iterations` with a fixed small selection, so it lives with
+the benchmarks, above the parts it composes (server, simclient, deepcontact).
 """
 
 from __future__ import annotations
