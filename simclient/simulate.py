@@ -56,6 +56,58 @@ class StepRecord:
     reconnect: bool  # this step's request went on a stream reopened after the first
 
 
+@dataclasses.dataclass
+class _Served:
+    """What one step got from the server: the warm start (None: Box2D's own) and what it cost."""
+
+    warm: tuple[np.ndarray, np.ndarray] | None = None
+    latency_ms: float | None = None  # the round trip, or until the step failed
+    server_us: dict | None = None  # the server's stage timings
+    codec_s: float = 0.0  # encoding the request and decoding the reply, seconds
+    fallback_reason: str | None = None  # set: the step fell back to builtin
+    reconnect: bool = False
+
+
+class _Laps:
+    """Seconds between successive calls of lap(): one step's parts, timed in order."""
+
+    def __init__(self):
+        self._t = time.perf_counter()
+
+    def lap(self) -> float:
+        now = time.perf_counter()
+        seconds, self._t = now - self._t, now
+        return seconds
+
+
+def _ask_server(client, provider: Provider, engine, k: int, bodies, points, timeout: float) -> _Served:
+    """Step k's warm start from the server, or a counted fallback."""
+    from simclient.client import StepFailed
+
+    if len(points) == 0:
+        return _Served()  # nothing to warm-start; no round trip
+    if client is None:
+        return _Served(fallback_reason="NO_SERVER")
+    oracle = engine.oracle() if provider.sends_oracle else None
+    t0 = time.perf_counter()
+    request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"], impulses=oracle)
+    t1 = time.perf_counter()
+    streams = client.reconnects
+    try:
+        reply = client.step(request, timeout)
+    except StepFailed as exc:
+        return _Served(latency_ms=1e3 * (time.perf_counter() - t1), fallback_reason=exc.reason,
+                       reconnect=client.reconnects > streams)
+    t2 = time.perf_counter()
+    warm = wire.decode_impulses(reply)
+    t3 = time.perf_counter()
+    tm = reply.timings
+    return _Served(warm=warm, latency_ms=1e3 * (t2 - t1), codec_s=(t1 - t0) + (t3 - t2),
+                   server_us={"decode": tm.decode_us, "p2g": tm.p2g_us, "inference": tm.inference_us,
+                              "g2p": tm.g2p_us, "total": tm.total_us},
+                   reconnect=client.reconnects > streams)
+
+
 def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=None,
                    deadline_ms: float = DEFAULT_DEADLINE_MS, progress=None) -> dict:
     """Simulate (spec, seed) with `provider`; returns {"per_step": ..., "summary": ...}.
@@ -63,8 +115,6 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     client: a simclient.client.WarmStartClient for `server:` providers (its
     world is set here); None makes every server step a fallback.
     """
-    from simclient.client import StepFailed
-
     engine = build_world(spec, seed)
     provider.prepare(engine)
     if client is not None:
@@ -75,68 +125,45 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     records: list[StepRecord] = []
     timeout = deadline_ms / 1e3
     for k in range(spec.steps):
-        tc = time.perf_counter()
+        laps = _Laps()
         engine.collide()
-        t0 = time.perf_counter()
+        collide_s = laps.lap()
         bodies, points = engine.bodies(), engine.contacts()
-        client_s = export_s = time.perf_counter() - t0
-        collide_s, inject_s = t0 - tc, 0.0
-        latency_ms = server_us = fallback_reason = None
-        fallback = reconnect = False
-        tp = time.perf_counter()
+        export_s = laps.lap()
         if provider.uses_server:
-            warm = None
-            if len(points) == 0:
-                pass  # nothing to warm-start; no round trip
-            elif client is None:
-                fallback, fallback_reason = True, "NO_SERVER"
-            else:
-                oracle = engine.oracle() if provider.sends_oracle else None
-                tq = time.perf_counter()
-                request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"],
-                                           impulses=oracle)
-                t2 = time.perf_counter()
-                streams = client.reconnects
-                try:
-                    reply = client.step(request, timeout)
-                    t3 = time.perf_counter()
-                    warm = wire.decode_impulses(reply)
-                    t4 = time.perf_counter()
-                    latency_ms = 1e3 * (t3 - t2)
-                    tm = reply.timings
-                    server_us = {"decode": tm.decode_us, "p2g": tm.p2g_us, "inference": tm.inference_us,
-                                 "g2p": tm.g2p_us, "total": tm.total_us}
-                    client_s += (t2 - tq) + (t4 - t3)
-                except StepFailed as exc:
-                    fallback, fallback_reason = True, exc.reason
-                    latency_ms = 1e3 * (time.perf_counter() - t2)
-                reconnect = client.reconnects > streams
+            served = _ask_server(client, provider, engine, k, bodies, points, timeout)
         else:
-            warm = provider.warm_start(engine, bodies, points, k)
-        provider_s = time.perf_counter() - tp
-        if warm is not None:
-            t5 = time.perf_counter()
-            engine.set_warm_start(*warm)
-            inject_s = time.perf_counter() - t5
-            client_s += inject_s
+            served = _Served(warm=provider.warm_start(engine, bodies, points, k))
+        provider_s = laps.lap()
+        inject_s = 0.0
+        if served.warm is not None:
+            engine.set_warm_start(*served.warm)
+            inject_s = laps.lap()
         stats = engine.solve()
-        after = engine.contacts()
-        provider.observe(after)
-        mse_n = mse_t = None
-        if len(after):
-            err = after["warm_start"] - after["impulse"]
-            mse_n, mse_t = float(np.mean(err[:, 0] ** 2)), float(np.mean(err[:, 1] ** 2))
-        records.append(StepRecord(
-            contact_points=stats.contact_points, velocity_iterations=stats.velocity_iterations,
-            position_iterations=stats.position_iterations,
-            residual_trace=[float(x) for x in stats.residual_trace],
-            mse_normal=mse_n, mse_tangent=mse_t, latency_ms=latency_ms, server_us=server_us,
-            client_us=1e6 * client_s, provider_ms=1e3 * provider_s, solve_ms=stats.solve_ms,
-            collide_ms=1e3 * collide_s, export_ms=1e3 * export_s, inject_ms=1e3 * inject_s,
-            fallback=fallback, fallback_reason=fallback_reason, reconnect=reconnect))
+        records.append(_record(stats, engine.contacts(), served, provider,
+                               collide_s=collide_s, export_s=export_s, provider_s=provider_s, inject_s=inject_s))
         if progress is not None:
             progress(k)
     return {"per_step": _columns(records), "summary": summarize(records)}
+
+
+def _record(stats, after: np.ndarray, served: _Served, provider: Provider, *, collide_s: float, export_s: float,
+            provider_s: float, inject_s: float) -> StepRecord:
+    """One step's record from the solve's statistics and the contact points after it (seconds in)."""
+    provider.observe(after)
+    mse_n = mse_t = None
+    if len(after):
+        err = after["warm_start"] - after["impulse"]
+        mse_n, mse_t = float(np.mean(err[:, 0] ** 2)), float(np.mean(err[:, 1] ** 2))
+    return StepRecord(
+        contact_points=stats.contact_points, velocity_iterations=stats.velocity_iterations,
+        position_iterations=stats.position_iterations,
+        residual_trace=[float(x) for x in stats.residual_trace],
+        mse_normal=mse_n, mse_tangent=mse_t, latency_ms=served.latency_ms, server_us=served.server_us,
+        client_us=1e6 * (export_s + served.codec_s + inject_s), provider_ms=1e3 * provider_s,
+        solve_ms=stats.solve_ms, collide_ms=1e3 * collide_s, export_ms=1e3 * export_s, inject_ms=1e3 * inject_s,
+        fallback=served.fallback_reason is not None, fallback_reason=served.fallback_reason,
+        reconnect=served.reconnect)
 
 
 def _columns(records: list[StepRecord]) -> dict[str, list]:
