@@ -5,7 +5,7 @@
 #   bash training/round2_data.sh            the records (about 1 s per simulation and core)
 #   ORACLE=1 bash training/round2_data.sh   also smaller files with each step solved from
 #                                           zero (--oracle, for oracle_* targets; about
-#                                           9 s per simulation and core)
+#                                           ten times as long)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
