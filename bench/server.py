@@ -33,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=900, help="thesis-world seed (default 900)")
     parser.add_argument("--steps", type=int, default=250, help="steps recorded and sent (default 250)")
     parser.add_argument("--rounds", type=int, default=4, help="times the recorded steps are streamed (default 4)")
+    parser.add_argument("--intra-op-threads", type=int, default=1,
+                        help="the server's ONNX Runtime threads per inference (default 1, serve's default)")
     parser.add_argument("--json", metavar="FILE", help="write the results here as JSON")
 
 
@@ -64,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
               f"{args.seed} (bodies still falling); give more --steps", file=sys.stderr)
         return 2
     try:
-        server = ServerProcess(args.models).start()
+        server = ServerProcess(args.models, "--intra-op-threads", str(args.intra_op_threads)).start()
     except (RuntimeError, TimeoutError) as exc:
         print(f"deepcontact bench server: {exc}", file=sys.stderr)
         return 2
@@ -103,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     n_points = [len(p) for _, p in recorded]
     result = {
         "model": args.model, "seed": args.seed, "steps": len(recorded), "rounds": args.rounds,
+        "intra_op_threads": args.intra_op_threads,
         "median_contact_points": statistics.median(n_points),
         "server_us_median": {k: statistics.median(v) for k, v in stages.items()},
         "server_us_p90": {k: float(np.percentile(v, 90)) for k, v in stages.items()},
