@@ -65,7 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="micro-batching: largest batch across streams (default 0: off)")
     parser.add_argument("--batch-delay-us", type=int, default=500,
                         help="micro-batching: longest wait for a batch to fill, microseconds (default 500)")
-    parser.add_argument("--intra-op-threads", type=int, default=1, help="ONNX Runtime threads per inference (default 1)")
+    parser.add_argument("--intra-op-threads", type=int, default=1,
+                        help="ONNX Runtime threads per inference (default 1: best under load; 2 halves one "
+                             "stream's inference on 2 cores, docs/performance.md)")
     parser.add_argument("--inter-op-threads", type=int, default=1, help="ONNX Runtime inter-op threads (default 1)")
     parser.add_argument("--max-bodies", type=int, default=Limits.max_bodies, help="bodies per step (default %(default)s)")
     parser.add_argument("--max-points", type=int, default=Limits.max_points, help="contact points per step (default %(default)s)")
