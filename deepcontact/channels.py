@@ -27,7 +27,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_velocities
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_frame, contact_velocities, effective_masses
 from deepcontact.records import CONTACT_DTYPE
 
 __all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "NEEDS", "SOURCES", "Channel", "Source", "Step",
@@ -50,19 +50,20 @@ class Step:
     Derived arrays are computed once, when a channel first asks.
     """
 
-    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "_velocities", "_after_builtin")
+    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "_velocities", "_after_builtin", "_masses",
+                 "_frame")
 
     def __init__(self, bodies: np.ndarray | None, contacts: np.ndarray | None, previous: np.ndarray | None = None,
                  physics: Physics = Physics(), oracle: np.ndarray | None = None):
         self.bodies, self.contacts, self.previous = bodies, contacts, previous
         self.physics, self.oracle = physics, oracle
-        self._velocities = self._after_builtin = None
+        self._velocities = self._after_builtin = self._masses = self._frame = None
 
     def velocities(self) -> np.ndarray:
         """(P, 2) m/s: relative (normal, tangent) velocity after gravity."""
         if self._velocities is None:
             self._velocities = contact_velocities(self._bodies("contact velocities"), self.contacts,
-                                                  physics=self.physics)
+                                                  physics=self.physics, frame=self.frame())
         return self._velocities
 
     def velocities_after_builtin(self) -> np.ndarray:
@@ -70,8 +71,25 @@ class Step:
         solver's first sweep sees when it warm-starts as Box2D does."""
         if self._after_builtin is None:
             self._after_builtin = contact_velocities(self._bodies("contact velocities"), self.contacts,
-                                                     self.contacts["builtin"], self.physics)
+                                                     self.contacts["builtin"], self.physics, self.frame())
         return self._after_builtin
+
+    def frame(self):
+        """The contact points' ContactFrame (deepcontact.kinematics), shared by the quantities below."""
+        if self._frame is None:
+            self._frame = contact_frame(self._bodies("contact quantities"), self.contacts)
+        return self._frame
+
+    def masses(self) -> np.ndarray:
+        """(P, 2) kg: each point's effective mass along its normal and tangent."""
+        if self._masses is None:
+            self._masses = effective_masses(self._bodies("effective masses"), self.contacts, self.frame())
+        return self._masses
+
+    def jacobi(self) -> np.ndarray:
+        """(P, 2) N s: one Jacobi step from the builtin warm start, -mass x velocity after it:
+        the change each point would make alone to stop its relative motion."""
+        return -self.masses() * self.velocities_after_builtin()
 
     def oracle_impulses(self) -> np.ndarray:
         if self.oracle is None:
@@ -200,6 +218,16 @@ _DEFINITIONS = (
             needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("vt_builtin", "contacts", _derived("velocities_after_builtin", 1), "m/s",
             "relative tangent velocity after gravity and the builtin warm start",
+            needs=_VELOCITY + ("body_inertia", "builtin")),
+    Channel("normal_mass", "contacts", _derived("masses", 0), "kg",
+            "effective mass along the normal (Box2D's normalMass)", needs=("point_bodies", "body_inertia")),
+    Channel("tangent_mass", "contacts", _derived("masses", 1), "kg",
+            "effective mass along the tangent (Box2D's tangentMass)", needs=("point_bodies", "body_inertia")),
+    Channel("jacobi_normal", "contacts", _derived("jacobi", 0), "N s",
+            "one Jacobi step from the builtin warm start: -normal_mass x vn_builtin",
+            needs=_VELOCITY + ("body_inertia", "builtin")),
+    Channel("jacobi_tangent", "contacts", _derived("jacobi", 1), "N s",
+            "one Jacobi step from the builtin warm start: -tangent_mass x vt_builtin",
             needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("warm_start_normal", "contacts", _field("warm_start", 0), "N s", "warm start used, normal"),
     Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),

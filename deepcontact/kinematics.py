@@ -62,8 +62,43 @@ def _cross(r: np.ndarray, v: np.ndarray) -> np.ndarray:
     return r[:, 0] * v[:, 1] - r[:, 1] * v[:, 0]
 
 
+@dataclasses.dataclass(frozen=True)
+class ContactFrame:
+    """What every quantity at a step's contact points starts from, computed once.
+
+    a, b: (P,) body rows of each point; dynamic (B,) bool; inv_mass (B,) 1/kg and
+    inv_inertia (B,) 1/(kg m^2), 0 for bodies that are not dynamic; n, t (P, 2)
+    normal and tangent; ra, rb (P, 2) m, the point relative to each body's centre.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    dynamic: np.ndarray
+    inv_mass: np.ndarray
+    inv_inertia: np.ndarray
+    n: np.ndarray
+    t: np.ndarray
+    ra: np.ndarray
+    rb: np.ndarray
+
+
+def contact_frame(bodies: np.ndarray, points: np.ndarray) -> ContactFrame:
+    """The ContactFrame of points (P,) CONTACT_DTYPE between bodies (B,) BODY_DTYPE."""
+    a = points["body_a"].astype(np.intp)
+    b = points["body_b"].astype(np.intp)
+    if len(points) and (a.min() < 0 or b.min() < 0 or max(a.max(), b.max()) >= len(bodies)):
+        raise ValueError(f"contact points name bodies outside 0..{len(bodies) - 1}")
+    dynamic = bodies["type"] == BODY_DYNAMIC
+    centre = bodies["position"].astype(np.float64)
+    p = points["point"].astype(np.float64)
+    n = points["normal"].astype(np.float64)
+    return ContactFrame(a, b, dynamic, _inverse(bodies["mass"].astype(np.float64), dynamic),
+                        _inverse(bodies["inertia"].astype(np.float64), dynamic), n,
+                        np.stack([n[:, 1], -n[:, 0]], axis=1), p - centre[a], p - centre[b])
+
+
 def contact_velocities(bodies: np.ndarray, points: np.ndarray, warm: np.ndarray | None = None,
-                       physics: Physics = Physics()) -> np.ndarray:
+                       physics: Physics = Physics(), frame: ContactFrame | None = None) -> np.ndarray:
     """Relative (normal, tangent) velocity at each contact point, (P, 2) float64 m/s.
 
     bodies: (B,) BODY_DTYPE indexed by the points' body_a/body_b.
@@ -71,40 +106,51 @@ def contact_velocities(bodies: np.ndarray, points: np.ndarray, warm: np.ndarray 
     warm: optional (P, 2) (normal, tangent) impulses, N s, applied to the
         bodies first, as Box2D applies a warm start.
     physics: this step's gravity and time step, added to dynamic bodies first.
+    frame: contact_frame(bodies, points), when the caller already has it.
     """
     n_points = len(points)
     if n_points == 0:
         return np.zeros((0, 2))
-    a = points["body_a"].astype(np.intp)
-    b = points["body_b"].astype(np.intp)
-    if a.min() < 0 or b.min() < 0 or max(a.max(), b.max()) >= len(bodies):
-        raise ValueError(f"contact points name bodies outside 0..{len(bodies) - 1}")
-    dynamic = bodies["type"] == BODY_DYNAMIC
-    centre = bodies["position"].astype(np.float64)
+    f = contact_frame(bodies, points) if frame is None else frame
+    a, b, dynamic, n, t, ra, rb = f.a, f.b, f.dynamic, f.n, f.t, f.ra, f.rb
     v = bodies["velocity"].astype(np.float64) * dynamic[:, None]
     w = bodies["angular_velocity"].astype(np.float64) * dynamic
     if physics.dt:
         v = v + np.multiply(physics.dt, physics.gravity) * dynamic[:, None]
-    p = points["point"].astype(np.float64)
-    n = points["normal"].astype(np.float64)
-    t = np.stack([n[:, 1], -n[:, 0]], axis=1)
-    ra, rb = p - centre[a], p - centre[b]
     if warm is not None:
         warm = np.asarray(warm, np.float64)
         if warm.shape != (n_points, 2):
             raise ValueError(f"warm must be ({n_points}, 2), got {warm.shape}")
         impulse = warm[:, :1] * n + warm[:, 1:] * t  # (P, 2) N s on B, its opposite on A
         n_bodies = len(bodies)
-        inv_m = _inverse(bodies["mass"].astype(np.float64), dynamic)
-        inv_i = _inverse(bodies["inertia"].astype(np.float64), dynamic)
         idx = np.concatenate([b, a])
         dv = np.stack([np.bincount(idx, np.concatenate([impulse[:, k], -impulse[:, k]]), n_bodies)
                        for k in (0, 1)], axis=1)
         dw = np.bincount(idx, np.concatenate([_cross(rb, impulse), -_cross(ra, impulse)]), n_bodies)
-        v = v + dv * inv_m[:, None]
-        w = w + dw * inv_i
+        v = v + dv * f.inv_mass[:, None]
+        w = w + dw * f.inv_inertia
     # Velocity of each body at the contact point: v + w x r.
     va = v[a] + w[a, None] * np.stack([-ra[:, 1], ra[:, 0]], axis=1)
     vb = v[b] + w[b, None] * np.stack([-rb[:, 1], rb[:, 0]], axis=1)
     rel = vb - va
     return np.stack([(rel * n).sum(axis=1), (rel * t).sum(axis=1)], axis=1)
+
+
+def effective_masses(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame | None = None) -> np.ndarray:
+    """Each point's effective mass along its normal and its tangent, (P, 2) float64 kg.
+
+    k = 1 / (1/m_A + 1/m_B + (r_A x d)^2 / I_A + (r_B x d)^2 / I_B) for the
+    direction d (normal, then tangent): the impulse that changes the relative
+    velocity along d by 1 m/s when this point acts alone, Box2D's normalMass
+    and tangentMass. A point between two bodies that cannot move gets 0.
+    bodies, points, frame: as in contact_velocities.
+    """
+    if len(points) == 0:
+        return np.zeros((0, 2))
+    f = contact_frame(bodies, points) if frame is None else frame
+    inv_m, inv_i = f.inv_mass, f.inv_inertia
+    out = np.empty((len(points), 2))
+    for k, d in enumerate((f.n, f.t)):  # two directions, not a loop over points
+        inverse = inv_m[f.a] + inv_m[f.b] + inv_i[f.a] * _cross(f.ra, d) ** 2 + inv_i[f.b] * _cross(f.rb, d) ** 2
+        out[:, k] = _inverse(inverse, inverse > 0)
+    return out

@@ -21,7 +21,10 @@ contact point, given Box2D's builtin warm start sent in the request:
                   inputs include builtin_normal/builtin_tangent), times the
                   card's `correction_scale` (default 1): a scale below 1 keeps
                   a doubtful correction from disturbing points Box2D already has
-                  nearly right
+                  nearly right; corrections whose normal part is at most the
+                  card's `correction_threshold` (N s, default 0) are dropped:
+                  most contacts need next to none, and a model's small guesses
+                  there are noise the solver must first remove
     "new-points"  the model's impulse where the point is new this step
                   (builtin exactly zero), builtin where it persists
 Several cards may name the same ONNX file, e.g. one model served two ways.
@@ -67,6 +70,7 @@ class ModelCard:
     output_name: str = "impulses"
     combine: str = "replace"  # "replace", "residual" or "new-points" (see above)
     correction_scale: float = 1.0  # "residual": builtin + correction_scale x the model's correction
+    correction_threshold: float = 0.0  # "residual": drop corrections whose normal part is at most this (N s)
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...

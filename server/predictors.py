@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from deepcontact.channels import needs
+from deepcontact.channels import Step, channel_values, needs
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
-from deepcontact.kinematics import Physics
+from deepcontact.kinematics import BODY_DYNAMIC, Physics
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.transfer import plan
 
@@ -58,6 +58,7 @@ class Predictor:
     fixed_grid: bool = False
     gridspec: GridSpec | None = None
     requires: tuple[str, ...] = ()
+    batchable: bool = False  # infer(x) on one (1, ny, nx, C) grid, which server.batching can stack
 
     def predict(self, bodies: np.ndarray, points: np.ndarray, world: World, step: int,
                 previous: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
@@ -141,24 +142,32 @@ class _DomainSpecs:
         return entry
 
 
+def _session(onnx_path: Path, intra_op_threads: int, inter_op_threads: int):
+    """An ONNX Runtime CPU session with the server's thread counts. The other session
+    options stay at ONNX Runtime's defaults: none measured faster (docs/performance.md)."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = intra_op_threads
+    options.inter_op_num_threads = inter_op_threads
+    options.log_severity_level = 3
+    return ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
+
+
 class ModelPredictor(Predictor):
     """An exported CNN with its card. `infer` runs the ONNX session, directly or
     through a micro-batcher (server.batching)."""
 
+    batchable = True
+
     def __init__(self, card: ModelCard, onnx_path: Path, *, intra_op_threads: int = 1,
                  inter_op_threads: int = 1):
-        import onnxruntime as ort
-
         self.card = card
         self.name = card.name
         self.kind = card.kind
         self.fixed_grid = card.fixed_grid
         self.gridspec = card.gridspec
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = intra_op_threads
-        options.inter_op_num_threads = inter_op_threads
-        options.log_severity_level = 3
-        self.session = ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
+        self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
         if card.input_name not in inputs or card.output_name not in outputs:
@@ -217,16 +226,72 @@ class ModelPredictor(Predictor):
         t2 = time.perf_counter()
         out = norm.targets(y)  # == spec.denormalize(y[0], "targets")
         impulses, _ = contacts.g2p(out)  # == g2p(out, points["point"], spec, outside="drop")
-        impulses = combine(self.card.combine, impulses, points["builtin"], self.card.correction_scale)
+        impulses = combine(self.card.combine, impulses, points["builtin"], self.card.correction_scale,
+                           self.card.correction_threshold)
         t3 = time.perf_counter()
         return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
 
 
-def combine(how: str, predicted: np.ndarray, builtin: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """The warm start served, (P, 2) N s, from the model's G2P output and the
+class GraphPredictor(Predictor):
+    """The contact-graph model (card kind "graph", training/graph_model.py): no
+    grids; the card's input channels are read at each contact point, the
+    network passes messages between the points through their bodies, and its
+    output is the correction at each point. Serves any domain."""
+
+    def __init__(self, card: ModelCard, onnx_path: Path, *, intra_op_threads: int = 1,
+                 inter_op_threads: int = 1):
+        self.card, self.name, self.kind = card, card.name, card.kind
+        self.gridspec = card.gridspec
+        self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
+        names = {i.name for i in self.session.get_inputs()}
+        if names != {"points", "ends", "dynamic"} or card.output_name not in [o.name for o in
+                                                                              self.session.get_outputs()]:
+            raise ValueError(f"{onnx_path}: a graph model takes points, ends and dynamic and returns "
+                             f"{card.output_name!r}; this one takes {sorted(names)}")
+        spec = card.gridspec
+        self.inputs = spec.inputs
+        self.in_mean, self.in_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.inputs))
+        self.out_mean, self.out_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.targets))
+        combined = ("builtin",) if card.combine in ("residual", "new-points") else ()
+        self.requires = tuple(sorted(set(needs(spec.inputs) + combined + ("point_bodies",))))
+        self.infer = self.run_session
+        self.run_session(np.zeros((1, len(self.inputs)), np.float32), np.zeros((1, 2), np.int32),
+                         np.zeros((1, 1), np.float32))  # the first run plans memory: not on a served step
+
+    def run_session(self, points: np.ndarray, ends: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+        """points (P, F) float32 normalized, ends (P, 2) int32, dynamic (B, 1) float32 -> (P, T)."""
+        return self.session.run([self.card.output_name], {"points": points, "ends": ends, "dynamic": dynamic})[0]
+
+    def predict(self, bodies, points, world, step, previous=None):
+        t0 = time.perf_counter()
+        if len(points) == 0:
+            return np.zeros((0, 2), np.float32), {}
+        x = channel_values(self.inputs, Step(bodies, points, previous, world.physics)).astype(np.float32)
+        x -= self.in_mean
+        x /= self.in_std
+        ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32, copy=False)
+        dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
+        t1 = time.perf_counter()
+        y = self.infer(x, ends, dynamic)
+        t2 = time.perf_counter()
+        out = y * self.out_std + self.out_mean
+        impulses = combine(self.card.combine, out, points["builtin"], self.card.correction_scale,
+                           self.card.correction_threshold)
+        t3 = time.perf_counter()
+        # The wire names the stages around inference p2g and g2p; here they are the
+        # point features and the output's denormalization and combination.
+        return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
+
+
+def combine(how: str, predicted: np.ndarray, builtin: np.ndarray, scale: float = 1.0,
+            threshold: float = 0.0) -> np.ndarray:
+    """The warm start served, (P, 2) N s, from the model's output and the
     request's builtin warm start (both (P, 2)); see deepcontact.modelcard.
-    scale multiplies a residual model's correction (the card's correction_scale)."""
+    A residual model's correction is dropped where its normal part is at most
+    `threshold` N s, and multiplied by `scale` elsewhere."""
     if how == "residual":
+        if threshold > 0.0:
+            predicted = predicted * (np.abs(predicted[:, :1]) > threshold)
         return builtin + scale * predicted if scale != 1.0 else predicted + builtin
     if how == "new-points":
         new = ~builtin.any(axis=1)  # Box2D carries no impulse into a point it has not seen
@@ -298,9 +363,10 @@ def providers(random_seed: int = 0) -> list[Predictor]:
     ]
 
 
-def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: int = 1) -> list[ModelPredictor]:
+def load_models(folder: Path, *, intra_op_threads: int = 1,
+                inter_op_threads: int = 1) -> list[ModelPredictor | GraphPredictor]:
     """One predictor per card (`*.json`) in folder, each running the ONNX file
-    its card names. An ONNX file that no card names, or a card whose file is
+    its card names (a GraphPredictor for kind "graph", else a ModelPredictor). An ONNX file that no card names, or a card whose file is
     missing or does not match, stops the server with a message."""
     folder = Path(folder)
     cards = {path: ModelCard.load(path) for path in sorted(folder.glob("*.json"))}
@@ -313,6 +379,6 @@ def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: in
         onnx_path = card.onnx_path(path)
         if not onnx_path.exists():
             raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {folder}")
-        models.append(ModelPredictor(card, onnx_path, intra_op_threads=intra_op_threads,
-                                     inter_op_threads=inter_op_threads))
+        cls = GraphPredictor if card.kind == "graph" else ModelPredictor
+        models.append(cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads))
     return models

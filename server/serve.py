@@ -114,7 +114,7 @@ class Server:
                                   inter_op_threads=inter_op_threads) if models else []
         self.batchers = []
         if batch_max > 0:
-            for m in self.models:
+            for m in (m for m in self.models if m.batchable):  # graph models have no grid to stack
                 b = MicroBatcher(m.run_session, max_batch=batch_max, max_delay_us=batch_delay_us,
                                  max_queue=max_queue)
                 m.infer = b

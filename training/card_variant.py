@@ -4,8 +4,10 @@
         # models/residual-new-points.json: the model only where a contact point is new
     python -m training.card_variant models/residual.json --correction-scale 0.5
         # models/residual-x0.5.json: builtin + half the model's correction
+    python -m training.card_variant models/residual.json --correction-threshold 0.2
+        # models/residual-t0.2.json: builtin + the corrections larger than 0.2 N s (normal)
 
-Same ONNX file and GridSpec; another name and `combine` or `correction_scale`
+Same ONNX file and GridSpec; another name and `combine`, `correction_scale` or `correction_threshold`
 (deepcontact.modelcard). The card is written beside the original (temporary
 name, then rename).
 """
@@ -21,9 +23,9 @@ from deepcontact.modelcard import COMBINE, ModelCard, ModelCardError
 
 
 def card_variant(path: Path, *, combine: str | None = None, correction_scale: float | None = None,
-                 name: str | None = None) -> Path:
+                 correction_threshold: float | None = None, name: str | None = None) -> Path:
     """Write the variant beside the card at path; returns its path. Default name:
-    NAME-new-points (or NAME-COMBINE) and/or NAME-xSCALE."""
+    NAME-new-points (or NAME-COMBINE), NAME-xSCALE and/or NAME-tTHRESHOLD."""
     card = ModelCard.load(path)
     changes = {}
     suffix = ""
@@ -35,8 +37,13 @@ def card_variant(path: Path, *, combine: str | None = None, correction_scale: fl
             raise ValueError(f"--correction-scale must be > 0, got {correction_scale}")
         changes["correction_scale"] = correction_scale
         suffix += f"-x{correction_scale:g}"
+    if correction_threshold is not None:
+        if not correction_threshold >= 0:
+            raise ValueError(f"--correction-threshold must be >= 0 N s, got {correction_threshold}")
+        changes["correction_threshold"] = correction_threshold
+        suffix += f"-t{correction_threshold:g}"
     if not changes:
-        raise ValueError("nothing to change: give --combine and/or --correction-scale")
+        raise ValueError("nothing to change: give --combine, --correction-scale and/or --correction-threshold")
     name = name or card.name + suffix
     out = path.with_name(f"{name}.json")
     dataclasses.replace(card, name=name, **changes).save(out)
@@ -49,10 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("card", type=Path, help="the model's card, e.g. models/residual.json")
     parser.add_argument("--combine", choices=COMBINE, help="how the output becomes the warm start")
     parser.add_argument("--correction-scale", type=float, help="residual models: scale of the correction")
+    parser.add_argument("--correction-threshold", type=float,
+                        help="residual models: drop corrections whose normal part is at most this, N s")
     parser.add_argument("--name", help="the variant's name (default: derived from the changes)")
     args = parser.parse_args(argv)
     try:
-        out = card_variant(args.card, combine=args.combine, correction_scale=args.correction_scale, name=args.name)
+        out = card_variant(args.card, combine=args.combine, correction_scale=args.correction_scale,
+                           correction_threshold=args.correction_threshold, name=args.name)
     except (ModelCardError, ValueError) as exc:
         print(f"card_variant: {exc}", file=sys.stderr)
         return 2

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from deepcontact.gridspec import GridSpec
+from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import COMBINE, ModelCard
 
 OPSET = 17
@@ -117,14 +118,7 @@ def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str 
     data = proto.SerializeToString()
     parity = parity_error(model, data, config, spec)
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    part = out.with_name(f".{out.name}.{os.getpid()}.part")
-    try:
-        part.write_bytes(data)
-        os.replace(part, out)
-    except BaseException:
-        part.unlink(missing_ok=True)
-        raise
+    write_bytes_atomic(out, data)
     best = state["history"][state["best_epoch"] - 1]
     params = count_parameters(model)
     train, val = info["data"]["train"], info["data"]["val"]

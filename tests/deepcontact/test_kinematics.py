@@ -35,3 +35,22 @@ def test_no_points_and_bad_body_indices():
     points["body_b"] = len(bodies)
     with pytest.raises(ValueError, match="outside"):
         contact_velocities(bodies, points)
+
+
+def test_effective_mass_is_the_impulse_that_stops_one_point_alone():
+    # An impulse m_eff * 1 N s along a point's normal changes that point's relative
+    # normal velocity by exactly 1 m/s (Box2D's normalMass), and likewise the tangent.
+    from deepcontact.kinematics import effective_masses
+
+    engine = settled_world(SceneSpec.thesis(), 901, 150)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    masses = effective_masses(bodies, points)
+    assert masses.shape == (len(points), 2) and (masses > 0).all()
+    before = contact_velocities(bodies, points)
+    for k in (0, 1):
+        unit = np.zeros((len(points), 2))
+        unit[7, k] = masses[7, k]
+        change = contact_velocities(bodies, points, unit) - before
+        assert change[7, k] == pytest.approx(1.0, abs=1e-6)
+    assert effective_masses(bodies, points[:0]).shape == (0, 2)

@@ -166,6 +166,9 @@ def test_combine_serves_model_builtin_or_both():
     np.testing.assert_array_equal(combine("new-points", predicted, builtin), np.array([[0.5, 0.0], [2.0, 0.2], [0.0, -0.1]], np.float32))
     # A card's correction_scale shrinks a residual model's correction.
     np.testing.assert_allclose(combine("residual", predicted, builtin, 0.5), builtin + 0.5 * predicted)
+    # Its correction_threshold drops the corrections whose normal part is at most that.
+    np.testing.assert_allclose(combine("residual", predicted, builtin, 1.0, 1.5),
+                                  np.array([[0.5, 0.0], [2.0, 0.2], [3.0, 0.2]], np.float32))
 
 
 def test_cards_may_share_an_onnx_file_and_orphans_are_refused(tmp_path):

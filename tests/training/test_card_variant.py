@@ -20,6 +20,13 @@ def test_a_scaled_variant_keeps_its_combine_and_shrinks_the_correction(tmp_path)
     assert half.combine == "residual" and half.correction_scale == 0.5
 
 
+def test_a_thresholded_variant_drops_small_corrections(tmp_path):
+    write_conv_model(tmp_path, "residual", combine="residual")
+    assert main([str(tmp_path / "residual.json"), "--correction-threshold", "0.2"]) == 0
+    sparse = ModelCard.load(tmp_path / "residual-t0.2.json")
+    assert sparse.combine == "residual" and sparse.correction_threshold == 0.2 and sparse.correction_scale == 1.0
+
+
 def test_bad_requests_are_one_line_and_status_2(tmp_path, capsys):
     assert main([str(tmp_path / "nope.json"), "--combine", "new-points"]) == 2
     assert "no model card" in capsys.readouterr().err

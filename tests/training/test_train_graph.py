@@ -1,0 +1,154 @@
+"""The contact-graph model: its data, its solver loss, training and export, end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+
+from deepcontact.cli import main
+from training.contact_graph import GRAPH_INPUTS, GraphSet, build_graph_set
+
+
+@pytest.fixture(scope="module")
+def graphs(data):
+    return build_graph_set(data / "train.h5", max_steps=12)
+
+
+def test_a_batch_is_the_disjoint_union_of_its_steps(graphs, tmp_path):
+    assert len(graphs) == 12 and graphs.features.shape[1] == len(GRAPH_INPUTS)
+    features, targets, ends, dynamic = graphs.batch([3, 5])
+    n3 = graphs.point_offsets[4] - graphs.point_offsets[3]
+    b3 = graphs.body_offsets[4] - graphs.body_offsets[3]
+    assert len(features) == len(targets) == len(ends) == n3 + graphs.point_offsets[6] - graphs.point_offsets[5]
+    assert len(dynamic) == b3 + graphs.body_offsets[6] - graphs.body_offsets[5]
+    # The second step's points name the second step's bodies, moved past the first step's.
+    np.testing.assert_array_equal(ends[n3:], graphs.batch([5])[2] + b3)
+    assert ends.max() < len(dynamic) and dynamic[ends[:, 1], 0].all()  # body B is always dynamic here
+    # Saved without pickle and read back the same.
+    path = graphs.save(tmp_path / "g.npz")
+    again = GraphSet.load(path)
+    np.testing.assert_array_equal(again.features, graphs.features)
+    assert again.inputs == graphs.inputs
+
+
+def test_the_solver_loss_sees_no_error_in_the_exact_correction_and_decays_the_rest(graphs):
+    import tensorflow as tf
+
+    from training.graph_loss import apply_delassus, residuals_after
+
+    steps = np.arange(len(graphs))
+    _, targets, ends, _ = graphs.batch(steps)
+    geometry, masses, inverse = graphs.solver_batch(steps)
+    # diag(A) = 1 / effective mass: a unit error at one point, alone, moves it by 1/m_eff.
+    unit = np.zeros_like(targets)
+    unit[4, 0] = 1.0
+    velocity = apply_delassus(tf.constant(unit), ends, geometry, inverse).numpy()
+    assert velocity[4, 0] * masses[4, 0] == pytest.approx(1.0, rel=1e-5)
+    zero = residuals_after(tf.zeros_like(targets), ends, geometry, masses, inverse, sweeps=(0, 8), omega=0.5)
+    assert all(float(tf.reduce_max(tf.abs(r))) == 0.0 for r in zero)
+    builtin = residuals_after(tf.constant(-targets), ends, geometry, masses, inverse, sweeps=(0, 8, 32), omega=0.5)
+    sizes = [float(tf.reduce_mean(tf.square(r))) for r in builtin]
+    assert sizes[0] > sizes[1] > sizes[2] > 0
+
+
+@pytest.mark.parametrize("loss", ["mse", "solver"])
+def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
+    out = tmp_path / "graph.onnx"
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
+                 "--epochs", "2", "--batch-size", "4", "--width", "8", "--rounds", "2", "--loss", loss,
+                 "--sweeps", "0,4", "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["kind"] == "graph" and card["combine"] == "residual" and card["input_name"] == "points"
+    assert card["parity_max_abs_error"] < 1e-4
+    assert card["validation"]["loss"] <= card["validation"]["loss_no_correction"] * 1.5
+    assert card["training"]["settings"]["loss"] == loss and card["training"]["epochs_run"] == 2
+    assert set(card["gridspec"]["normalization"]) == set(GRAPH_INPUTS) | {"correction_normal", "correction_tangent"}
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    assert [i.name for i in session.get_inputs()] == ["points", "ends", "dynamic"]
+
+
+def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
+    base = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5")]
+    assert main(base + ["--out", str(tmp_path / "m.json")]) == 2
+    assert "must name a .onnx file" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "m.onnx"), "--sweeps", "many"]) == 2
+    assert "--sweeps" in capsys.readouterr().err
+    assert main(["train-graph", "--train", str(tmp_path / "none.h5"), "--val", str(data / "val.h5"),
+                 "--out", str(tmp_path / "m.onnx")]) == 2
+    assert "no such data file" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def graph_models(data, tmp_path_factory):
+    """A model folder with one small trained graph model, `graph` (residual)."""
+    folder = tmp_path_factory.mktemp("graph-models")
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"),
+                 "--out", str(folder / "graph.onnx"), "--epochs", "1", "--batch-size", "4", "--width", "8",
+                 "--rounds", "2", "--loss", "mse", "--cache", str(folder.parent / "graph-cache"), "--quiet"]) == 0
+    return folder
+
+
+@pytest.mark.parametrize("batch_max", [0, 4])
+def test_a_served_graph_model_is_the_model_on_the_engines_own_records(graph_models, thesis_steps, batch_max):
+    # Over a real gRPC server the request's decoded records (walls folded into one
+    # static body) give the same point channels, and so the same warm start, as the
+    # engine's records fed to the model by hand. Micro-batching stacks grids, so a
+    # server that batches serves graph models directly.
+    import grpc
+
+    from deepcontact import wire
+    from deepcontact.channels import Step, channel_values
+    from deepcontact.kinematics import Physics
+    from deepcontact.modelcard import ModelCard
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.serve import Server
+
+    folder = graph_models
+    card = ModelCard.load(folder / "graph.json")
+    spec = card.gridspec
+    mean_in, std_in = spec.normalization_arrays(spec.inputs)
+    mean_out, std_out = spec.normalization_arrays(spec.targets)
+    session = ort.InferenceSession(str(folder / "graph.onnx"), providers=["CPUExecutionProvider"])
+    world, steps = thesis_steps
+    server = Server(models=folder, batch_max=batch_max).start()
+    try:
+        assert not server.batchers  # nothing to batch
+        with grpc.insecure_channel(server.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            requests = [wire.encode_step(k, "graph", bodies, points, world=world if k == 0 else None,
+                                         builtin=points["builtin"]) for k, (bodies, points) in enumerate(steps)]
+            replies = list(stub.Stream(iter(requests)))
+    finally:
+        server.stop()
+    for (bodies, points), reply in zip(steps, replies):
+        x = (channel_values(spec.inputs, Step(bodies, points, None, Physics.thesis())) - mean_in) / std_in
+        ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32)
+        dynamic = (bodies["type"] == 2).astype(np.float32)[:, None]
+        y = session.run(["impulses"], {"points": x.astype(np.float32), "ends": ends, "dynamic": dynamic})[0]
+        expected = points["builtin"] + (y * std_out + mean_out)
+        np.testing.assert_allclose(np.stack(wire.decode_impulses(reply), axis=1), expected, atol=2e-4, rtol=1e-4)
+
+
+def test_a_graph_model_refuses_requests_without_the_points_bodies(graph_models, thesis_steps):
+    import grpc
+
+    from deepcontact import wire
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.serve import Server
+
+    world, steps = thesis_steps
+    bodies, points = steps[0]
+    request = wire.encode_step(0, "graph", bodies, points, world=world, builtin=points["builtin"])
+    request.ClearField("point_bodies")
+    server = Server(models=graph_models).start()
+    try:
+        with grpc.insecure_channel(server.address) as channel:
+            with pytest.raises(grpc.RpcError) as err:
+                pb_grpc.WarmStartStub(channel).Predict(request)
+    finally:
+        server.stop()
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "each point's two bodies" in err.value.details()

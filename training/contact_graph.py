@@ -1,0 +1,189 @@
+"""Recorded steps as contact graphs: the training data of the contact-graph model.
+
+A step's contact graph has the step's bodies as nodes and its contact points
+as edges (each point joins body_a and body_b). No grid: every value is read
+at the point itself, with the channel definitions the grid models use
+(deepcontact.channels), so the server computes them the same way.
+
+    gs = build_graph_set("data/thesis-train-1-300.h5", GRAPH_INPUTS, GRAPH_TARGETS, max_steps=8000)
+    features, targets, ends, dynamic = gs.batch([0, 1, 2])
+    # features (P, F) float32, targets (P, T) float32, both raw (SI units);
+    # ends (P, 2) int32 rows of `dynamic`, the steps' bodies stacked;
+    # dynamic (B, 1) float32, 1 for a body that takes impulses
+
+A GraphSet is saved as one .npz (no pickle) beside the runs that use it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.channels import CHANNELS, channel_values
+from deepcontact.kinematics import BODY_DYNAMIC, effective_masses
+from training.grids import GridDataError, iter_steps, open_dataset, select_steps
+
+#: What the contact-graph model reads at each point: geometry, Box2D's own warm
+#: start, the velocities the solver starts from, and the effective masses that turn one into the other.
+GRAPH_INPUTS = ("normal_x", "normal_y", "separation", "builtin_normal", "builtin_tangent", "new_point",
+                "vn", "vt", "vn_builtin", "vt_builtin", "normal_mass", "tangent_mass",
+                "jacobi_normal", "jacobi_tangent")
+GRAPH_TARGETS = ("correction_normal", "correction_tangent")
+
+
+@dataclasses.dataclass
+class GraphSet:
+    """The contact graphs of some recorded steps, stacked.
+
+    features (N, F) float32 and targets (N, T) float32: per point, raw.
+    ends (N, 2) int32: each point's two bodies, rows of its own step's bodies.
+    dynamic (M,) bool: per body of every step, stacked.
+    point_offsets, body_offsets (S + 1,) int64: step k owns points
+        point_offsets[k]:point_offsets[k+1] and bodies body_offsets[k]:...
+    builtin (N, 2) float32: Box2D's warm start at each point (N s), for scoring.
+    geometry (N, 8) float32: normal (2), tangent (2), and the point relative to
+        body A's and body B's centre (2 + 2, m): each point's Jacobian rows.
+    masses (N, 2) float32: effective mass along normal and tangent (kg).
+    inverse (M, 2) float32: per body, 1/mass and 1/inertia (0 for static bodies).
+    The last three let training run the solver's iteration on a prediction's
+    error (training.graph_loss).
+    """
+
+    features: np.ndarray
+    targets: np.ndarray
+    ends: np.ndarray
+    dynamic: np.ndarray
+    point_offsets: np.ndarray
+    body_offsets: np.ndarray
+    builtin: np.ndarray
+    geometry: np.ndarray
+    masses: np.ndarray
+    inverse: np.ndarray
+    inputs: tuple[str, ...]
+    target_names: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return len(self.point_offsets) - 1
+
+    def batch(self, steps) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Steps (indices into this set) as one graph: their disjoint union.
+
+        Returns features (P, F), targets (P, T), ends (P, 2) int32 into the
+        returned dynamic (B, 1) float32."""
+        points, bodies, ends = self._rows(steps)
+        return self.features[points], self.targets[points], ends, self.dynamic[bodies, None].astype(np.float32)
+
+    def solver_batch(self, steps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the solver's iteration needs for the same batch: geometry (P, 8),
+        masses (P, 2), inverse (B, 2), rows as in batch(steps)."""
+        points, bodies, _ = self._rows(steps)
+        return self.geometry[points], self.masses[points], self.inverse[bodies]
+
+    def _rows(self, steps):
+        steps = np.asarray(steps, np.int64)
+        p0, p1 = self.point_offsets[steps], self.point_offsets[steps + 1]
+        b0, b1 = self.body_offsets[steps], self.body_offsets[steps + 1]
+        # Each step's body rows move to where its bodies land in the batch.
+        shift = np.cumsum(np.concatenate([[0], (b1 - b0)[:-1]]))
+        points = _ranges(p0, p1)
+        ends = self.ends[points] + np.repeat(shift, p1 - p0)[:, None].astype(np.int32)
+        return points, _ranges(b0, b1), ends
+
+    def save(self, path: str | os.PathLike) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part.npz", dir=path.parent)
+        os.close(fd)
+        try:
+            arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+            arrays["inputs"] = np.array(self.inputs)
+            arrays["target_names"] = np.array(self.target_names)
+            np.savez(tmp, **arrays)
+            os.chmod(tmp, 0o644)  # mkstemp makes it private
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "GraphSet":
+        with np.load(path, allow_pickle=False) as f:
+            d = {k: f[k] for k in f.files}
+        d["inputs"] = tuple(str(x) for x in d["inputs"])
+        d["target_names"] = tuple(str(x) for x in d["target_names"])
+        return cls(**d)
+
+
+def _ranges(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """Concatenated aranges start..stop, without a Python loop over them."""
+    lengths = stops - starts
+    if lengths.sum() == 0:
+        return np.zeros(0, np.int64)
+    offsets = np.repeat(starts - np.cumsum(np.concatenate([[0], lengths[:-1]])), lengths)
+    return np.arange(lengths.sum()) + offsets
+
+
+def build_graph_set(path: str | os.PathLike, inputs=GRAPH_INPUTS, targets=GRAPH_TARGETS, *,
+                    max_steps: int | None = None, seed: int = 0, progress=None) -> GraphSet:
+    """The contact graphs of the steps with contacts of one recorded file
+    (at most max_steps of them, drawn as training.grids.select_steps draws)."""
+    for n in (*inputs, *targets):
+        if n not in CHANNELS or CHANNELS[n].source != "contacts":
+            raise GridDataError(f"{n!r} is not a contact-point channel; the contact-graph model reads "
+                                f"channels of the contact points only")
+    with open_dataset(path) as ds:
+        steps = ds.steps
+    index = select_steps(steps, max_steps, seed)
+    if len(index) == 0:
+        raise GridDataError(f"{path}: no steps with contact points")
+    feats, targs, ends, dyn, builtin, n_points, n_bodies = [], [], [], [], [], [], []
+    geometry, masses, inverse = [], [], []
+    for _, step in iter_steps(path, steps, index):  # loop over steps, not points
+        c, b = step.contacts, step.bodies
+        geometry.append(point_geometry(b, c))
+        masses.append(effective_masses(b, c).astype(np.float32))
+        inverse.append(inverse_masses(b))
+        feats.append(channel_values(inputs, step).astype(np.float32))
+        targs.append(channel_values(targets, step).astype(np.float32))
+        ends.append(np.stack([c["body_a"], c["body_b"]], axis=1).astype(np.int32))
+        dyn.append(step.bodies["type"] == BODY_DYNAMIC)
+        builtin.append(c["builtin"].astype(np.float32))
+        n_points.append(len(c))
+        n_bodies.append(len(step.bodies))
+        if progress is not None:
+            progress.update(1)
+    gs = GraphSet(np.concatenate(feats), np.concatenate(targs), np.concatenate(ends), np.concatenate(dyn),
+                  np.concatenate([[0], np.cumsum(n_points)]).astype(np.int64),
+                  np.concatenate([[0], np.cumsum(n_bodies)]).astype(np.int64),
+                  np.concatenate(builtin), np.concatenate(geometry), np.concatenate(masses),
+                  np.concatenate(inverse), tuple(inputs), tuple(targets))
+    if not (np.isfinite(gs.features).all() and np.isfinite(gs.targets).all()):
+        raise GridDataError(f"{path}: non-finite channel values")
+    return gs
+
+
+def point_geometry(bodies: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(P, 8) float32: normal, tangent (Box2D's (n_y, -n_x)), point - centre of A, point - centre of B (m)."""
+    n = points["normal"].astype(np.float64)
+    p = points["point"].astype(np.float64)
+    centre = bodies["position"].astype(np.float64)
+    t = np.stack([n[:, 1], -n[:, 0]], axis=1)
+    ra = p - centre[points["body_a"]]
+    rb = p - centre[points["body_b"]]
+    return np.concatenate([n, t, ra, rb], axis=1).astype(np.float32)
+
+
+def inverse_masses(bodies: np.ndarray) -> np.ndarray:
+    """(B, 2) float32: 1/mass and 1/inertia of dynamic bodies, 0 for the others."""
+    dynamic = (bodies["type"] == BODY_DYNAMIC)
+    out = np.zeros((len(bodies), 2), np.float32)
+    for k, field in enumerate(("mass", "inertia")):  # two fields, not a loop over bodies
+        x = bodies[field].astype(np.float64)
+        ok = dynamic & (x > 0)
+        out[ok, k] = 1.0 / x[ok]
+    return out

@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# The contact-graph models of the ablation (docs/results.md, "The contact-graph model"):
+# message passing over the contact points (training/graph_model.py), trained on the
+# thesis world and the scene family together (training/round2_data.sh), written with
+# their cards to models/.
+#
+#   bash training/round2_graph.sh [VARIANT ...]     (default: all)
+#
+#   graph-mse                  the squared error of the correction at every point
+#   graph-solver               the residual the solver's sweeps leave of the warm start's
+#                              error (training/graph_loss.py), served at every point
+#   graph-solver-new-points    the same loss, trained and served at new points only
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DC=${DEEPCONTACT:-.venv/bin/deepcontact}
+PY=${PYTHON:-.venv/bin/python}
+TRAIN_SEEDS=${TRAIN_SEEDS:-1-300}
+DATA=(--train data/thesis-train-$TRAIN_SEEDS.h5 --train data/family-train-$TRAIN_SEEDS.h5
+      --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5 --max-val-steps 500 --seed 0 --quiet)
+OUT=models
+
+variant() {  # NAME TRAIN-GRAPH-ARGS...
+    local name=$1; shift
+    SECONDS=0
+    "$DC" train-graph "${DATA[@]}" --out "$OUT/$name.onnx" "$@"
+    echo "$name: trained and exported in ${SECONDS} s"
+}
+
+run() {
+    case $1 in
+        graph-mse)
+            variant graph-mse --loss mse --max-steps-per-file 10000 --epochs 10
+            # Most points need next to no correction: drop the model's small ones.
+            "$PY" -m training.card_variant "$OUT/graph-mse.json" --correction-threshold 0.3 ;;
+        graph-solver)
+            variant graph-solver --loss solver --max-steps-per-file 3000 --epochs 4
+            "$PY" -m training.card_variant "$OUT/graph-solver.json" --correction-threshold 1.0 ;;
+        graph-solver-new-points)
+            variant graph-solver-new-points --loss solver --combine new-points --max-steps-per-file 3000 --epochs 4 ;;
+        *) echo "unknown variant $1" >&2; exit 2 ;;
+    esac
+}
+
+if [ $# -eq 0 ]; then set -- graph-mse graph-solver graph-solver-new-points; fi
+for v in "$@"; do run "$v"; done

@@ -1,0 +1,306 @@
+"""`deepcontact train-graph`: fit the contact-graph model and export it with its card.
+
+    deepcontact train-graph --train data/thesis-train-1-300.h5 --train data/family-train-1-300.h5 \\
+        --val data/thesis-val-801-820.h5 --out models/graph.onnx
+
+One command from recorded data to a served model: reads the contact graphs
+of the files' steps (cached as .npz beside --cache), normalizes the point
+channels with the training files' mean and std, trains with Adam on a cosine
+schedule until the validation loss has not improved for --patience epochs,
+and writes the best epoch's ONNX file and card (kind "graph"), both under a
+temporary name first. The card's GridSpec carries the channels and their
+normalization; a graph model ignores its geometry.
+
+The model predicts the correction to Box2D's warm start at each point
+(correction_normal, correction_tangent, N s); --combine says how the server
+serves it (residual: everywhere; new-points: at new points only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.gridspec import GridSpec
+from deepcontact.io import write_bytes_atomic
+from deepcontact.modelcard import ModelCard
+from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, GraphSet, build_graph_set
+
+CACHE_VERSION = 2  # GraphSet fields
+DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--train", type=Path, action="append", required=True,
+                        help="training data (HDF5 from `deepcontact generate`); repeat for several files")
+    parser.add_argument("--val", type=Path, action="append", required=True, help="validation data; repeatable")
+    parser.add_argument("--out", type=Path, required=True, help="ONNX file to write; the card goes beside it")
+    parser.add_argument("--name", help="model name in the card (default: the --out file's stem)")
+    parser.add_argument("--combine", choices=("residual", "new-points"), default="residual",
+                        help="serve the correction at every point (residual, default) or at new points only; "
+                             "the solver loss then scores what is served: Box2D's warm start at persisting points")
+    parser.add_argument("--epochs", type=int, default=DEFAULTS["epochs"], help="maximum epochs (default %(default)s)")
+    parser.add_argument("--batch-size", type=int, default=DEFAULTS["batch_size"],
+                        help="steps per batch (default %(default)s)")
+    parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak learning rate (default %(default)s)")
+    parser.add_argument("--patience", type=int, default=DEFAULTS["patience"],
+                        help="stop after this many epochs without a better validation loss (default %(default)s)")
+    parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
+    parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
+                        help="message-passing rounds (default %(default)s)")
+    parser.add_argument("--loss", choices=("mse", "solver"), default="solver",
+                        help="mse: squared error of the correction at every point; solver (default): the residual "
+                             "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
+                             "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's")
+    parser.add_argument("--sweeps", default="16,64,256",
+                        help="solver loss: sweep counts at which the residual is measured (default %(default)s)")
+    parser.add_argument("--omega", type=float, default=0.5,
+                        help="solver loss: damping of the Jacobi sweeps, stable below about 0.6 here (default %(default)s)")
+    parser.add_argument("--tangent-weight", type=float, default=1.0,
+                        help="weight of the tangent component in the loss (default %(default)s)")
+    parser.add_argument("--max-steps-per-file", type=int, metavar="N", help="use at most N steps of each file")
+    parser.add_argument("--max-val-steps", type=int, metavar="N", help="use at most N steps of each validation file")
+    parser.add_argument("--cache", type=Path, default=Path("runs/graph-cache"),
+                        help="folder for the contact graphs read from the data files (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="weights, step order and step sampling (default 0)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    if args.out.suffix != ".onnx":
+        print(f"train-graph: --out must name a .onnx file, got {args.out}", file=sys.stderr)
+        return 2
+    missing = [str(p) for p in (*args.train, *args.val) if not p.exists()]
+    if missing:
+        print(f"train-graph: no such data file: {', '.join(missing)}", file=sys.stderr)
+        return 2
+    if min(args.epochs, args.batch_size, args.width, args.rounds, args.patience) < 1:
+        print("train-graph: --epochs, --batch-size, --width, --rounds and --patience must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        args.sweeps = tuple(sorted({int(k) for k in str(args.sweeps).split(",")}))
+        if args.sweeps[0] < 0:
+            raise ValueError
+    except ValueError:
+        print(f"train-graph: --sweeps takes sweep counts >= 0 like 16,64,256, got {args.sweeps!r}", file=sys.stderr)
+        return 2
+    command = "deepcontact train-graph " + " ".join(shlex.quote(a) for a in sys.argv[2:])
+    t0 = time.perf_counter()
+    train = [_cached(p, args.max_steps_per_file, args.seed, args.cache, args.quiet) for p in args.train]
+    val = [_cached(p, args.max_val_steps, args.seed, args.cache, args.quiet) for p in args.val]
+    read_seconds = time.perf_counter() - t0
+    card = fit(train, val, args, command=command, read_seconds=read_seconds,
+               sources=[str(p) for p in args.train], val_sources=[str(p) for p in args.val])
+    print(f"wrote {args.out} and {args.out.with_suffix('.json')}: validation loss "
+          f"{card.validation['loss']:.4f} (no correction: {card.validation['loss_no_correction']:.4f}), "
+          f"{card.training['train_seconds']:.0f} s training")
+    return 0
+
+
+def _cached(path: Path, max_steps: int | None, seed: int, cache: Path, quiet: bool) -> GraphSet:
+    """The file's contact graphs, read once and kept as .npz under `cache`."""
+    st = path.stat()
+    key = json.dumps([CACHE_VERSION, str(path.resolve()), st.st_size, int(st.st_mtime), max_steps, seed,
+                      GRAPH_INPUTS, GRAPH_TARGETS])
+    target = cache / f"{path.stem}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
+    if target.exists():
+        return GraphSet.load(target)
+    bar = None if quiet else _bar(None, f"graphs {path.name}")
+    try:
+        gs = build_graph_set(path, max_steps=max_steps, seed=seed, progress=bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    gs.save(target)
+    return gs
+
+
+def normalization(train: list[GraphSet]) -> dict[str, tuple[float, float]]:
+    """Per-channel (mean, std) over every training point; a constant channel gets std 1."""
+    feats = np.concatenate([g.features for g in train]).astype(np.float64)
+    targs = np.concatenate([g.targets for g in train]).astype(np.float64)
+    out = {}
+    for names, values in ((train[0].inputs, feats), (train[0].target_names, targs)):
+        mean, std = values.mean(axis=0), values.std(axis=0)
+        for j, n in enumerate(names):
+            out[n] = (float(mean[j]), float(std[j]) if std[j] > 1e-12 else 1.0)
+    return out
+
+
+def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_seconds: float,
+        sources: list[str], val_sources: list[str]) -> ModelCard:
+    from training.graph_loss import residuals_after
+    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict, count_parameters, to_onnx
+
+    norm = normalization(train)
+    spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names, normalization=norm)
+    in_mean, in_std = (np.array(v, np.float32) for v in zip(*(norm[n] for n in spec.inputs)))
+    out_mean, out_std = (np.array(v, np.float32) for v in zip(*(norm[n] for n in spec.targets)))
+    config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
+                         rounds=args.rounds)
+    net = ContactGraphNet(config, seed=args.seed)
+    tf = net.tf
+    tf.random.set_seed(args.seed)
+    loss_weight = tf.constant([1.0] + [args.tangent_weight] * (config.out_channels - 1), tf.float32)
+
+    def prepared(gs: GraphSet, steps):
+        f, t, e, d = gs.batch(steps)
+        return ((f - in_mean) / in_std, e, d, (t - out_mean) / out_std, *gs.solver_batch(steps))
+
+    # Solver loss: each checkpoint's mean squared residual, divided by what Box2D's
+    # own warm start (no correction) leaves there on the training data, so each counts alike.
+    scales = tf.constant(_residual_scales(train, args) if args.loss == "solver" else [1.0], tf.float32)
+
+    def point_losses(points, ends, dynamic, y, geometry, masses, inverse):
+        """(P,) loss per point of a batch: summed over output channels."""
+        pred = net(points, ends, dynamic)
+        new_point = points[:, new_column] * in_std[new_column] + in_mean[new_column]
+        if args.loss == "mse":
+            return tf.reduce_sum(tf.square(pred - y) * loss_weight, axis=1)
+        error = (pred - y) * out_std  # N s: the served correction minus the solver's
+        if args.combine == "new-points":
+            # Served at new points only; persisting points keep Box2D's warm start, whose error is -y.
+            error = tf.where(new_point[:, None] > 0.5, error, -(y * out_std + out_mean))
+        residuals = residuals_after(error, ends, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
+        return tf.add_n([tf.reduce_sum(tf.square(r) * loss_weight, axis=1) / scales[j]
+                         for j, r in enumerate(residuals)]) / len(residuals)
+
+    new_column = spec.inputs.index("new_point")
+    optimizer = tf.keras.optimizers.Adam(learning_rate=args.lr)
+    spec_in = net.signature() + [tf.TensorSpec((None, config.out_channels), tf.float32),
+                                 tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
+                                 tf.TensorSpec((None, 2), tf.float32)]
+
+    @tf.function(input_signature=spec_in)
+    def train_step(*batch):
+        with tf.GradientTape() as tape:
+            loss = tf.reduce_mean(point_losses(*batch))
+        optimizer.apply_gradients(zip(tape.gradient(loss, net.trainable), net.trainable))
+        return loss
+
+    @tf.function(input_signature=spec_in)
+    def val_step(*batch):
+        return tf.reduce_sum(point_losses(*batch))
+
+    def validate() -> float:
+        total, count = 0.0, 0
+        for gs in val:
+            for k in range(0, len(gs), 64):
+                batch = prepared(gs, np.arange(k, min(k + 64, len(gs))))
+                total += float(val_step(*batch))
+                count += len(batch[0])
+        return total / count
+
+    rng = np.random.default_rng(args.seed)
+    batches = [(i, chunk) for i, gs in enumerate(train)
+               for chunk in np.array_split(np.arange(len(gs)), max(1, len(gs) // args.batch_size))]
+    total_steps = args.epochs * len(batches)
+    best, best_epoch, best_weights, history, stop = np.inf, 0, net.weights(), [], "epochs"
+    t0 = time.perf_counter()
+    done = 0
+    for epoch in range(1, args.epochs + 1):
+        bar = None if args.quiet else _bar(len(batches), f"epoch {epoch}")
+        losses = []
+        for j in rng.permutation(len(batches)):  # loop over batches of steps
+            i, _ = batches[j]
+            steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False)
+            optimizer.learning_rate.assign(args.lr * 0.5 * (1 + np.cos(np.pi * done / total_steps)))
+            losses.append(float(train_step(*prepared(train[i], steps))))
+            done += 1
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+        val_loss = validate()
+        history.append([epoch, round(float(np.mean(losses)), 6), round(val_loss, 6)])
+        better = val_loss < best
+        if better:
+            best, best_epoch, best_weights = val_loss, epoch, net.weights()
+        print(f"epoch {epoch}: train {np.mean(losses):.4f}  val {val_loss:.4f}{'  (best)' if better else ''}",
+              flush=True)
+        if epoch - best_epoch >= args.patience:
+            stop = f"no better validation loss for {args.patience} epochs"
+            break
+    train_seconds = time.perf_counter() - t0
+    final = ContactGraphNet(config, best_weights)
+    onnx_bytes = to_onnx(final)
+    parity = _parity(final, onnx_bytes, prepared(val[0], np.arange(min(8, len(val[0])))))
+    # The loss of a model that predicts no correction: Box2D's own warm start.
+    net.variables["decode1/kernel"].assign(np.zeros_like(best_weights["decode1/kernel"]))
+    net.variables["decode1/bias"].assign((0 - out_mean) / out_std)
+    no_correction = validate()
+    out = Path(args.out)
+    write_bytes_atomic(out, onnx_bytes)
+    weights_path = Path(args.cache) / f"{out.stem}.weights.npz"
+    _save_npz(weights_path, best_weights)
+    params = count_parameters(best_weights)
+    card = ModelCard(
+        name=args.name or out.stem, kind="graph", onnx_file=out.name, gridspec=spec, fixed_grid=False,
+        input_name="points", output_name="impulses", combine=args.combine, parameters=params,
+        architecture={"config": config_to_dict(config), "parameters": {"total": params, "trainable": params},
+                      "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "tensorflow": tf.__version__},
+        training={"train": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(sources, train)],
+                  "val": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(val_sources, val)],
+                  "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
+                                                               "rounds", "tangent_weight", "seed", "loss", "sweeps", "omega",
+                                                               "max_steps_per_file", "max_val_steps")},
+                  "lr_schedule": "cosine", "epochs_run": len(history), "best_epoch": best_epoch,
+                  "stop_reason": stop, "train_seconds": round(train_seconds, 1),
+                  "read_seconds": round(read_seconds, 1), "history": history},
+        validation={"epoch": best_epoch, "loss": best, "loss_no_correction": no_correction,
+                    "points": int(sum(len(g.targets) for g in val))},
+        parity_max_abs_error=parity,
+        commands=(command,),
+    )
+    card.save(out.with_suffix(".json"))
+    return card
+
+
+def _residual_scales(train: list[GraphSet], args) -> list[float]:
+    """Per checkpoint of --sweeps: the mean squared residual (summed over normal and
+    tangent) that Box2D's own warm start leaves, on up to 256 training steps."""
+    import tensorflow as tf
+
+    from training.graph_loss import residuals_after
+
+    gs = train[0]
+    steps = np.random.default_rng(args.seed).choice(len(gs), size=min(256, len(gs)), replace=False)
+    _, t, e, _ = gs.batch(steps)
+    geometry, masses, inverse = gs.solver_batch(steps)
+    residuals = residuals_after(tf.constant(-t), e, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
+    return [max(float(np.mean(np.sum(r.numpy() ** 2, axis=1))), 1e-12) for r in residuals]
+
+
+def _parity(net, onnx_bytes: bytes, batch) -> float:
+    import onnxruntime as ort
+
+    x, e, d = batch[:3]
+    session = ort.InferenceSession(onnx_bytes, providers=["CPUExecutionProvider"])
+    got = session.run(["impulses"], {"points": x, "ends": e, "dynamic": d})[0]
+    return float(np.abs(got - net(x, e, d).numpy()).max())
+
+
+def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    part = path.with_name(f".{path.name}.{os.getpid()}.part.npz")
+    try:
+        np.savez(part, **arrays)
+        os.replace(part, path)
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+
+
+def _bar(total, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", file=sys.stderr, leave=False, dynamic_ncols=True)
