@@ -35,6 +35,7 @@ from deepcontact.modelcard import ModelCard
 from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, GraphSet, build_graph_set
 
 CACHE_VERSION = 2  # GraphSet fields
+LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
 DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
 
 
@@ -56,10 +57,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s)")
-    parser.add_argument("--loss", choices=("mse", "solver"), default="solver",
+    parser.add_argument("--loss", choices=("mse", "solver", "solver-log"), default="solver",
                         help="mse: squared error of the correction at every point; solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
-                             "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's")
+                             "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
+                             "solver-log: per step, the log of that residual over Box2D's warm start's")
     parser.add_argument("--sweeps", default="16,64,256",
                         help="solver loss: sweep counts at which the residual is measured (default %(default)s)")
     parser.add_argument("--omega", type=float, default=0.5,
@@ -149,55 +151,77 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
                          rounds=args.rounds)
     net = ContactGraphNet(config, seed=args.seed)
     tf = net.tf
+    # Start from Box2D's own warm start: the last layer's kernel is 0, its bias a zero correction.
+    net.variables["decode1/bias"].assign((0 - out_mean) / out_std)
     tf.random.set_seed(args.seed)
     loss_weight = tf.constant([1.0] + [args.tangent_weight] * (config.out_channels - 1), tf.float32)
 
     def prepared(gs: GraphSet, steps):
         f, t, e, d = gs.batch(steps)
-        return ((f - in_mean) / in_std, e, d, (t - out_mean) / out_std, *gs.solver_batch(steps))
+        counts = np.diff(gs.point_offsets)[np.asarray(steps)]
+        step_of = np.repeat(np.arange(len(counts), dtype=np.int32), counts)  # each point's step in the batch
+        return ((f - in_mean) / in_std, e, d, (t - out_mean) / out_std, *gs.solver_batch(steps), step_of)
 
     # Solver loss: each checkpoint's mean squared residual, divided by what Box2D's
     # own warm start (no correction) leaves there on the training data, so each counts alike.
     scales = tf.constant(_residual_scales(train, args) if args.loss == "solver" else [1.0], tf.float32)
 
-    def point_losses(points, ends, dynamic, y, geometry, masses, inverse):
-        """(P,) loss per point of a batch: summed over output channels."""
+    def batch_loss(points, ends, dynamic, y, geometry, masses, inverse, step_of):
+        """(losses, weights): a batch's loss is sum(losses) / sum(weights); per point for
+        mse and solver, per step for solver-log."""
         pred = net(points, ends, dynamic)
-        new_point = points[:, new_column] * in_std[new_column] + in_mean[new_column]
         if args.loss == "mse":
-            return tf.reduce_sum(tf.square(pred - y) * loss_weight, axis=1)
+            per_point = tf.reduce_sum(tf.square(pred - y) * loss_weight, axis=1)
+            return per_point, tf.ones_like(per_point)
         error = (pred - y) * out_std  # N s: the served correction minus the solver's
+        builtin_error = -(y * out_std + out_mean)  # Box2D's warm start misses the whole correction
         if args.combine == "new-points":
-            # Served at new points only; persisting points keep Box2D's warm start, whose error is -y.
-            error = tf.where(new_point[:, None] > 0.5, error, -(y * out_std + out_mean))
-        residuals = residuals_after(error, ends, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
-        return tf.add_n([tf.reduce_sum(tf.square(r) * loss_weight, axis=1) / scales[j]
-                         for j, r in enumerate(residuals)]) / len(residuals)
+            # Served at new points only; persisting points keep Box2D's warm start.
+            new_point = points[:, new_column] * in_std[new_column] + in_mean[new_column]
+            error = tf.where(new_point[:, None] > 0.5, error, builtin_error)
+
+        def squares(e):
+            rs = residuals_after(e, ends, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
+            return [tf.reduce_sum(tf.square(r) * loss_weight, axis=1) for r in rs]
+
+        if args.loss == "solver":
+            per_point = tf.add_n([r / scales[j] for j, r in enumerate(squares(error))]) / len(args.sweeps)
+            return per_point, tf.ones_like(per_point)
+        # solver-log: per step, log(what the model leaves / what Box2D's warm start leaves), the
+        # iterations saved being about proportional to it (the solver removes a fixed share per sweep).
+        n_steps = tf.reduce_max(step_of) + 1
+        per_step = tf.add_n([
+            tf.math.log((tf.math.unsorted_segment_sum(m, step_of, n_steps) + LOG_FLOOR)
+                        / (tf.math.unsorted_segment_sum(b, step_of, n_steps) + LOG_FLOOR))
+            for m, b in zip(squares(error), squares(builtin_error))]) / len(args.sweeps)
+        return per_step, tf.ones_like(per_step)
 
     new_column = spec.inputs.index("new_point")
     optimizer = tf.keras.optimizers.Adam(learning_rate=args.lr)
     spec_in = net.signature() + [tf.TensorSpec((None, config.out_channels), tf.float32),
                                  tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
-                                 tf.TensorSpec((None, 2), tf.float32)]
+                                 tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32)]
 
     @tf.function(input_signature=spec_in)
     def train_step(*batch):
         with tf.GradientTape() as tape:
-            loss = tf.reduce_mean(point_losses(*batch))
+            losses, weights = batch_loss(*batch)
+            loss = tf.reduce_sum(losses) / tf.reduce_sum(weights)
         optimizer.apply_gradients(zip(tape.gradient(loss, net.trainable), net.trainable))
         return loss
 
     @tf.function(input_signature=spec_in)
     def val_step(*batch):
-        return tf.reduce_sum(point_losses(*batch))
+        losses, weights = batch_loss(*batch)
+        return tf.reduce_sum(losses), tf.reduce_sum(weights)
 
     def validate() -> float:
-        total, count = 0.0, 0
+        total, count = 0.0, 0.0
         for gs in val:
             for k in range(0, len(gs), 64):
-                batch = prepared(gs, np.arange(k, min(k + 64, len(gs))))
-                total += float(val_step(*batch))
-                count += len(batch[0])
+                loss_sum, weight_sum = val_step(*prepared(gs, np.arange(k, min(k + 64, len(gs)))))
+                total += float(loss_sum)
+                count += float(weight_sum)
         return total / count
 
     rng = np.random.default_rng(args.seed)
