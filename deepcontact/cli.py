@@ -27,6 +27,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
+    (("bench", "inference"), "bench.inference", "ONNX Runtime levers on a grid model's inference: session options, int8, cropped grids"),
     (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
     (("bench", "load"), "bench.load", "latency and throughput with many simulations streaming at once"),
     (("bench", "scale"), "bench.scale", "simulations per second with 1 and 2 workers or Ray CPUs; same answers on each"),
@@ -48,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (engine, generate, iterations, load, scale, server, soak, transfer)"}
+    group_help = {("bench",): "benchmarks (engine, generate, inference, iterations, load, scale, server, soak, transfer, walltime)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]
