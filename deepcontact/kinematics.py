@@ -113,10 +113,12 @@ def contact_velocities(bodies: np.ndarray, points: np.ndarray, warm: np.ndarray 
         return np.zeros((0, 2))
     f = contact_frame(bodies, points) if frame is None else frame
     a, b, dynamic, n, t, ra, rb = f.a, f.b, f.dynamic, f.n, f.t, f.ra, f.rb
-    v = bodies["velocity"].astype(np.float64) * dynamic[:, None]
-    w = bodies["angular_velocity"].astype(np.float64) * dynamic
+    v = bodies["velocity"].astype(np.float64)
+    v *= dynamic[:, None]
+    w = bodies["angular_velocity"].astype(np.float64)
+    w *= dynamic
     if physics.dt:
-        v = v + np.multiply(physics.dt, physics.gravity) * dynamic[:, None]
+        v += np.multiply(physics.dt, physics.gravity) * dynamic[:, None]
     if warm is not None:
         warm = np.asarray(warm, np.float64)
         if warm.shape != (n_points, 2):
@@ -127,13 +129,18 @@ def contact_velocities(bodies: np.ndarray, points: np.ndarray, warm: np.ndarray 
         dv = np.stack([np.bincount(idx, np.concatenate([impulse[:, k], -impulse[:, k]]), n_bodies)
                        for k in (0, 1)], axis=1)
         dw = np.bincount(idx, np.concatenate([_cross(rb, impulse), -_cross(ra, impulse)]), n_bodies)
-        v = v + dv * f.inv_mass[:, None]
-        w = w + dw * f.inv_inertia
-    # Velocity of each body at the contact point: v + w x r.
-    va = v[a] + w[a, None] * np.stack([-ra[:, 1], ra[:, 0]], axis=1)
-    vb = v[b] + w[b, None] * np.stack([-rb[:, 1], rb[:, 0]], axis=1)
-    rel = vb - va
-    return np.stack([(rel * n).sum(axis=1), (rel * t).sum(axis=1)], axis=1)
+        v += dv * f.inv_mass[:, None]
+        w += dw * f.inv_inertia
+    # Relative velocity at the point, v_B + w_B x r_B - v_A - w_A x r_A, written out per
+    # component: this runs on the server's every step.
+    wa, wb = w[a], w[b]
+    rel = v[b] - v[a]
+    rel[:, 0] += wa * ra[:, 1] - wb * rb[:, 1]
+    rel[:, 1] += wb * rb[:, 0] - wa * ra[:, 0]
+    out = np.empty((n_points, 2))
+    out[:, 0] = rel[:, 0] * n[:, 0] + rel[:, 1] * n[:, 1]
+    out[:, 1] = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
+    return out
 
 
 def effective_masses(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame | None = None) -> np.ndarray:
