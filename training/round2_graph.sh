@@ -10,6 +10,7 @@
 #   graph-solver               the residual the solver's sweeps leave of the warm start's
 #                              error (training/graph_loss.py), served at every point
 #   graph-solver-new-points    the same loss, trained and served at new points only
+#   graph-solver-r6            graph-solver with six rounds of message passing (more reach)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -37,9 +38,12 @@ run() {
             "$PY" -m training.card_variant "$OUT/graph-solver.json" --correction-threshold 1.0 ;;
         graph-solver-new-points)
             variant graph-solver-new-points --loss solver --combine new-points --max-steps-per-file 3000 --epochs 4 ;;
+        graph-solver-r6)
+            variant graph-solver-r6 --loss solver --rounds 6 --max-steps-per-file 3000 --epochs 4
+            "$PY" -m training.card_variant "$OUT/graph-solver-r6.json" --correction-threshold 1.0 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }
 
-if [ $# -eq 0 ]; then set -- graph-mse graph-solver graph-solver-new-points; fi
+if [ $# -eq 0 ]; then set -- graph-mse graph-solver graph-solver-new-points graph-solver-r6; fi
 for v in "$@"; do run "$v"; done
