@@ -39,6 +39,10 @@ LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solv
 DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
 
 
+class TrainingDiverged(RuntimeError):
+    """The loss stopped being a number; nothing is written."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train", type=Path, action="append", required=True,
                         help="training data (HDF5 from `deepcontact generate`); repeat for several files")
@@ -85,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         print(f"train-graph: no such data file: {', '.join(missing)}", file=sys.stderr)
         return 2
+    if not 0 < args.omega < 1:
+        print(f"train-graph: --omega must lie between 0 and 1, got {args.omega}", file=sys.stderr)
+        return 2
     if min(args.epochs, args.batch_size, args.width, args.rounds, args.patience) < 1:
         print("train-graph: --epochs, --batch-size, --width, --rounds and --patience must be >= 1", file=sys.stderr)
         return 2
@@ -100,8 +107,12 @@ def run(args: argparse.Namespace) -> int:
     train = [_cached(p, args.max_steps_per_file, args.seed, args.cache, args.quiet) for p in args.train]
     val = [_cached(p, args.max_val_steps, args.seed, args.cache, args.quiet) for p in args.val]
     read_seconds = time.perf_counter() - t0
-    card = fit(train, val, args, command=command, read_seconds=read_seconds,
-               sources=[str(p) for p in args.train], val_sources=[str(p) for p in args.val])
+    try:
+        card = fit(train, val, args, command=command, read_seconds=read_seconds,
+                   sources=[str(p) for p in args.train], val_sources=[str(p) for p in args.val])
+    except TrainingDiverged as exc:
+        print(f"train-graph: {exc}", file=sys.stderr)
+        return 1
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}: validation loss "
           f"{card.validation['loss']:.4f} (no correction: {card.validation['loss_no_correction']:.4f}), "
           f"{card.training['train_seconds']:.0f} s training")
@@ -239,6 +250,9 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
             steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False)
             optimizer.learning_rate.assign(args.lr * 0.5 * (1 + np.cos(np.pi * done / total_steps)))
             losses.append(float(train_step(*prepared(train[i], steps))))
+            if not np.isfinite(losses[-1]):
+                raise TrainingDiverged(f"the training loss became {losses[-1]} in epoch {epoch}; nothing was "
+                                       f"written (a smaller --lr, or --omega below 0.6 for the solver losses)")
             done += 1
             if bar is not None:
                 bar.update(1)

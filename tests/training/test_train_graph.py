@@ -82,6 +82,17 @@ def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
     assert main(["train-graph", "--train", str(tmp_path / "none.h5"), "--val", str(data / "val.h5"),
                  "--out", str(tmp_path / "m.onnx")]) == 2
     assert "no such data file" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "m.onnx"), "--omega", "1.5"]) == 2
+    assert "--omega" in capsys.readouterr().err
+
+
+def test_a_diverging_run_says_so_and_writes_nothing(data, tmp_path, capsys):
+    out = tmp_path / "m.onnx"
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
+                 "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1", "--loss", "mse",
+                 "--lr", "1e30", "--cache", str(tmp_path / "cache"), "--quiet"]) == 1
+    assert "training loss became" in capsys.readouterr().err
+    assert not out.exists() and not out.with_suffix(".json").exists()
 
 
 @pytest.fixture(scope="module")
