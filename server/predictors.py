@@ -374,11 +374,17 @@ def load_models(folder: Path, *, intra_op_threads: int = 1,
     orphans = sorted(p.name for p in folder.glob("*.onnx") if p.name not in named)
     if orphans:
         raise ModelCardError(f"{folder}: no model card names {', '.join(orphans)}")
-    models = []
-    for path, card in cards.items():
-        onnx_path = card.onnx_path(path)
-        if not onnx_path.exists():
-            raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {folder}")
-        cls = GraphPredictor if card.kind == "graph" else ModelPredictor
-        models.append(cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads))
-    return models
+    return [load_model(path, card, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads)
+            for path, card in cards.items()]
+
+
+def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: int = 1,
+               inter_op_threads: int = 1) -> ModelPredictor | GraphPredictor:
+    """The predictor of one card (`card`: the card at `path`, when already read)."""
+    path = Path(path)
+    card = ModelCard.load(path) if card is None else card
+    onnx_path = card.onnx_path(path)
+    if not onnx_path.exists():
+        raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {path.parent}")
+    cls = GraphPredictor if card.kind == "graph" else ModelPredictor
+    return cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads)

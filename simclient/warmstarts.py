@@ -11,6 +11,13 @@ Local providers (thesis §8.2 plus one it lacked):
     copy2        the oracle rounded to two decimals
     copy0        the oracle rounded to integers
     extrapolate  J(t-1) + (J(t-1) - J(t-2)) for points that persist, builtin otherwise
+Probes of what a model could use (docs/results.md, "Where the iterations are"):
+    lastchange@A builtin + A x the change the solver made to the same point's warm
+                 start on the previous step (temporal information, e.g. A = -0.5)
+    solve@K      builtin + K conjugate-gradient steps on this step's contact problem
+                 without its limits (no friction cone, normal impulses may go
+                 negative until clamped): a global linear solve, as a model with
+                 unlimited reach could at best learn it
 Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:persisting   the oracle at points that persist, zero at new ones
     oracle:new          the oracle at new points, builtin where the point persists
@@ -20,6 +27,12 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:half         builtin + half the oracle's correction (oracle - builtin)
     oracle:grid@RES     builtin + the oracle's correction through a grid of RES m
                         (h = 2 RES, poly6): what smoothing at that scale keeps
+    oracle:small@T      the oracle at points whose correction (oracle - builtin, normal)
+                        is at most T N s, builtin elsewhere
+    oracle:big@T        the oracle where that correction exceeds T N s, builtin elsewhere
+    oracle:noisy@S      oracle:small@1 with Gaussian noise of S N s added to each served
+                        correction (seeded): how exact a model must be
+    oracle:relnoisy@R   the same with noise of R times each correction's size
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -29,8 +42,17 @@ from __future__ import annotations
 
 import numpy as np
 
-LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate")
-ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES")
+LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K")
+ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
+           "relnoisy@R")
+#: Oracle variants that take a parameter after "@", and what it is.
+_ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
+                      "small": "a correction size in N s, e.g. oracle:small@1",
+                      "big": "a correction size in N s, e.g. oracle:big@1",
+                      "noisy": "a noise level in N s, e.g. oracle:noisy@0.05",
+                      "relnoisy": "a noise level relative to the correction, e.g. oracle:relnoisy@0.5"}
+#: oracle:noisy and oracle:relnoisy perturb the corrections of oracle:small at this size (N s).
+NOISY_SMALL = 1.0
 
 
 class Provider:
@@ -109,16 +131,18 @@ class OracleMix(Provider):
     def __init__(self, variant: str):
         self.variant = variant
         self.name = f"oracle:{variant}"
-        if variant.startswith("grid@"):
+        kind, at, value = variant.partition("@")
+        self.kind = kind
+        if kind in _ORACLE_PARAMETERS and at:
             try:
-                res = float(variant[5:])
+                self.value = float(value)
             except ValueError:
-                res = -1.0
-            if not res > 0:
-                raise ValueError(f"oracle:grid@RES needs a grid spacing in m, e.g. oracle:grid@0.5, got {variant!r}")
-            self.res = res
+                self.value = -1.0
+            if not self.value > 0:
+                raise ValueError(f"oracle:{kind}@... needs {_ORACLE_PARAMETERS[kind]}, got {variant!r}")
         elif variant not in ORACLES:
             raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
+        self._rng = np.random.default_rng(0)  # a fresh provider per world: the same noise every run
 
     def warm_start(self, engine, bodies, points, step):
         if len(points) == 0:
@@ -126,7 +150,8 @@ class OracleMix(Provider):
         exact = np.nan_to_num(engine.oracle()).astype(np.float64)  # NaN: outside every awake island
         builtin = points["builtin"].astype(np.float64)
         new = ~builtin.any(axis=1)
-        v = self.variant
+        correction = np.abs(exact[:, 0] - builtin[:, 0])
+        v = self.kind
         if v == "persisting":
             warm = np.where(new[:, None], 0.0, exact)
         elif v == "new":
@@ -140,17 +165,124 @@ class OracleMix(Provider):
             warm = np.where(heavy[:, None], exact, builtin)
         elif v == "half":
             warm = builtin + 0.5 * (exact - builtin)
+        elif v == "small":
+            warm = np.where((correction <= self.value)[:, None], exact, builtin)
+        elif v == "big":
+            warm = np.where((correction > self.value)[:, None], exact, builtin)
+        elif v in ("noisy", "relnoisy"):
+            noise = self._rng.normal(0.0, self.value, exact.shape)
+            if v == "relnoisy":
+                noise *= np.abs(exact - builtin)
+            warm = np.where((correction <= NOISY_SMALL)[:, None], exact + noise, builtin)
         else:
             from deepcontact.gridspec import GridSpec
             from deepcontact.transfer import plan
 
             # A grid from the scenes' origin (their box's lower-left corner) over every point.
-            reach = np.ceil(points["point"].max(axis=0) / self.res) * self.res + self.res
-            spec = GridSpec.for_domain((0.0, 0.0), tuple(np.maximum(reach, self.res)), self.res, 2 * self.res)
+            res = self.value
+            reach = np.ceil(points["point"].max(axis=0) / res) * res + res
+            spec = GridSpec.for_domain((0.0, 0.0), tuple(np.maximum(reach, res)), res, 2 * res)
             pl = plan(points["point"], spec, outside="drop")
             warm = builtin + pl.g2p(pl.p2g(exact - builtin)[0])[0]
-        warm = warm.astype(np.float32)
-        return np.ascontiguousarray(warm[:, 0]), np.ascontiguousarray(warm[:, 1])
+        return _as_warm_start(warm)
+
+
+def _as_warm_start(warm: np.ndarray):
+    """(P, 2) impulses (N s) as the (normal, tangent) float32 pair the engine takes."""
+    warm = warm.astype(np.float32)
+    return np.ascontiguousarray(warm[:, 0]), np.ascontiguousarray(warm[:, 1])
+
+
+class LastChange(Provider):
+    """Builtin plus `alpha` times what the solver changed at the same point on the
+    previous step (its final impulse minus where it started), matched by key.
+
+    A large correction is often partly undone one step later, hence a negative
+    alpha (docs/results.md, "Where the iterations are").
+    """
+
+    def __init__(self, alpha: float):
+        self.alpha = alpha
+        self.name = f"lastchange@{alpha:g}"
+        self._keys = np.zeros(0, np.uint64)  # sorted keys of the previous step's points ...
+        self._change = np.zeros((0, 2))  # ... and the solver's change at each, N s
+
+    def warm_start(self, engine, bodies, points, step):
+        if len(points) == 0:
+            return None
+        builtin = points["builtin"].astype(np.float64)
+        warm = builtin.copy()
+        if len(self._keys):
+            idx = np.searchsorted(self._keys, points["key"]).clip(max=len(self._keys) - 1)
+            persisting = (self._keys[idx] == points["key"]) & builtin.any(axis=1)
+            warm[persisting] += self.alpha * self._change[idx[persisting]]
+        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+        return _as_warm_start(warm)
+
+    def observe(self, points_after_solve):
+        order = np.argsort(points_after_solve["key"])
+        after = points_after_solve[order]
+        self._keys = after["key"]
+        self._change = np.nan_to_num(after["impulse"].astype(np.float64) - after["warm_start"])
+
+
+class LinearSolve(Provider):
+    """Builtin plus `iterations` conjugate-gradient steps on this step's contact
+    problem without its limits: find the correction c (P, 2) that leaves no
+    relative velocity at any point, A c = -v, with A = J M^-1 J^T (both
+    directions of every point) and v the points' relative velocity after
+    gravity and Box2D's warm start. Normal impulses are clamped at 0 and
+    tangent ones to the friction cone afterwards (friction from the scene).
+    It is the global solve a model with unlimited reach could at best
+    learn, minus the contact problem's limits.
+    """
+
+    def __init__(self, iterations: int):
+        self.iterations = iterations
+        self.name = f"solve@{iterations}"
+        self._friction = np.zeros(0)  # per body, creation order
+
+    def prepare(self, engine) -> None:
+        super().prepare(engine)
+        # pybox2d lists the bodies in creation order, the records' body index.
+        self._friction = np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in engine.world.bodies])
+
+    def warm_start(self, engine, bodies, points, step):
+        from deepcontact.kinematics import Physics, contact_frame, contact_velocities
+
+        if len(points) == 0:
+            return None
+        frame = contact_frame(bodies, points)
+        gravity = engine.world.gravity
+        physics = Physics(engine.config.dt, (float(gravity[0]), float(gravity[1])))
+        builtin = points["builtin"].astype(np.float64)
+        still = bodies.copy()
+        still["velocity"], still["angular_velocity"] = 0.0, 0.0
+
+        def delassus(x):  # A x: the relative velocities impulses x alone cause, (P, 2) m/s
+            return contact_velocities(still, points, warm=x, frame=frame)
+
+        residual = -contact_velocities(bodies, points, warm=builtin, physics=physics, frame=frame)
+        correction = np.zeros_like(builtin)
+        direction = residual.copy()
+        rr = float((residual * residual).sum())
+        for _ in range(self.iterations):  # conjugate-gradient steps, not points
+            ad = delassus(direction)
+            dad = float((direction * ad).sum())
+            if rr <= 1e-30 or dad <= 1e-30:
+                break
+            step_size = rr / dad
+            correction += step_size * direction
+            residual -= step_size * ad
+            rr_next = float((residual * residual).sum())
+            direction = residual + (rr_next / rr) * direction
+            rr = rr_next
+        warm = builtin + correction
+        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+        # Box2D mixes two fixtures' friction as sqrt(f_A f_B).
+        limit = np.sqrt(self._friction[points["body_a"]] * self._friction[points["body_b"]]) * warm[:, 0]
+        warm[:, 1] = np.clip(warm[:, 1], -limit, limit)
+        return _as_warm_start(warm)
 
 
 class Remote(Provider):
@@ -173,6 +305,16 @@ def make_provider(name: str) -> Provider:
         return Remote(model)
     if name.startswith("oracle:"):
         return OracleMix(name.split(":", 1)[1])
+    for prefix, parse, cls, what in (("lastchange@", float, LastChange, "a factor, e.g. lastchange@-0.5"),
+                                     ("solve@", int, LinearSolve, "a number of iterations, e.g. solve@10")):
+        if name.startswith(prefix):
+            try:
+                value = parse(name[len(prefix):])
+            except ValueError:
+                raise ValueError(f"{prefix}... needs {what}, got {name!r}") from None
+            if parse is int and value < 1:
+                raise ValueError(f"{prefix}... needs {what}, got {name!r}")
+            return cls(value)
     factories = {
         "none": NoWarmStart,
         "builtin": Builtin,

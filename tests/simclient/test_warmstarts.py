@@ -69,3 +69,55 @@ def test_unknown_warm_starts_are_refused():
         make_provider("oracle:magic")
     with pytest.raises(ValueError, match="grid spacing"):
         make_provider("oracle:grid@-1")
+
+
+def test_the_value_of_a_warm_start_lies_in_its_small_corrections():
+    # The oracle at the points whose correction is small is worth much more than at those
+    # where it is large once the pile has formed (docs/results.md, "Where the iterations are"),
+    # and noise erodes it: a whole thesis run.
+    its = {name: mean_iterations(name, SceneSpec.thesis()) for name in ("builtin", "oracle:small@1", "oracle:big@1",
+                                                                        "oracle:noisy@0.01", "oracle:noisy@1")}
+    assert its["oracle:small@1"] < 0.7 * its["builtin"]
+    assert its["oracle:small@1"] < its["oracle:big@1"]
+    assert its["oracle:small@1"] <= its["oracle:noisy@0.01"] < its["oracle:noisy@1"]
+
+
+def test_last_change_adds_a_share_of_the_solvers_previous_change_at_persisting_points():
+    provider = make_provider("lastchange@-0.5")
+    fields = [("key", "<u8"), ("builtin", "<f4", (2,)), ("warm_start", "<f4", (2,)), ("impulse", "<f4", (2,))]
+    before = np.zeros(2, dtype=fields)
+    before["key"] = [5, 9]
+    before["warm_start"] = [[1.0, 0.0], [2.0, 0.1]]
+    before["impulse"] = [[1.4, 0.0], [1.0, 0.3]]  # changes +0.4 and (-1.0, +0.2)
+    provider.observe(before)
+    now = np.zeros(3, dtype=fields)
+    now["key"] = [9, 5, 11]
+    now["builtin"] = [[1.0, 0.3], [1.4, 0.0], [0.0, 0.0]]  # key 11 is new
+    normal, tangent = provider.warm_start(None, None, now, 1)
+    np.testing.assert_allclose(normal, [1.5, 1.2, 0.0])
+    np.testing.assert_allclose(tangent, [0.2, 0.0, 0.0], atol=1e-7)
+
+
+def test_a_linear_solve_warm_start_runs_and_keeps_the_contact_limits():
+    from simclient.scene import build_world
+
+    engine = build_world(SHORT, 901)
+    provider = make_provider("solve@10")
+    provider.prepare(engine)
+    for _ in range(80):  # until the pile has contacts
+        engine.collide()
+        points = engine.contacts()
+        warm = provider.warm_start(engine, engine.bodies(), points, engine.step_index)
+        if warm is not None:
+            normal, tangent = warm
+            assert (normal >= 0).all() and (np.abs(tangent) <= 0.5 * normal + 1e-6).all()  # friction 0.5
+            engine.set_warm_start(normal, tangent)
+        engine.solve()
+    assert len(points) > 0
+
+
+def test_probe_warm_starts_check_their_parameter():
+    for name, match in (("lastchange@x", "factor"), ("solve@0", "iterations"), ("oracle:small@0", "correction size"),
+                        ("oracle:noisy@-1", "noise level")):
+        with pytest.raises(ValueError, match=match):
+            make_provider(name)

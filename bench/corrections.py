@@ -1,0 +1,111 @@
+"""`deepcontact bench corrections`: how a served model's corrections compare with the solver's, by size.
+
+    deepcontact bench corrections --model graph-mse --data data/thesis-val-801-820.h5
+
+Replays recorded steps (`deepcontact generate`) through a model as the server
+serves it (its card's combine and threshold included) and compares the served
+correction (warm start minus Box2D's) with the solver's own correction (final
+impulse minus Box2D's warm start), normal components, N s. Points are grouped
+by the size of the solver's correction: the oracle experiments say the value
+of a warm start lies at persisting points whose correction is small (docs/results.md,
+"Where the iterations are"), and a plain MSE is ruled by the few large ones.
+
+Per group: points; RMS of the solver's correction (Builtin's error); RMS error
+of the served warm start; the share of points where a correction is served
+(non-zero); and, among those, the share whose sign agrees with the solver's
+(0.5 is a coin toss).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.io import write_json_atomic
+
+#: Upper edges of the groups of the solver's correction size (N s); the last group is open.
+BANDS = (0.01, 0.1, 0.3, 1.0)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    parser.add_argument("--model", default="default", help="model to replay (default: default)")
+    parser.add_argument("--data", type=Path, required=True, help="recorded steps (HDF5 from `deepcontact generate`)")
+    parser.add_argument("--max-steps", type=int, default=500, metavar="N",
+                        help="replay at most N steps with contacts, drawn at random (default %(default)s)")
+    parser.add_argument("--json", metavar="FILE", help="write the table here as JSON")
+
+
+def band_table(served: np.ndarray, solver: np.ndarray, new: np.ndarray) -> list[dict]:
+    """Rows of the comparison (module docstring).
+
+    served, solver: (P,) corrections to Box2D's warm start, normal, N s; new: (P,) bool, new points."""
+    edges = (0.0, *BANDS, np.inf)
+    groups = [(f"persisting, |c| in ({lo:g}, {hi:g}]", ~new & (np.abs(solver) > lo) & (np.abs(solver) <= hi))
+              for lo, hi in zip(edges[:-1], edges[1:])]
+    groups[0] = ("persisting, |c| <= 0.01", ~new & (np.abs(solver) <= BANDS[0]))
+    groups += [("persisting, all", ~new), ("new points", new)]
+    rows = []
+    for name, m in groups:
+        given = m & (served != 0)
+        rows.append({
+            "group": name, "points": int(m.sum()),
+            "rms_correction": _rms(solver[m]), "rms_error": _rms(served[m] - solver[m]),
+            "served_share": float(given.sum() / max(m.sum(), 1)),
+            "sign_agreement": float(np.mean(np.sign(served[given]) == np.sign(solver[given]))) if given.any() else None,
+        })
+    return rows
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x, dtype=np.float64)))) if len(x) else float("nan")
+
+
+def replay(predictor, path: Path, max_steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(served, solver, new): the served and the solver's normal correction and the new-point
+    flag at every point of up to max_steps recorded steps, (P,) each."""
+    from server.predictors import World
+    from training.grids import iter_steps, open_dataset, select_steps
+
+    with open_dataset(path) as ds:
+        steps = ds.steps
+    served, solver, new = [], [], []
+    for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # loop over steps, not points
+        c = step.contacts
+        world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
+        warm, _ = predictor.predict(step.bodies, c, world, 0, step.previous)
+        served.append(warm[:, 0] - c["builtin"][:, 0])
+        solver.append(c["impulse"][:, 0] - c["builtin"][:, 0])
+        new.append(~c["builtin"].any(axis=1))
+    return np.concatenate(served), np.concatenate(solver), np.concatenate(new)
+
+
+def run(args: argparse.Namespace) -> int:
+    from deepcontact.modelcard import ModelCardError
+    from server.predictors import GridMismatch, load_model
+    from training.grids import GridDataError
+
+    if args.max_steps < 1:
+        print("deepcontact bench corrections: --max-steps must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        predictor = load_model(args.models / f"{args.model}.json")
+        served, solver, new = replay(predictor, args.data, args.max_steps)
+    except (ModelCardError, GridDataError, GridMismatch, OSError) as exc:
+        print(f"deepcontact bench corrections: {exc}", file=sys.stderr)
+        return 2
+    rows = band_table(served, solver, new)
+    print(f"{args.model} on {args.data} ({len(served)} points): the served correction against the solver's "
+          "(normal, N s)")
+    print("| points | n | RMS solver's correction | RMS error served | served share | sign agrees |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        sign = "–" if r["sign_agreement"] is None else f"{r['sign_agreement']:.2f}"
+        print(f"| {r['group']} | {r['points']} | {r['rms_correction']:.3g} | {r['rms_error']:.3g} | "
+              f"{r['served_share']:.2f} | {sign} |")
+    if args.json:
+        write_json_atomic(args.json, {"model": args.model, "data": str(args.data), "rows": rows})
+    return 0

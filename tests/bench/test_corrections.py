@@ -1,0 +1,41 @@
+"""`deepcontact bench corrections`: a served model's corrections against the solver's, by size."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bench.corrections import band_table
+from deepcontact.cli import main
+
+
+def test_band_table_groups_persisting_points_by_the_solvers_correction():
+    solver = np.array([0.005, -0.05, 0.2, -2.0, 1.5])
+    served = np.array([-0.01, -0.04, 0.0, -1.0, 1.0])
+    new = np.array([False, False, False, False, True])
+    rows = {r["group"]: r for r in band_table(served, solver, new)}
+    small = rows["persisting, |c| <= 0.01"]
+    assert small["points"] == 1 and small["sign_agreement"] == 0.0  # served the wrong way
+    assert rows["persisting, |c| in (0.01, 0.1]"]["sign_agreement"] == 1.0
+    mid = rows["persisting, |c| in (0.1, 0.3]"]
+    assert mid["served_share"] == 0.0 and mid["sign_agreement"] is None  # nothing served there
+    assert mid["rms_error"] == pytest.approx(0.2)  # Builtin's error where nothing is served
+    assert rows["persisting, |c| in (1, inf]"]["rms_error"] == pytest.approx(1.0)
+    assert rows["persisting, all"]["points"] == 4 and rows["new points"]["points"] == 1
+
+
+def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_path, model_dir, capsys):
+    data = tmp_path / "rec.h5"
+    assert main(["generate", "--steps", "60", "--seeds", "1", "--out", str(data), "--quiet"]) == 0
+    out = tmp_path / "bands.json"
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
+                 "--max-steps", "20", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert sum(r["points"] for r in rows if r["group"] in ("persisting, all", "new points")) > 0
+    assert "| persisting, all |" in capsys.readouterr().out
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "nope", "--data", str(data)]) == 2
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny",
+                 "--data", str(tmp_path / "none.h5")]) == 2
+    assert "none.h5" in capsys.readouterr().err
