@@ -11,6 +11,9 @@
 #                              error (training/graph_loss.py), served at every point
 #   graph-solver-new-points    the same loss, trained and served at new points only
 #   graph-solver-r6            graph-solver with six rounds of message passing (more reach)
+#   graph-relative             each point's error relative to its own correction: the small
+#                              corrections, where a warm start's value lies, weigh as much as
+#                              the large ones
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -41,9 +44,11 @@ run() {
         graph-solver-r6)
             variant graph-solver-r6 --loss solver --rounds 6 --max-steps-per-file 3000 --epochs 4
             "$PY" -m training.card_variant "$OUT/graph-solver-r6.json" --correction-threshold 1.0 ;;
+        graph-relative)
+            variant graph-relative --loss relative --max-steps-per-file 10000 --epochs 8 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }
 
-if [ $# -eq 0 ]; then set -- graph-mse graph-solver graph-solver-new-points graph-solver-r6; fi
+if [ $# -eq 0 ]; then set -- graph-mse graph-solver graph-solver-new-points graph-solver-r6 graph-relative; fi
 for v in "$@"; do run "$v"; done

@@ -35,6 +35,7 @@ from deepcontact.modelcard import ModelCard
 from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, GraphSet, build_graph_set
 
 CACHE_VERSION = 2  # GraphSet fields
+RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
 DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
 
@@ -61,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s)")
-    parser.add_argument("--loss", choices=("mse", "solver", "solver-log"), default="solver",
+    parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log"), default="solver",
                         help="mse: squared error of the correction at every point; solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
                              "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
@@ -183,6 +184,13 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
         pred = net(points, ends, dynamic)
         if args.loss == "mse":
             per_point = tf.reduce_sum(tf.square(pred - y) * loss_weight, axis=1)
+            return per_point, tf.ones_like(per_point)
+        if args.loss == "relative":
+            # Each point's error relative to its own correction (floored at RELATIVE_FLOOR):
+            # small corrections, where a warm start's value lies, count as much as large ones.
+            target = y * out_std + out_mean
+            per_point = tf.reduce_sum(tf.square((pred - y) * out_std / (tf.abs(target) + RELATIVE_FLOOR))
+                                      * loss_weight, axis=1)
             return per_point, tf.ones_like(per_point)
         error = (pred - y) * out_std  # N s: the served correction minus the solver's
         builtin_error = -(y * out_std + out_mean)  # Box2D's warm start misses the whole correction

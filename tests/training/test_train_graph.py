@@ -54,7 +54,7 @@ def test_the_solver_loss_sees_no_error_in_the_exact_correction_and_decays_the_re
     assert sizes[0] > sizes[1] > sizes[2] > 0
 
 
-@pytest.mark.parametrize("loss", ["mse", "solver", "solver-log"])
+@pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
     out = tmp_path / "graph.onnx"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
