@@ -18,6 +18,9 @@ Probes of what a model could use (docs/results.md, "Where the iterations are"):
                  without its limits (no friction cone, normal impulses may go
                  negative until clamped): a global linear solve, as a model with
                  unlimited reach could at best learn it
+    solve-active@K  the same on the contacts Box2D's warm start says are active:
+                 normal impulses only where it is > 0 (or the point is new), tangent
+                 ones only where last step's friction was inside the cone
 Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:persisting   the oracle at points that persist, zero at new ones
     oracle:new          the oracle at new points, builtin where the point persists
@@ -42,7 +45,7 @@ from __future__ import annotations
 
 import numpy as np
 
-LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K")
+LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R")
 #: Oracle variants that take a parameter after "@", and what it is.
@@ -234,12 +237,16 @@ class LinearSolve(Provider):
     gravity and Box2D's warm start. Normal impulses are clamped at 0 and
     tangent ones to the friction cone afterwards (friction from the scene).
     It is the global solve a model with unlimited reach could at best
-    learn, minus the contact problem's limits.
+    learn, minus the contact problem's limits. With `active`, only the
+    unknowns Box2D's warm start says are free take part: the normal impulse
+    where it is > 0 or the point is new, the tangent one where it was also
+    inside the friction cone (below 0.99 of its limit) or the point is new;
+    the others keep Box2D's values (last step's active set).
     """
 
-    def __init__(self, iterations: int):
-        self.iterations = iterations
-        self.name = f"solve@{iterations}"
+    def __init__(self, iterations: int, active: bool = False):
+        self.iterations, self.active = iterations, active
+        self.name = f"solve{'-active' if active else ''}@{iterations}"
         self._friction = np.zeros(0)  # per body, creation order
 
     def prepare(self, engine) -> None:
@@ -259,10 +266,17 @@ class LinearSolve(Provider):
         still = bodies.copy()
         still["velocity"], still["angular_velocity"] = 0.0, 0.0
 
-        def delassus(x):  # A x: the relative velocities impulses x alone cause, (P, 2) m/s
-            return contact_velocities(still, points, warm=x, frame=frame)
+        free = np.ones_like(builtin)  # (P, 2): 1 where the unknown takes part
+        if self.active:
+            new = ~builtin.any(axis=1)
+            limit = np.sqrt(self._friction[points["body_a"]] * self._friction[points["body_b"]]) * builtin[:, 0]
+            free[:, 0] = (builtin[:, 0] > 0) | new
+            free[:, 1] = (free[:, 0] > 0) & ((np.abs(builtin[:, 1]) < 0.99 * limit) | new)
 
-        residual = -contact_velocities(bodies, points, warm=builtin, physics=physics, frame=frame)
+        def delassus(x):  # A x on the free unknowns: the relative velocities impulses x alone cause, (P, 2) m/s
+            return contact_velocities(still, points, warm=x * free, frame=frame) * free
+
+        residual = -contact_velocities(bodies, points, warm=builtin, physics=physics, frame=frame) * free
         correction = np.zeros_like(builtin)
         direction = residual.copy()
         rr = float((residual * residual).sum())
@@ -305,8 +319,10 @@ def make_provider(name: str) -> Provider:
         return Remote(model)
     if name.startswith("oracle:"):
         return OracleMix(name.split(":", 1)[1])
-    for prefix, parse, cls, what in (("lastchange@", float, LastChange, "a factor, e.g. lastchange@-0.5"),
-                                     ("solve@", int, LinearSolve, "a number of iterations, e.g. solve@10")):
+    for prefix, parse, make, what in (
+            ("lastchange@", float, LastChange, "a factor, e.g. lastchange@-0.5"),
+            ("solve@", int, LinearSolve, "a number of iterations, e.g. solve@10"),
+            ("solve-active@", int, lambda k: LinearSolve(k, active=True), "a number of iterations, e.g. solve-active@20")):
         if name.startswith(prefix):
             try:
                 value = parse(name[len(prefix):])
@@ -314,7 +330,7 @@ def make_provider(name: str) -> Provider:
                 raise ValueError(f"{prefix}... needs {what}, got {name!r}") from None
             if parse is int and value < 1:
                 raise ValueError(f"{prefix}... needs {what}, got {name!r}")
-            return cls(value)
+            return make(value)
     factories = {
         "none": NoWarmStart,
         "builtin": Builtin,

@@ -63,7 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s)")
     parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log"), default="solver",
-                        help="mse: squared error of the correction at every point; solver (default): the residual "
+                        help="mse: squared error of the correction at every point; relative: each point's error "
+                             "over its own correction's size (+ 0.05 N s), so small corrections count as much as "
+                             "large ones; solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
                              "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
                              "solver-log: per step, the log of that residual over Box2D's warm start's")

@@ -98,11 +98,12 @@ def test_last_change_adds_a_share_of_the_solvers_previous_change_at_persisting_p
     np.testing.assert_allclose(tangent, [0.2, 0.0, 0.0], atol=1e-7)
 
 
-def test_a_linear_solve_warm_start_runs_and_keeps_the_contact_limits():
+@pytest.mark.parametrize("name", ["solve@10", "solve-active@10"])
+def test_a_linear_solve_warm_start_runs_and_keeps_the_contact_limits(name):
     from simclient.scene import build_world
 
     engine = build_world(SHORT, 901)
-    provider = make_provider("solve@10")
+    provider = make_provider(name)
     provider.prepare(engine)
     for _ in range(80):  # until the pile has contacts
         engine.collide()
