@@ -36,6 +36,8 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:noisy@S      oracle:small@1 with Gaussian noise of S N s added to each served
                         correction (seeded): how exact a model must be
     oracle:relnoisy@R   the same with noise of R times each correction's size
+    oracle:previous     the previous step's oracle at points that persist, builtin at new
+                        ones: Box2D's warm start as if the last solve had converged
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -47,7 +49,7 @@ import numpy as np
 
 LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
-           "relnoisy@R")
+           "relnoisy@R", "previous")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -299,6 +301,37 @@ class LinearSolve(Provider):
         return _as_warm_start(warm)
 
 
+class PreviousOracle(Provider):
+    """The previous step's oracle at persisting points (matched by key), builtin at
+    new ones: does Box2D's warm start lose by carrying a solve that stopped at the
+    threshold rather than the converged one?"""
+
+    name = "oracle:previous"
+
+    def __init__(self):
+        self._keys = np.zeros(0, np.uint64)  # sorted keys of the previous step's points ...
+        self._exact = np.zeros((0, 2))  # ... and their oracle impulses, N s
+        self._now = None  # this step's (keys, oracle), kept until observe()
+
+    def warm_start(self, engine, bodies, points, step):
+        if len(points) == 0:
+            self._now = None
+            return None
+        builtin = points["builtin"].astype(np.float64)
+        self._now = (points["key"], np.nan_to_num(engine.oracle()).astype(np.float64))
+        warm = builtin.copy()
+        if len(self._keys):
+            idx = np.searchsorted(self._keys, points["key"]).clip(max=len(self._keys) - 1)
+            persisting = (self._keys[idx] == points["key"]) & builtin.any(axis=1)
+            warm[persisting] = self._exact[idx[persisting]]
+        return _as_warm_start(warm)
+
+    def observe(self, points_after_solve):
+        keys, exact = self._now if self._now is not None else (np.zeros(0, np.uint64), np.zeros((0, 2)))
+        order = np.argsort(keys)
+        self._keys, self._exact = keys[order], exact[order]
+
+
 class Remote(Provider):
     """A model or provider on the warm-start server (see simclient.simulate)."""
 
@@ -317,6 +350,8 @@ def make_provider(name: str) -> Provider:
         if not model:
             raise ValueError("server: needs a model name, e.g. server:pressure")
         return Remote(model)
+    if name == "oracle:previous":
+        return PreviousOracle()
     if name.startswith("oracle:"):
         return OracleMix(name.split(":", 1)[1])
     for prefix, parse, make, what in (

@@ -122,3 +122,24 @@ def test_probe_warm_starts_check_their_parameter():
                         ("oracle:noisy@-1", "noise level")):
         with pytest.raises(ValueError, match=match):
             make_provider(name)
+
+
+def test_the_previous_steps_oracle_is_served_at_persisting_points_only():
+    from simclient.scene import build_world
+
+    engine = build_world(SHORT, 901)
+    provider = make_provider("oracle:previous")
+    provider.prepare(engine)
+    served = []
+    for _ in range(80):
+        engine.collide()
+        points = engine.contacts()
+        warm = provider.warm_start(engine, engine.bodies(), points, engine.step_index)
+        if warm is not None:
+            engine.set_warm_start(*warm)
+            new = ~points["builtin"].any(axis=1)
+            assert (warm[0][new] == 0).all()  # nothing carried into a point Box2D has not seen
+            served.append(not np.allclose(warm[0], points["builtin"][:, 0]))
+        engine.solve()
+        provider.observe(engine.contacts())
+    assert any(served)  # the previous solve stopped at the threshold, the oracle did not
