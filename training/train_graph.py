@@ -19,6 +19,7 @@ serves it (residual: everywhere; new-points: at new points only).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import os
@@ -152,37 +153,46 @@ def normalization(train: list[GraphSet]) -> dict[str, tuple[float, float]]:
     return out
 
 
-def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_seconds: float,
-        sources: list[str], val_sources: list[str]) -> ModelCard:
-    from training.graph_loss import residuals_after
-    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict, count_parameters, to_onnx
+@dataclasses.dataclass(frozen=True)
+class Scaling:
+    """The training files' per-channel mean and std, (F,) for the inputs and (T,) for the
+    targets, float32: what the card's GridSpec carries and the server undoes."""
 
-    norm = normalization(train)
-    spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names, normalization=norm)
-    in_mean, in_std = (np.array(v, np.float32) for v in zip(*(norm[n] for n in spec.inputs)))
-    out_mean, out_std = (np.array(v, np.float32) for v in zip(*(norm[n] for n in spec.targets)))
-    config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
-                         rounds=args.rounds)
-    net = ContactGraphNet(config, seed=args.seed)
-    tf = net.tf
-    # Start from Box2D's own warm start: the last layer's kernel is 0, its bias a zero correction.
-    net.variables["decode1/bias"].assign((0 - out_mean) / out_std)
-    tf.random.set_seed(args.seed)
-    loss_weight = tf.constant([1.0] + [args.tangent_weight] * (config.out_channels - 1), tf.float32)
+    in_mean: np.ndarray
+    in_std: np.ndarray
+    out_mean: np.ndarray
+    out_std: np.ndarray
 
-    def prepared(gs: GraphSet, steps):
+    @classmethod
+    def of(cls, spec: GridSpec) -> "Scaling":
+        return cls(*spec.normalization_arrays(spec.inputs), *spec.normalization_arrays(spec.targets))
+
+    def batch(self, gs: GraphSet, steps) -> tuple:
+        """Steps of gs as one normalized batch: points (P, F), ends (P, 2), dynamic (B, 1),
+        targets (P, T), geometry (P, 8), masses (P, 2), inverse (B, 2), step_of (P,) int32
+        (each point's step within the batch)."""
         f, t, e, d = gs.batch(steps)
         counts = np.diff(gs.point_offsets)[np.asarray(steps)]
-        step_of = np.repeat(np.arange(len(counts), dtype=np.int32), counts)  # each point's step in the batch
-        return ((f - in_mean) / in_std, e, d, (t - out_mean) / out_std, *gs.solver_batch(steps), step_of)
+        step_of = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+        return ((f - self.in_mean) / self.in_std, e, d, (t - self.out_mean) / self.out_std,
+                *gs.solver_batch(steps), step_of)
 
+
+def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float], new_column: int):
+    """batch_loss(points, ends, dynamic, y, geometry, masses, inverse, step_of) -> (losses,
+    weights) for --loss: a batch's loss is sum(losses) / sum(weights); per point for mse,
+    relative and solver, per step for solver-log."""
+    import tensorflow as tf
+
+    from training.graph_loss import residuals_after
+
+    out_mean, out_std, in_mean, in_std = scaling.out_mean, scaling.out_std, scaling.in_mean, scaling.in_std
+    loss_weight = tf.constant([1.0] + [args.tangent_weight] * (len(out_mean) - 1), tf.float32)
     # Solver loss: each checkpoint's mean squared residual, divided by what Box2D's
     # own warm start (no correction) leaves there on the training data, so each counts alike.
-    scales = tf.constant(_residual_scales(train, args) if args.loss == "solver" else [1.0], tf.float32)
+    scales = tf.constant(residual_scales, tf.float32)
 
     def batch_loss(points, ends, dynamic, y, geometry, masses, inverse, step_of):
-        """(losses, weights): a batch's loss is sum(losses) / sum(weights); per point for
-        mse and solver, per step for solver-log."""
         pred = net(points, ends, dynamic)
         if args.loss == "mse":
             per_point = tf.reduce_sum(tf.square(pred - y) * loss_weight, axis=1)
@@ -217,9 +227,49 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
             for m, b in zip(squares(error), squares(builtin_error))]) / len(args.sweeps)
         return per_step, tf.ones_like(per_step)
 
-    new_column = spec.inputs.index("new_point")
+    return batch_loss
+
+
+@dataclasses.dataclass
+class Fitted:
+    """What a training loop leaves: the best epoch's weights and how it got there."""
+
+    weights: dict[str, np.ndarray]
+    loss: float  # best validation loss
+    epoch: int
+    history: list  # [epoch, mean training loss, validation loss] per epoch
+    stop_reason: str
+    seconds: float
+
+
+def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_seconds: float,
+        sources: list[str], val_sources: list[str]) -> ModelCard:
+    """Train a ContactGraphNet on `train`, keep the epoch best on `val`, and write the
+    ONNX file and its card to args.out (see the module docstring)."""
+    from training.graph_model import ContactGraphNet, GraphConfig
+
+    spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names, normalization=normalization(train))
+    scaling = Scaling.of(spec)
+    config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
+                         rounds=args.rounds)
+    net = ContactGraphNet(config, seed=args.seed)
+    # Start from Box2D's own warm start: the last layer's kernel is 0, its bias a zero correction.
+    net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)
+    net.tf.random.set_seed(args.seed)
+    residual_scales = _residual_scales(train, args) if args.loss == "solver" else [1.0]
+    batch_loss = batch_loss_function(net, args, scaling, residual_scales, spec.inputs.index("new_point"))
+    fitted, validate = _train(net, train, val, args, scaling, batch_loss)
+    return _write(net, fitted, validate, spec, scaling, args, command=command, read_seconds=read_seconds,
+                  sources=sources, val_sources=val_sources, train=train, val=val)
+
+
+def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss):
+    """Adam on a cosine schedule over args.epochs, stopping after args.patience epochs
+    without a better validation loss. Returns (Fitted, validate), validate() scoring
+    the net's current weights on `val`."""
+    tf = net.tf
     optimizer = tf.keras.optimizers.Adam(learning_rate=args.lr)
-    spec_in = net.signature() + [tf.TensorSpec((None, config.out_channels), tf.float32),
+    spec_in = net.signature() + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
                                  tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
                                  tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32)]
 
@@ -240,7 +290,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
         total, count = 0.0, 0.0
         for gs in val:
             for k in range(0, len(gs), 64):
-                loss_sum, weight_sum = val_step(*prepared(gs, np.arange(k, min(k + 64, len(gs)))))
+                loss_sum, weight_sum = val_step(*scaling.batch(gs, np.arange(k, min(k + 64, len(gs)))))
                 total += float(loss_sum)
                 count += float(weight_sum)
         return total / count
@@ -249,7 +299,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     batches = [(i, chunk) for i, gs in enumerate(train)
                for chunk in np.array_split(np.arange(len(gs)), max(1, len(gs) // args.batch_size))]
     total_steps = args.epochs * len(batches)
-    best, best_epoch, best_weights, history, stop = np.inf, 0, net.weights(), [], "epochs"
+    fitted = Fitted(net.weights(), np.inf, 0, [], "epochs", 0.0)
     t0 = time.perf_counter()
     done = 0
     for epoch in range(1, args.epochs + 1):
@@ -259,7 +309,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
             i, _ = batches[j]
             steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False)
             optimizer.learning_rate.assign(args.lr * 0.5 * (1 + np.cos(np.pi * done / total_steps)))
-            losses.append(float(train_step(*prepared(train[i], steps))))
+            losses.append(float(train_step(*scaling.batch(train[i], steps))))
             if not np.isfinite(losses[-1]):
                 raise TrainingDiverged(f"the training loss became {losses[-1]} in epoch {epoch}; nothing was "
                                        f"written (a smaller --lr, or --omega below 0.6 for the solver losses)")
@@ -269,42 +319,51 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
         if bar is not None:
             bar.close()
         val_loss = validate()
-        history.append([epoch, round(float(np.mean(losses)), 6), round(val_loss, 6)])
-        better = val_loss < best
+        fitted.history.append([epoch, round(float(np.mean(losses)), 6), round(val_loss, 6)])
+        better = val_loss < fitted.loss
         if better:
-            best, best_epoch, best_weights = val_loss, epoch, net.weights()
+            fitted.loss, fitted.epoch, fitted.weights = val_loss, epoch, net.weights()
         print(f"epoch {epoch}: train {np.mean(losses):.4f}  val {val_loss:.4f}{'  (best)' if better else ''}",
               flush=True)
-        if epoch - best_epoch >= args.patience:
-            stop = f"no better validation loss for {args.patience} epochs"
+        if epoch - fitted.epoch >= args.patience:
+            fitted.stop_reason = f"no better validation loss for {args.patience} epochs"
             break
-    train_seconds = time.perf_counter() - t0
-    final = ContactGraphNet(config, best_weights)
+    fitted.seconds = time.perf_counter() - t0
+    return fitted, validate
+
+
+def _write(net, fitted: Fitted, validate, spec: GridSpec, scaling: Scaling, args, *, command: str,
+           read_seconds: float, sources: list[str], val_sources: list[str], train: list[GraphSet],
+           val: list[GraphSet]) -> ModelCard:
+    """Export the best weights to args.out (ONNX, checked against TensorFlow) with their card."""
+    from training.graph_model import ContactGraphNet, config_to_dict, count_parameters, to_onnx
+
+    config = net.config
+    final = ContactGraphNet(config, fitted.weights)
     onnx_bytes = to_onnx(final)
-    parity = _parity(final, onnx_bytes, prepared(val[0], np.arange(min(8, len(val[0])))))
+    parity = _parity(final, onnx_bytes, scaling.batch(val[0], np.arange(min(8, len(val[0])))))
     # The loss of a model that predicts no correction: Box2D's own warm start.
-    net.variables["decode1/kernel"].assign(np.zeros_like(best_weights["decode1/kernel"]))
-    net.variables["decode1/bias"].assign((0 - out_mean) / out_std)
+    net.variables["decode1/kernel"].assign(np.zeros_like(fitted.weights["decode1/kernel"]))
+    net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)
     no_correction = validate()
     out = Path(args.out)
     write_bytes_atomic(out, onnx_bytes)
-    weights_path = Path(args.cache) / f"{out.stem}.weights.npz"
-    _save_npz(weights_path, best_weights)
-    params = count_parameters(best_weights)
+    _save_npz(Path(args.cache) / f"{out.stem}.weights.npz", fitted.weights)
+    params = count_parameters(fitted.weights)
     card = ModelCard(
         name=args.name or out.stem, kind="graph", onnx_file=out.name, gridspec=spec, fixed_grid=False,
         input_name="points", output_name="impulses", combine=args.combine, parameters=params,
         architecture={"config": config_to_dict(config), "parameters": {"total": params, "trainable": params},
-                      "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "tensorflow": tf.__version__},
+                      "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "tensorflow": net.tf.__version__},
         training={"train": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(sources, train)],
                   "val": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(val_sources, val)],
                   "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
                                                                "rounds", "tangent_weight", "seed", "loss", "sweeps", "omega",
                                                                "max_steps_per_file", "max_val_steps")},
-                  "lr_schedule": "cosine", "epochs_run": len(history), "best_epoch": best_epoch,
-                  "stop_reason": stop, "train_seconds": round(train_seconds, 1),
-                  "read_seconds": round(read_seconds, 1), "history": history},
-        validation={"epoch": best_epoch, "loss": best, "loss_no_correction": no_correction,
+                  "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
+                  "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
+                  "read_seconds": round(read_seconds, 1), "history": fitted.history},
+        validation={"epoch": fitted.epoch, "loss": fitted.loss, "loss_no_correction": no_correction,
                     "points": int(sum(len(g.targets) for g in val))},
         parity_max_abs_error=parity,
         commands=(command,),
