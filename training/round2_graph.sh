@@ -17,6 +17,8 @@
 #   graph-mse-1-799            graph-mse on every step of 1,598 simulations (seeds 1-799 of
 #                              both worlds: TRAIN_SEEDS=1-799 bash training/round2_data.sh first),
 #                              8 epochs; about 40 min on two cores
+#   graph-mse-1-799-e16        8 more epochs of graph-mse-1-799 from its weights (a new cosine
+#                              schedule at half the peak rate); about 30 min
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -53,6 +55,11 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799 --loss mse --epochs 8 --patience 3
             "$PY" -m training.card_variant "$OUT/graph-mse-1-799.json" --correction-threshold 0.3 ;;
+        graph-mse-1-799-e16)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-mse-1-799-e16 --loss mse --epochs 8 --patience 3 --lr 1e-3 \
+                --init runs/graph-cache/graph-mse-1-799.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-mse-1-799-e16.json" --correction-threshold 0.3 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }

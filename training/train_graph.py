@@ -45,6 +45,10 @@ class TrainingDiverged(RuntimeError):
     """The loss stopped being a number; nothing is written."""
 
 
+class WeightsMismatch(ValueError):
+    """--init names the weights of another network."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train", type=Path, action="append", required=True,
                         help="training data (HDF5 from `deepcontact generate`); repeat for several files")
@@ -81,6 +85,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache", type=Path, default=Path("runs/graph-cache"),
                         help="folder for the contact graphs read from the data files (default %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="weights, step order and step sampling (default 0)")
+    parser.add_argument("--init", type=Path, metavar="WEIGHTS",
+                        help="start from these weights (the .weights.npz an earlier run left in --cache) instead of "
+                             "random ones, for more epochs on a new schedule; same --width and --rounds, and the same "
+                             "--train files, whose mean and std the weights were trained against")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -89,9 +97,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix != ".onnx":
         print(f"train-graph: --out must name a .onnx file, got {args.out}", file=sys.stderr)
         return 2
-    missing = [str(p) for p in (*args.train, *args.val) if not p.exists()]
+    missing = [str(p) for p in (*args.train, *args.val, *([args.init] if args.init else [])) if not p.exists()]
     if missing:
-        print(f"train-graph: no such data file: {', '.join(missing)}", file=sys.stderr)
+        print(f"train-graph: no such file: {', '.join(missing)}", file=sys.stderr)
         return 2
     if not 0 < args.omega < 1:
         print(f"train-graph: --omega must lie between 0 and 1, got {args.omega}", file=sys.stderr)
@@ -117,6 +125,9 @@ def run(args: argparse.Namespace) -> int:
     except TrainingDiverged as exc:
         print(f"train-graph: {exc}", file=sys.stderr)
         return 1
+    except WeightsMismatch as exc:
+        print(f"train-graph: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}: validation loss "
           f"{card.validation['loss']:.4f} (no correction: {card.validation['loss_no_correction']:.4f}), "
           f"{card.training['train_seconds']:.0f} s training")
@@ -252,15 +263,32 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
                          rounds=args.rounds)
-    net = ContactGraphNet(config, seed=args.seed)
-    # Start from Box2D's own warm start: the last layer's kernel is 0, its bias a zero correction.
-    net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)
+    if args.init is not None:
+        net = ContactGraphNet(config, initial_weights(args.init, config))
+    else:
+        net = ContactGraphNet(config, seed=args.seed)
+        # Start from Box2D's own warm start: the last layer's kernel is 0, its bias a zero correction.
+        net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)
     net.tf.random.set_seed(args.seed)
     residual_scales = _residual_scales(train, args) if args.loss == "solver" else [1.0]
     batch_loss = batch_loss_function(net, args, scaling, residual_scales, spec.inputs.index("new_point"))
     fitted, validate = _train(net, train, val, args, scaling, batch_loss)
     return _write(net, fitted, validate, spec, scaling, args, command=command, read_seconds=read_seconds,
                   sources=sources, val_sources=val_sources, train=train, val=val)
+
+
+def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
+    """Weights saved by an earlier run, checked against the network `config` describes."""
+    from training.graph_model import init_weights
+
+    with np.load(path, allow_pickle=False) as f:
+        weights = {k: f[k] for k in f.files}
+    expected = {k: v.shape for k, v in init_weights(config).items()}
+    got = {k: v.shape for k, v in weights.items()}
+    if got != expected:
+        raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
+                         f"{config.rounds} with {config.in_channels} inputs")
+    return weights
 
 
 def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss):
@@ -360,6 +388,7 @@ def _write(net, fitted: Fitted, validate, spec: GridSpec, scaling: Scaling, args
                   "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
                                                                "rounds", "tangent_weight", "seed", "loss", "sweeps", "omega",
                                                                "max_steps_per_file", "max_val_steps")},
+                  "init": None if args.init is None else str(args.init),
                   "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                   "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
                   "read_seconds": round(read_seconds, 1), "history": fitted.history},

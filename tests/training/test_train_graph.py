@@ -81,9 +81,27 @@ def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
     assert "--sweeps" in capsys.readouterr().err
     assert main(["train-graph", "--train", str(tmp_path / "none.h5"), "--val", str(data / "val.h5"),
                  "--out", str(tmp_path / "m.onnx")]) == 2
-    assert "no such data file" in capsys.readouterr().err
+    assert "no such file" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "m.onnx"), "--omega", "1.5"]) == 2
     assert "--omega" in capsys.readouterr().err
+
+
+def test_a_run_goes_on_from_an_earlier_runs_weights(data, tmp_path, capsys):
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--rounds", "1", "--loss", "mse", "--cache", str(tmp_path / "cache"), "--quiet"]
+    assert main(common + ["--width", "8", "--out", str(tmp_path / "first.onnx")]) == 0
+    weights = tmp_path / "cache" / "first.weights.npz"
+    first = json.loads((tmp_path / "first.json").read_text())
+    assert main(common + ["--width", "8", "--out", str(tmp_path / "more.onnx"), "--init", str(weights),
+                          "--lr", "1e-12"]) == 0
+    more = json.loads((tmp_path / "more.json").read_text())
+    assert more["training"]["init"] == str(weights)
+    # With a learning rate of nothing the weights stay the first run's, and so does the loss.
+    assert more["validation"]["loss"] == pytest.approx(first["validation"]["loss"], rel=1e-4)
+    capsys.readouterr()
+    assert main(common + ["--width", "16", "--out", str(tmp_path / "wide.onnx"), "--init", str(weights)]) == 2
+    assert "another network" in capsys.readouterr().err
+    assert not (tmp_path / "wide.onnx").exists()
 
 
 def test_a_diverging_run_says_so_and_writes_nothing(data, tmp_path, capsys):
