@@ -19,6 +19,9 @@
 #                              8 epochs; about 40 min on two cores
 #   graph-mse-1-799-e16        8 more epochs of graph-mse-1-799 from its weights (a new cosine
 #                              schedule at half the peak rate); about 30 min
+#   graph-solver-1-799         graph-mse-1-799-e16 fine-tuned with the solver loss on 3,000
+#                              steps of each 1-799 file, 4 epochs (with -t1 and -t0.3 cards);
+#                              about 6 min
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -60,6 +63,12 @@ run() {
             variant graph-mse-1-799-e16 --loss mse --epochs 8 --patience 3 --lr 1e-3 \
                 --init runs/graph-cache/graph-mse-1-799.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-mse-1-799-e16.json" --correction-threshold 0.3 ;;
+        graph-solver-1-799)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-solver-1-799 --loss solver --max-steps-per-file 3000 --epochs 4 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-solver-1-799.json" --correction-threshold 1.0
+            "$PY" -m training.card_variant "$OUT/graph-solver-1-799.json" --correction-threshold 0.3 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }
