@@ -48,8 +48,16 @@ class World:
     physics: Physics = Physics()
 
 
+# The most grid nodes a request's domain may need: 512 x 512, a 128 m square at
+# the thesis's 0.25 m (its world needs 61 x 61). A domain is the client's to
+# declare; without a bound, one finite but huge domain makes the server allocate
+# grids of any size, and the operating system kills it.
+MAX_GRID_NODES = 512 * 512
+
+
 class GridMismatch(ValueError):
-    """A fixed-size model asked for a grid of another size."""
+    """A predictor asked for a grid it cannot serve: a fixed-size model's other
+    size, or one with more than MAX_GRID_NODES nodes."""
 
 
 class Predictor:
@@ -130,6 +138,10 @@ class _DomainSpecs:
         # The base spec with only its geometry moved: no field can be left behind.
         moved = GridSpec.for_domain(domain[0], domain[1], b.resolution, b.h)
         spec = dataclasses.replace(b, origin=moved.origin, shape=moved.shape)
+        if spec.n_nodes > MAX_GRID_NODES:
+            raise GridMismatch(
+                f"this world's domain {domain[0]}-{domain[1]} at {b.resolution} m needs a "
+                f"{spec.shape[0]}x{spec.shape[1]} grid, more than the server's {MAX_GRID_NODES:,} nodes")
         if self.fixed and spec.shape != b.shape:
             raise GridMismatch(
                 f"model {self.name!r} takes {b.shape[0]}x{b.shape[1]} grids only; this world's domain "
@@ -340,6 +352,9 @@ class GridIdentityPredictor(Predictor):
     def __init__(self, gridspec: GridSpec):
         self.gridspec = gridspec
         self._specs = _DomainSpecs(gridspec, False, self.name)
+
+    def check_domain(self, domain: Domain) -> None:
+        self._specs.get(domain)
 
     def predict(self, bodies, points, world, step, previous=None):
         spec = self._specs.get(world.domain)

@@ -91,6 +91,22 @@ def test_a_fixed_size_model_names_both_sizes(stub, thesis_steps):
     # The any-size model serves the same world.
     assert stub.Predict(request(big, bodies, points, "tiny")).point_count == len(points)
 
+@pytest.mark.parametrize("model", ["tiny", "grid-identity"])
+def test_a_domain_too_large_to_grid_is_refused_not_allocated(stub, thesis_steps, model):
+    # 1 km square at 0.25 m: 16 M nodes, 400 MB a channel. Before the bound, the
+    # server tried to allocate it (CI's fuzz test drew such a domain and was killed).
+    _, steps = thesis_steps
+    bodies, points = steps[0]
+    huge = wire.encode_world((-500, -500), (500, 500))
+    for call in (lambda r: stub.Predict(r), lambda r: list(stub.Stream(iter([r])))):
+        with pytest.raises(grpc.RpcError) as err:
+            call(request(huge, bodies, points, model))
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert "4001x4001" in err.value.details() and "262,144 nodes" in err.value.details()
+    # The server still answers a world of the usual size.
+    world = wire.encode_world((0, 0), (15, 15))
+    assert stub.Predict(request(world, bodies, points, model)).point_count == len(points)
+
 
 @pytest.mark.parametrize("mutate, code, words", [
     (lambda r: setattr(r, "model", "nope"), grpc.StatusCode.NOT_FOUND, "nope"),
