@@ -14,6 +14,10 @@ Per group: points; RMS of the solver's correction (Builtin's error); RMS error
 of the served warm start; the share of points where a correction is served
 (non-zero); and, among those, the share whose sign agrees with the solver's
 (0.5 is a coin toss).
+
+`--model A,B,...` serves the mean of the named models' warm starts: whether
+models that err differently cancel each other's errors (an ensemble), before
+anyone builds a server that runs several.
 """
 
 from __future__ import annotations
@@ -32,7 +36,8 @@ BANDS = (0.01, 0.1, 0.3, 1.0)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
-    parser.add_argument("--model", default="default", help="model to replay (default: default)")
+    parser.add_argument("--model", default="default",
+                        help="model to replay (default: default); A,B,... replays the mean of their warm starts")
     parser.add_argument("--data", type=Path, required=True, help="recorded steps (HDF5 from `deepcontact generate`)")
     parser.add_argument("--max-steps", type=int, default=500, metavar="N",
                         help="replay at most N steps with contacts, drawn at random (default %(default)s)")
@@ -64,9 +69,10 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x, dtype=np.float64)))) if len(x) else float("nan")
 
 
-def replay(predictor, path: Path, max_steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def replay(predictors, path: Path, max_steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(served, solver, new): the served and the solver's normal correction and the new-point
-    flag at every point of up to max_steps recorded steps, (P,) each."""
+    flag at every point of up to max_steps recorded steps, (P,) each. With several
+    predictors, what is served is the mean of their warm starts."""
     from server.predictors import World
     from training.grids import iter_steps, open_dataset, select_steps
 
@@ -76,8 +82,8 @@ def replay(predictor, path: Path, max_steps: int) -> tuple[np.ndarray, np.ndarra
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # loop over steps, not points
         c = step.contacts
         world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
-        warm, _ = predictor.predict(step.bodies, c, world, 0, step.previous)
-        served.append(warm[:, 0] - c["builtin"][:, 0])
+        warm = np.mean([p.predict(step.bodies, c, world, 0, step.previous)[0][:, 0] for p in predictors], axis=0)
+        served.append(warm - c["builtin"][:, 0])
         solver.append(c["impulse"][:, 0] - c["builtin"][:, 0])
         new.append(~c["builtin"].any(axis=1))
     return np.concatenate(served), np.concatenate(solver), np.concatenate(new)
@@ -91,14 +97,19 @@ def run(args: argparse.Namespace) -> int:
     if args.max_steps < 1:
         print("deepcontact bench corrections: --max-steps must be >= 1", file=sys.stderr)
         return 2
+    names = [n for n in args.model.split(",") if n]
+    if not names:
+        print("deepcontact bench corrections: --model names no model", file=sys.stderr)
+        return 2
     try:
-        predictor = load_model(args.models / f"{args.model}.json")
-        served, solver, new = replay(predictor, args.data, args.max_steps)
+        predictors = [load_model(args.models / f"{name}.json") for name in names]
+        served, solver, new = replay(predictors, args.data, args.max_steps)
     except (ModelCardError, GridDataError, GridMismatch, OSError) as exc:
         print(f"deepcontact bench corrections: {exc}", file=sys.stderr)
         return 2
     rows = band_table(served, solver, new)
-    print(f"{args.model} on {args.data} ({len(served)} points): the served correction against the solver's "
+    label = args.model if len(names) == 1 else f"the mean of {', '.join(names)}"
+    print(f"{label} on {args.data} ({len(served)} points): the served correction against the solver's "
           "(normal, N s)")
     print("| points | n | RMS solver's correction | RMS error served | served share | sign agrees |")
     print("|---|---|---|---|---|---|")

@@ -35,6 +35,14 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
     rows = json.loads(out.read_text())["rows"]
     assert sum(r["points"] for r in rows if r["group"] in ("persisting, all", "new points")) > 0
     assert "| persisting, all |" in capsys.readouterr().out
+    # Two models: the mean of their warm starts is served.
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny,zero-ish", "--data", str(data),
+                 "--max-steps", "20"]) == 2  # no such model
+    mean = tmp_path / "mean.json"
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny,tiny", "--data", str(data),
+                 "--max-steps", "20", "--json", str(mean)]) == 0
+    assert json.loads(mean.read_text())["rows"] == rows  # the mean of a model and itself is the model
+    assert "the mean of tiny, tiny" in capsys.readouterr().out
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "nope", "--data", str(data)]) == 2
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny",
                  "--data", str(tmp_path / "none.h5")]) == 2
