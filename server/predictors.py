@@ -48,16 +48,17 @@ class World:
     physics: Physics = Physics()
 
 
-# The most grid nodes a request's domain may need: 512 x 512, a 128 m square at
-# the thesis's 0.25 m (its world needs 61 x 61). A domain is the client's to
-# declare; without a bound, one finite but huge domain makes the server allocate
-# grids of any size, and the operating system kills it.
+# The most grid nodes a request's domain may need, by default (`deepcontact serve
+# --max-grid-nodes`): 512 x 512, a 128 m square at the thesis's 0.25 m (its world
+# needs 61 x 61). A domain is the client's to declare; without a bound, one finite
+# but huge domain makes the server allocate grids of any size, and the operating
+# system kills it.
 MAX_GRID_NODES = 512 * 512
 
 
 class GridMismatch(ValueError):
     """A predictor asked for a grid it cannot serve: a fixed-size model's other
-    size, or one with more than MAX_GRID_NODES nodes."""
+    size, or one with more nodes than the server's bound (MAX_GRID_NODES by default)."""
 
 
 class Predictor:
@@ -121,9 +122,10 @@ class _DomainSpecs:
     kernel, channels, normalization), cached per domain, with its
     :class:`_Normalization` when asked for one."""
 
-    def __init__(self, base: GridSpec, fixed: bool, name: str, normalization: bool = False):
+    def __init__(self, base: GridSpec, fixed: bool, name: str, normalization: bool = False,
+                 max_nodes: int = MAX_GRID_NODES):
         self.base, self.fixed, self.name = base, fixed, name
-        self.normalization = normalization
+        self.normalization, self.max_nodes = normalization, max_nodes
         self._cache: dict[Domain, tuple[GridSpec, _Normalization | None]] = {}
         self._lock = threading.Lock()
 
@@ -138,10 +140,11 @@ class _DomainSpecs:
         # The base spec with only its geometry moved: no field can be left behind.
         moved = GridSpec.for_domain(domain[0], domain[1], b.resolution, b.h)
         spec = dataclasses.replace(b, origin=moved.origin, shape=moved.shape)
-        if spec.n_nodes > MAX_GRID_NODES:
+        if spec.n_nodes > self.max_nodes:
             raise GridMismatch(
                 f"this world's domain {domain[0]}-{domain[1]} at {b.resolution} m needs a "
-                f"{spec.shape[0]}x{spec.shape[1]} grid, more than the server's {MAX_GRID_NODES:,} nodes")
+                f"{spec.shape[0]}x{spec.shape[1]} grid, more than the server's {self.max_nodes:,} nodes "
+                "(deepcontact serve --max-grid-nodes)")
         if self.fixed and spec.shape != b.shape:
             raise GridMismatch(
                 f"model {self.name!r} takes {b.shape[0]}x{b.shape[1]} grids only; this world's domain "
@@ -173,7 +176,7 @@ class ModelPredictor(Predictor):
     batchable = True
 
     def __init__(self, card: ModelCard, onnx_path: Path, *, intra_op_threads: int = 1,
-                 inter_op_threads: int = 1):
+                 inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES):
         self.card = card
         self.name = card.name
         self.kind = card.kind
@@ -185,7 +188,8 @@ class ModelPredictor(Predictor):
         if card.input_name not in inputs or card.output_name not in outputs:
             raise ValueError(f"{onnx_path}: card names input {card.input_name!r} and output "
                              f"{card.output_name!r}, the model has {inputs} and {outputs}")
-        self._specs = _DomainSpecs(card.gridspec, card.fixed_grid, card.name, normalization=True)
+        self._specs = _DomainSpecs(card.gridspec, card.fixed_grid, card.name, normalization=True,
+                                   max_nodes=max_grid_nodes)
         combined = ("builtin",) if card.combine in ("residual", "new-points") else ()
         self.requires = tuple(sorted(set(needs(card.gridspec.inputs) + combined)))
         self.infer = self.run_session
@@ -251,7 +255,7 @@ class GraphPredictor(Predictor):
     output is the correction at each point. Serves any domain."""
 
     def __init__(self, card: ModelCard, onnx_path: Path, *, intra_op_threads: int = 1,
-                 inter_op_threads: int = 1):
+                 inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES):  # no grid: any domain
         self.card, self.name, self.kind = card, card.name, card.kind
         self.gridspec = card.gridspec
         self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
@@ -349,9 +353,9 @@ class GridIdentityPredictor(Predictor):
     name = "grid-identity"
     kind = "provider"
 
-    def __init__(self, gridspec: GridSpec):
+    def __init__(self, gridspec: GridSpec, max_grid_nodes: int = MAX_GRID_NODES):
         self.gridspec = gridspec
-        self._specs = _DomainSpecs(gridspec, False, self.name)
+        self._specs = _DomainSpecs(gridspec, False, self.name, max_nodes=max_grid_nodes)
 
     def check_domain(self, domain: Domain) -> None:
         self._specs.get(domain)
@@ -368,18 +372,18 @@ class GridIdentityPredictor(Predictor):
         return out.astype(np.float32, copy=False), {"p2g": t1 - t0, "g2p": t2 - t1}
 
 
-def providers(random_seed: int = 0) -> list[Predictor]:
+def providers(random_seed: int = 0, max_grid_nodes: int = MAX_GRID_NODES) -> list[Predictor]:
     """The providers every server offers besides its models."""
     return [
         ConstantPredictor("zero", 0.0, 0.0),
         RandomPredictor(seed=random_seed),
         ConstantPredictor("bad", 50.0, 50.0),
-        GridIdentityPredictor(GridSpec.thesis()),
+        GridIdentityPredictor(GridSpec.thesis(), max_grid_nodes),
     ]
 
 
-def load_models(folder: Path, *, intra_op_threads: int = 1,
-                inter_op_threads: int = 1) -> list[ModelPredictor | GraphPredictor]:
+def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: int = 1,
+                max_grid_nodes: int = MAX_GRID_NODES) -> list[ModelPredictor | GraphPredictor]:
     """One predictor per card (`*.json`) in folder, each running the ONNX file
     its card names (a GraphPredictor for kind "graph", else a ModelPredictor). An ONNX file that no card names, or a card whose file is
     missing or does not match, stops the server with a message."""
@@ -389,12 +393,12 @@ def load_models(folder: Path, *, intra_op_threads: int = 1,
     orphans = sorted(p.name for p in folder.glob("*.onnx") if p.name not in named)
     if orphans:
         raise ModelCardError(f"{folder}: no model card names {', '.join(orphans)}")
-    return [load_model(path, card, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads)
-            for path, card in cards.items()]
+    return [load_model(path, card, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
+                       max_grid_nodes=max_grid_nodes) for path, card in cards.items()]
 
 
 def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: int = 1,
-               inter_op_threads: int = 1) -> ModelPredictor | GraphPredictor:
+               inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES) -> ModelPredictor | GraphPredictor:
     """The predictor of one card (`card`: the card at `path`, when already read)."""
     path = Path(path)
     card = ModelCard.load(path) if card is None else card
@@ -402,4 +406,5 @@ def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: i
     if not onnx_path.exists():
         raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {path.parent}")
     cls = GraphPredictor if card.kind == "graph" else ModelPredictor
-    return cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads)
+    return cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
+               max_grid_nodes=max_grid_nodes)

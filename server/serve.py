@@ -71,6 +71,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--inter-op-threads", type=int, default=1, help="ONNX Runtime inter-op threads (default 1)")
     parser.add_argument("--max-bodies", type=int, default=Limits.max_bodies, help="bodies per step (default %(default)s)")
     parser.add_argument("--max-points", type=int, default=Limits.max_points, help="contact points per step (default %(default)s)")
+    parser.add_argument("--max-grid-nodes", type=int, default=Limits.max_grid_nodes,
+                        help="grid nodes a world's domain may need at a grid model's resolution; a larger world "
+                             "gets INVALID_ARGUMENT (default %(default)s: 512 x 512, a 128 m square at 0.25 m)")
     parser.add_argument("--random-seed", type=int, default=0, help="seed of the `random` provider (default 0)")
     parser.add_argument("--metrics-port", type=int, default=0,
                         help="serve Prometheus metrics on this port at /metrics (default 0: off)")
@@ -110,8 +113,8 @@ class Server:
                  intra_op_threads: int = 1, inter_op_threads: int = 1, limits: Limits = Limits(),
                  random_seed: int = 0, credentials: grpc.ServerCredentials | None = None,
                  fault: FaultDelay | None = None):
-        self.models = load_models(models, intra_op_threads=intra_op_threads,
-                                  inter_op_threads=inter_op_threads) if models else []
+        self.models = load_models(models, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
+                                  max_grid_nodes=limits.max_grid_nodes) if models else []
         self.batchers = []
         if batch_max > 0:
             for m in (m for m in self.models if m.batchable):  # graph models have no grid to stack
@@ -119,7 +122,7 @@ class Server:
                                  max_queue=max_queue)
                 m.infer = b
                 self.batchers.append(b)
-        self.service = WarmStartService(self.models + providers(random_seed), limits, fault)
+        self.service = WarmStartService(self.models + providers(random_seed, limits.max_grid_nodes), limits, fault)
         # Each open stream holds a worker thread, so the pool is as large as the RPC bound.
         self.grpc = grpc.server(futures.ThreadPoolExecutor(max_workers=max_concurrent, thread_name_prefix="rpc"),
                                 interceptors=(MalformedRequests(),), maximum_concurrent_rpcs=max_concurrent)
@@ -158,17 +161,20 @@ class Server:
 
 
 def run(args: argparse.Namespace) -> int:
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JsonFormatter() if args.log_format == "json"
-                         else logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
-    logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
-
+    # Arguments first: a refused command leaves the caller's logging as it was.
     if not args.models.is_dir():
         print(f"deepcontact serve: {args.models} is not a folder of models", file=sys.stderr)
         return 2
     if args.grace < 0 or args.fault_delay_ms < 0 or args.fault_every < 1:
         print("deepcontact serve: --grace and --fault-delay-ms must be >= 0, --fault-every >= 1", file=sys.stderr)
         return 2
+    if min(args.max_bodies, args.max_points, args.max_grid_nodes) < 1:
+        print("deepcontact serve: --max-bodies, --max-points and --max-grid-nodes must be >= 1", file=sys.stderr)
+        return 2
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonFormatter() if args.log_format == "json"
+                         else logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
     credentials = None
     if args.tls_cert or args.tls_key:
         if not (args.tls_cert and args.tls_key):
@@ -179,7 +185,8 @@ def run(args: argparse.Namespace) -> int:
         server = Server(models=args.models, bind=args.bind, max_concurrent=args.max_concurrent,
                         max_queue=args.max_queue, batch_max=args.batch_max, batch_delay_us=args.batch_delay_us,
                         intra_op_threads=args.intra_op_threads, inter_op_threads=args.inter_op_threads,
-                        limits=Limits(args.max_bodies, args.max_points), random_seed=args.random_seed,
+                        limits=Limits(args.max_bodies, args.max_points, args.max_grid_nodes),
+                        random_seed=args.random_seed,
                         credentials=credentials,
                         fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every) if args.fault_delay_ms else None)
     except (ModelCardError, OSError, ValueError) as exc:

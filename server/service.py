@@ -26,7 +26,7 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
 from server.batching import QueueFull
 from deepcontact.channels import NEEDS
-from server.predictors import GridMismatch, Predictor, World
+from server.predictors import MAX_GRID_NODES, GridMismatch, Predictor, World
 from server.rejects import reject
 
 log = logging.getLogger("deepcontact.server")
@@ -38,6 +38,7 @@ _PREDICT, _STREAM = f"/{SERVICE_NAME}/Predict", f"/{SERVICE_NAME}/Stream"
 class Limits:
     max_bodies: int = 10_000
     max_points: int = 100_000
+    max_grid_nodes: int = MAX_GRID_NODES  # enforced by the predictors, which build the grids
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,6 +14,9 @@ from deepcontact.features import world_to_grids
 from deepcontact.transfer import g2p, p2g
 from deepcontact.v1 import warmstart_pb2 as pb
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+from deepcontact.cli import main
+from server.serve import Server
+from server.service import Limits
 
 
 def request(world, bodies, points, model, step=0, **kw):
@@ -106,6 +109,24 @@ def test_a_domain_too_large_to_grid_is_refused_not_allocated(stub, thesis_steps,
     # The server still answers a world of the usual size.
     world = wire.encode_world((0, 0), (15, 15))
     assert stub.Predict(request(world, bodies, points, model)).point_count == len(points)
+
+
+def test_the_grid_bound_is_the_operators_to_set(model_dir, thesis_steps):
+    _, steps = thesis_steps
+    bodies, points = steps[0]
+    srv = Server(models=model_dir, limits=Limits(max_grid_nodes=61 * 61)).start()  # the thesis box and no more
+    try:
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            thesis = wire.encode_world((0, 0), (15, 15))
+            assert stub.Predict(request(thesis, bodies, points, "tiny")).point_count == len(points)
+            with pytest.raises(grpc.RpcError) as err:
+                stub.Predict(request(wire.encode_world((0, 0), (16, 16)), bodies, points, "tiny"))
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+            assert "65x65" in err.value.details() and "3,721 nodes" in err.value.details()
+    finally:
+        srv.stop()
+    assert main(["serve", "--models", str(model_dir), "--max-grid-nodes", "0"]) == 2
 
 
 @pytest.mark.parametrize("mutate, code, words", [
