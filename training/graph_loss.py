@@ -70,3 +70,55 @@ def residuals_after(e, ends, geometry, masses, inverse, *, sweeps, omega: float)
         done = k
         out.append(masses * apply_delassus(e, ends, geometry, inverse))
     return out
+
+
+# -- with the contact problem's limits ----------------------------------------
+#
+# The sweeps above solve the problem without its limits: the error e alone, as
+# if every contact held and friction never slid. The solver keeps the normal
+# impulse >= 0 and the tangent one inside the friction cone, so contacts that
+# let go and contacts that slide follow other rules. These sweeps run the whole
+# problem from the served impulses lam (not from the error):
+#
+#     v   = v_free + A lam                 relative velocity after lam (m/s)
+#     lam <- project(lam - omega * m_eff * v)
+#
+# with project: normal = max(0, normal), tangent clipped to +-mu * normal. The
+# recorded solution is (to the solver's threshold) a fixed point; what a sweep
+# still changes is what the solver's stopping rule measures.
+
+
+def friction_bounds(solution, step_of):
+    """mu per point, (P,): the largest |tangent| / normal of its step's solution
+    (points pressing with more than 1e-4 N s). The friction coefficient is not
+    recorded; this bound keeps every recorded solution inside its cone.
+    solution (P, 2) N s; step_of (P,) int32, each point's step in the batch."""
+    import tensorflow as tf
+
+    pressing = solution[:, 0] > 1e-4
+    ratio = tf.where(pressing, tf.abs(solution[:, 1]) / tf.where(pressing, solution[:, 0], 1.0), 0.0)
+    per_step = tf.math.unsorted_segment_max(ratio, step_of, tf.reduce_max(step_of) + 1)
+    return tf.maximum(tf.gather(per_step, step_of), 0.0)
+
+
+def projected_sweep(lam, v_free, mu, ends, geometry, masses, inverse, *, omega: float):
+    """One damped projected Jacobi sweep from impulses lam (P, 2) N s; v_free (P, 2) m/s
+    is the relative velocity before any impulse (after gravity); mu (P,)."""
+    import tensorflow as tf
+
+    step = lam - omega * masses * (v_free + apply_delassus(lam, ends, geometry, inverse))
+    normal = tf.nn.relu(step[:, 0])
+    bound = mu * normal
+    return tf.stack([normal, tf.clip_by_value(step[:, 1], -bound, bound)], axis=1)
+
+
+def projected_changes_after(lam, v_free, mu, ends, geometry, masses, inverse, *, sweeps, omega: float):
+    """The change, (P, 2) N s, that projected sweep k+1 would make, after each k in the
+    ascending `sweeps`, starting from impulses lam: the solver's stopping measure."""
+    out, done = [], 0
+    for k in sweeps:  # a few checkpoints
+        for _ in range(k - done):  # loop over sweeps, not points
+            lam = projected_sweep(lam, v_free, mu, ends, geometry, masses, inverse, omega=omega)
+        done = k
+        out.append(projected_sweep(lam, v_free, mu, ends, geometry, masses, inverse, omega=omega) - lam)
+    return out

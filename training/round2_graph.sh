@@ -22,6 +22,9 @@
 #   graph-solver-1-799         graph-mse-1-799-e16 fine-tuned with the solver loss on 3,000
 #                              steps of each 1-799 file, 4 epochs (with -t1 and -t0.3 cards);
 #                              about 6 min
+#   graph-projected-1-799      the same from the same weights with the projected solver loss:
+#                              sweeps that keep the normal impulse >= 0 and the friction cone,
+#                              run from the served impulses (with a -t1 card)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -69,6 +72,11 @@ run() {
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-solver-1-799.json" --correction-threshold 1.0
             "$PY" -m training.card_variant "$OUT/graph-solver-1-799.json" --correction-threshold 0.3 ;;
+        graph-projected-1-799)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-1-799 --loss solver-projected --max-steps-per-file 3000 --epochs 4 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-projected-1-799.json" --correction-threshold 1.0 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }

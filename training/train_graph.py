@@ -67,13 +67,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s)")
-    parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log"), default="solver",
+    parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log", "solver-projected"),
+                        default="solver",
                         help="mse: squared error of the correction at every point; relative: each point's error "
                              "over its own correction's size (+ 0.05 N s), so small corrections count as much as "
                              "large ones; solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
                              "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
-                             "solver-log: per step, the log of that residual over Box2D's warm start's")
+                             "solver-log: per step, the log of that residual over Box2D's warm start's; "
+                             "solver-projected: the change the solver's sweeps, with their limits (normal >= 0, "
+                             "friction cone), would still make after --sweeps sweeps from the served impulses, "
+                             "each checkpoint scaled by Box2D's own warm start's")
     parser.add_argument("--sweeps", default="16,64,256",
                         help="solver loss: sweep counts at which the residual is measured (default %(default)s)")
     parser.add_argument("--omega", type=float, default=0.5,
@@ -189,13 +193,16 @@ class Scaling:
                 *gs.solver_batch(steps), step_of)
 
 
-def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float], new_column: int):
+def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float], inputs: tuple[str, ...]):
     """batch_loss(points, ends, dynamic, y, geometry, masses, inverse, step_of) -> (losses,
     weights) for --loss: a batch's loss is sum(losses) / sum(weights); per point for mse,
-    relative and solver, per step for solver-log."""
+    relative, solver and solver-projected, per step for solver-log. `inputs` names the
+    points' columns."""
     import tensorflow as tf
 
-    from training.graph_loss import residuals_after
+    from training.graph_loss import friction_bounds, projected_changes_after, residuals_after
+
+    new_column = inputs.index("new_point")
 
     out_mean, out_std, in_mean, in_std = scaling.out_mean, scaling.out_std, scaling.in_mean, scaling.in_std
     loss_weight = tf.constant([1.0] + [args.tangent_weight] * (len(out_mean) - 1), tf.float32)
@@ -221,6 +228,8 @@ def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float
             # Served at new points only; persisting points keep Box2D's warm start.
             new_point = points[:, new_column] * in_std[new_column] + in_mean[new_column]
             error = tf.where(new_point[:, None] > 0.5, error, builtin_error)
+        if args.loss == "solver-projected":
+            return projected(points, ends, geometry, masses, inverse, step_of, error, builtin_error)
 
         def squares(e):
             rs = residuals_after(e, ends, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
@@ -238,6 +247,20 @@ def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float
             for m, b in zip(squares(error), squares(builtin_error))]) / len(args.sweeps)
         return per_step, tf.ones_like(per_step)
 
+    def projected(points, ends, geometry, masses, inverse, step_of, error, builtin_error):
+        raw = points * in_std + in_mean
+        builtin = tf.gather(raw, builtin_columns, axis=1)
+        solution = builtin - builtin_error  # Box2D's warm start plus the solver's correction
+        changes = projected_changes_after(solution + error, tf.gather(raw, velocity_columns, axis=1),
+                                          friction_bounds(solution, step_of), ends, geometry, masses, inverse,
+                                          sweeps=args.sweeps, omega=args.omega)
+        per_point = tf.add_n([tf.reduce_sum(tf.square(c) * loss_weight, axis=1) / scales[j]
+                              for j, c in enumerate(changes)]) / len(args.sweeps)
+        return per_point, tf.ones_like(per_point)
+
+    if args.loss == "solver-projected":
+        builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")]
+        velocity_columns = [inputs.index("vn"), inputs.index("vt")]
     return batch_loss
 
 
@@ -270,8 +293,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
         # Start from Box2D's own warm start: the last layer's kernel is 0, its bias a zero correction.
         net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)
     net.tf.random.set_seed(args.seed)
-    residual_scales = _residual_scales(train, args) if args.loss == "solver" else [1.0]
-    batch_loss = batch_loss_function(net, args, scaling, residual_scales, spec.inputs.index("new_point"))
+    residual_scales = _residual_scales(train, args) if args.loss in ("solver", "solver-projected") else [1.0]
+    batch_loss = batch_loss_function(net, args, scaling, residual_scales, spec.inputs)
     fitted, validate = _train(net, train, val, args, scaling, batch_loss)
     return _write(net, fitted, validate, spec, scaling, args, command=command, read_seconds=read_seconds,
                   sources=sources, val_sources=val_sources, train=train, val=val)
@@ -403,16 +426,26 @@ def _write(net, fitted: Fitted, validate, spec: GridSpec, scaling: Scaling, args
 
 def _residual_scales(train: list[GraphSet], args) -> list[float]:
     """Per checkpoint of --sweeps: the mean squared residual (summed over normal and
-    tangent) that Box2D's own warm start leaves, on up to 256 training steps."""
+    tangent) that Box2D's own warm start leaves, on up to 256 training steps (for
+    solver-projected: the change a projected sweep still makes)."""
     import tensorflow as tf
 
-    from training.graph_loss import residuals_after
+    from training.graph_loss import friction_bounds, projected_changes_after, residuals_after
 
     gs = train[0]
     steps = np.random.default_rng(args.seed).choice(len(gs), size=min(256, len(gs)), replace=False)
-    _, t, e, _ = gs.batch(steps)
+    f, t, e, _ = gs.batch(steps)
     geometry, masses, inverse = gs.solver_batch(steps)
-    residuals = residuals_after(tf.constant(-t), e, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
+    if args.loss == "solver-projected":
+        column = {n: j for j, n in enumerate(gs.inputs)}
+        builtin = f[:, [column["builtin_normal"], column["builtin_tangent"]]]
+        step_of = np.repeat(np.arange(len(steps), dtype=np.int32), np.diff(gs.point_offsets)[steps])
+        residuals = projected_changes_after(
+            tf.constant(builtin), f[:, [column["vn"], column["vt"]]], friction_bounds(tf.constant(builtin + t), step_of),
+            e, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
+    else:
+        residuals = residuals_after(tf.constant(-t), e, geometry, masses, inverse, sweeps=args.sweeps,
+                                    omega=args.omega)
     return [max(float(np.mean(np.sum(r.numpy() ** 2, axis=1))), 1e-12) for r in residuals]
 
 

@@ -54,7 +54,34 @@ def test_the_solver_loss_sees_no_error_in_the_exact_correction_and_decays_the_re
     assert sizes[0] > sizes[1] > sizes[2] > 0
 
 
-@pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log"])
+def test_projected_sweeps_keep_the_limits_and_leave_the_recorded_solution_nearly_alone(graphs):
+    import tensorflow as tf
+
+    from training.graph_loss import friction_bounds, projected_changes_after, projected_sweep
+
+    steps = np.arange(len(graphs))
+    features, targets, ends, _ = graphs.batch(steps)
+    geometry, masses, inverse = graphs.solver_batch(steps)
+    column = {n: j for j, n in enumerate(graphs.inputs)}
+    builtin = features[:, [column["builtin_normal"], column["builtin_tangent"]]]
+    v_free = features[:, [column["vn"], column["vt"]]]  # m/s after gravity, before any impulse
+    step_of = np.repeat(steps.astype(np.int32), np.diff(graphs.point_offsets))
+    solution = tf.constant(builtin + targets)  # what the solver ended at
+    mu = friction_bounds(solution, step_of)
+    assert float(tf.reduce_min(mu)) >= 0.0
+    # Any start, however wrong, comes out of one sweep inside the limits.
+    wild = tf.constant(np.random.default_rng(0).normal(0, 5, targets.shape).astype(np.float32))
+    after = projected_sweep(wild, v_free, mu, ends, geometry, masses, inverse, omega=0.5).numpy()
+    assert (after[:, 0] >= 0).all() and (np.abs(after[:, 1]) <= mu.numpy() * after[:, 0] + 1e-6).all()
+    # The recorded solution is a fixed point to about the solver's threshold (1e-4 N s);
+    # Box2D's warm start is not.
+    kept = projected_changes_after(solution, v_free, mu, ends, geometry, masses, inverse, sweeps=(0,), omega=0.5)[0]
+    moved = projected_changes_after(tf.constant(builtin), v_free, mu, ends, geometry, masses, inverse, sweeps=(0,),
+                                    omega=0.5)[0]
+    assert float(tf.reduce_max(tf.abs(kept))) < 0.01 < float(tf.reduce_max(tf.abs(moved)))
+
+
+@pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log", "solver-projected"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
     out = tmp_path / "graph.onnx"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
