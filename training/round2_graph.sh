@@ -25,6 +25,8 @@
 #   graph-projected-1-799      the same from the same weights with the projected solver loss:
 #                              sweeps that keep the normal impulse >= 0 and the friction cone,
 #                              run from the served impulses (with a -t1 card)
+#   graph-projected-1-799-s20k the same on 20,000 steps of each 1-799 file, 2 epochs (with a
+#                              -t1 card); about 12 min
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -77,6 +79,11 @@ run() {
             variant graph-projected-1-799 --loss solver-projected --max-steps-per-file 3000 --epochs 4 --lr 5e-4 \
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-projected-1-799.json" --correction-threshold 1.0 ;;
+        graph-projected-1-799-s20k)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-1-799-s20k --loss solver-projected --max-steps-per-file 20000 --epochs 2 \
+                --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-projected-1-799-s20k.json" --correction-threshold 1.0 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }
