@@ -27,6 +27,11 @@
 #                              run from the served impulses (with a -t1 card)
 #   graph-projected-1-799-s20k the same on 20,000 steps of each 1-799 file, 2 epochs (with a
 #                              -t1 card); about 12 min
+#   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
+#                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
+#                              training/round2_data.sh first), 10,000 steps of each file
+#   graph-final-mse-o200       its control: the same files, steps and settings, the recorded
+#                              solve's correction as target
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -84,6 +89,13 @@ run() {
             variant graph-projected-1-799-s20k --loss solver-projected --max-steps-per-file 20000 --epochs 2 \
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-projected-1-799-s20k.json" --correction-threshold 1.0 ;;
+        graph-oracle-mse|graph-final-mse-o200)
+            local DATA=(--train data/thesis-oracle-train-1-200.h5 --train data/family-oracle-train-1-200.h5
+                        --val data/thesis-oracle-val-801-806.h5 --val data/family-oracle-val-801-806.h5
+                        "${DATA[@]:8}")
+            local targets=oracle; [ "$1" = graph-final-mse-o200 ] && targets=final
+            variant "$1" --targets $targets --loss mse --max-steps-per-file 10000 --epochs 10
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }

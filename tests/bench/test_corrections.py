@@ -47,3 +47,24 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny",
                  "--data", str(tmp_path / "none.h5")]) == 2
     assert "none.h5" in capsys.readouterr().err
+
+
+def test_bench_corrections_can_score_against_the_converged_solve(tmp_path, model_dir, capsys):
+    plain, oracle = tmp_path / "rec.h5", tmp_path / "rec-oracle.h5"
+    assert main(["generate", "--steps", "40", "--seeds", "1", "--out", str(plain), "--quiet"]) == 0
+    assert main(["generate", "--steps", "40", "--seeds", "1", "--oracle", "--out", str(oracle), "--quiet"]) == 0
+    rows = {}
+    for reference in ("final", "oracle"):
+        out = tmp_path / f"{reference}.json"
+        assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(oracle),
+                     "--reference", reference, "--json", str(out)]) == 0
+        table = json.loads(out.read_text())
+        assert table["reference"] == reference
+        rows[reference] = {r["group"]: r for r in table["rows"]}
+    # The same points and the same served warm starts, measured against two solutions of the step.
+    assert rows["final"]["persisting, all"]["points"] == rows["oracle"]["persisting, all"]["points"]
+    assert rows["final"]["persisting, all"]["rms_error"] != rows["oracle"]["persisting, all"]["rms_error"]
+    assert "converged solve" in capsys.readouterr().out
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(plain),
+                 "--reference", "oracle"]) == 2
+    assert "--oracle" in capsys.readouterr().err

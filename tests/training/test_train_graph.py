@@ -113,6 +113,22 @@ def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
     assert "--omega" in capsys.readouterr().err
 
 
+def test_oracle_targets_fit_the_correction_to_the_converged_solve(data, tmp_path, capsys):
+    common = ["--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1", "--loss", "mse",
+              "--cache", str(tmp_path / "cache"), "--quiet", "--targets", "oracle"]
+    out = tmp_path / "oracle.onnx"
+    assert main(["train-graph", "--train", str(data / "train-oracle.h5"), "--val", str(data / "val-oracle.h5"),
+                 "--out", str(out), *common]) == 0
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["gridspec"]["targets"] == ["oracle_correction_normal", "oracle_correction_tangent"]
+    assert card["combine"] == "residual"  # served as Builtin + the correction, like any residual model
+    # A file recorded without the oracle cannot give these targets, and says how to get them.
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val-oracle.h5"),
+                 "--out", str(tmp_path / "none.onnx"), *common]) == 2
+    assert "--oracle" in capsys.readouterr().err
+    assert not (tmp_path / "none.onnx").exists()
+
+
 def test_a_run_goes_on_from_an_earlier_runs_weights(data, tmp_path, capsys):
     common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
               "--batch-size", "4", "--rounds", "1", "--loss", "mse", "--cache", str(tmp_path / "cache"), "--quiet"]
