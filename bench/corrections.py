@@ -19,6 +19,10 @@ of the served warm start; the share of points where a correction is served
 instead (files from `generate --oracle`): the recorded solve stops at 1e-4 N s
 or 1000 sweeps and misses a 0.1-0.3 N s correction by about half its size.
 
+`--model recorded` serves the impulses the recorded solve ended at, the
+target `train-graph` fits by default: with `--reference oracle` it measures how
+far that target lies from the converged solution.
+
 `--model A,B,...` serves the mean of the named models' warm starts: whether
 models that err differently cancel each other's errors (an ensemble), before
 anyone builds a server that runs several.
@@ -41,7 +45,8 @@ BANDS = (0.01, 0.1, 0.3, 1.0)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
     parser.add_argument("--model", default="default",
-                        help="model to replay (default: default); A,B,... replays the mean of their warm starts")
+                        help="model to replay (default: default); A,B,... replays the mean of their warm starts; "
+                             "'recorded' serves the recorded solve's own end (compare with --reference oracle)")
     parser.add_argument("--data", type=Path, required=True, help="recorded steps (HDF5 from `deepcontact generate`)")
     parser.add_argument("--max-steps", type=int, default=500, metavar="N",
                         help="replay at most N steps with contacts, drawn at random (default %(default)s)")
@@ -49,6 +54,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the solver's correction: to the impulses the recorded solve ended at (final, default) "
                              "or to the step solved from zero to convergence (oracle; data from generate --oracle)")
     parser.add_argument("--json", metavar="FILE", help="write the table here as JSON")
+
+
+class RecordedSolve:
+    """`--model recorded`: serves the impulses the recorded solve ended at (the file's
+    own final impulses), as a model would that fitted `train-graph`'s default target exactly."""
+
+    def predict(self, bodies, points, world, step, previous):
+        return points["impulse"].astype(np.float32), None
 
 
 def band_table(served: np.ndarray, solver: np.ndarray, new: np.ndarray) -> list[dict]:
@@ -113,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
         print("deepcontact bench corrections: --model names no model", file=sys.stderr)
         return 2
     try:
-        predictors = [load_model(args.models / f"{name}.json") for name in names]
+        predictors = [RecordedSolve() if name == "recorded" else load_model(args.models / f"{name}.json")
+                      for name in names]
         served, solver, new = replay(predictors, args.data, args.max_steps, args.reference)
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
         print(f"deepcontact bench corrections: {exc}", file=sys.stderr)

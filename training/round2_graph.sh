@@ -29,7 +29,8 @@
 #                              -t1 card); about 12 min
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
-#                              training/round2_data.sh first), 10,000 steps of each file
+#                              training/round2_data.sh first), 10,000 steps of each file, 10
+#                              epochs (with -t0.3 and -t1 cards); about 2 min each
 #   graph-final-mse-o200       its control: the same files, steps and settings, the recorded
 #                              solve's correction as target
 set -euo pipefail
@@ -95,7 +96,8 @@ run() {
                         "${DATA[@]:8}")
             local targets=oracle; [ "$1" = graph-final-mse-o200 ] && targets=final
             variant "$1" --targets $targets --loss mse --max-steps-per-file 10000 --epochs 10
-            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         *) echo "unknown variant $1" >&2; exit 2 ;;
     esac
 }

@@ -65,6 +65,13 @@ def test_bench_corrections_can_score_against_the_converged_solve(tmp_path, model
     assert rows["final"]["persisting, all"]["points"] == rows["oracle"]["persisting, all"]["points"]
     assert rows["final"]["persisting, all"]["rms_error"] != rows["oracle"]["persisting, all"]["rms_error"]
     assert "converged solve" in capsys.readouterr().out
+    # `recorded` serves the recorded solve's end: no error against it, some against the converged solve.
+    for reference, exact in (("final", True), ("oracle", False)):
+        out = tmp_path / f"recorded-{reference}.json"
+        assert main(["bench", "corrections", "--model", "recorded", "--data", str(oracle), "--reference", reference,
+                     "--json", str(out)]) == 0
+        errors = [r["rms_error"] for r in json.loads(out.read_text())["rows"] if r["points"]]
+        assert (max(errors) == 0.0) is exact
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(plain),
                  "--reference", "oracle"]) == 2
     assert "--oracle" in capsys.readouterr().err
