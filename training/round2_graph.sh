@@ -27,6 +27,10 @@
 #                              run from the served impulses (with a -t1 card)
 #   graph-projected-1-799-s20k the same on 20,000 steps of each 1-799 file, 2 epochs (with a
 #                              -t1 card); about 12 min
+#   graph-projected-max-1-799  as graph-projected-1-799 with the loss the stopping rule reads: per
+#                              step, the log of the largest change a sweep still makes over
+#                              Box2D's warm start's (--loss solver-projected-max), 2 epochs
+#                              (with a -t1 card)
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
 #                              training/round2_data.sh first), 10,000 steps of each file, 10
@@ -90,6 +94,11 @@ run() {
             variant graph-projected-1-799-s20k --loss solver-projected --max-steps-per-file 20000 --epochs 2 \
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-projected-1-799-s20k.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-max-1-799 --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 \
+                --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799.json" --correction-threshold 1.0 ;;
         graph-oracle-mse|graph-final-mse-o200)
             local DATA=(--train data/thesis-oracle-train-1-200.h5 --train data/family-oracle-train-1-200.h5
                         --val data/thesis-oracle-val-801-806.h5 --val data/family-oracle-val-801-806.h5

@@ -47,6 +47,7 @@ TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracl
 CACHE_VERSION = 2  # GraphSet fields
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
+MAX_NORM_FLOOR = 1e-36  # (N s)^8: solver-projected-max's floor, (3e-5 N s)^8, below the 1e-4 N s stopping rule
 DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
 
 
@@ -79,7 +80,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s)")
-    parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log", "solver-projected"),
+    parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log", "solver-projected",
+                                           "solver-projected-max"),
                         default="solver",
                         help="mse: squared error of the correction at every point; relative: each point's error "
                              "over its own correction's size (+ 0.05 N s), so small corrections count as much as "
@@ -89,7 +91,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "solver-log: per step, the log of that residual over Box2D's warm start's; "
                              "solver-projected: the change the solver's sweeps, with their limits (normal >= 0, "
                              "friction cone), would still make after --sweeps sweeps from the served impulses, "
-                             "each checkpoint scaled by Box2D's own warm start's")
+                             "each checkpoint scaled by Box2D's own warm start's; solver-projected-max: per step, "
+                             "the log of the largest such change (an 8-norm) over Box2D's warm start's, the "
+                             "quantity the stopping rule compares with 1e-4 N s")
     parser.add_argument("--sweeps", default="16,64,256",
                         help="solver loss: sweep counts at which the residual is measured (default %(default)s)")
     parser.add_argument("--omega", type=float, default=0.5,
@@ -246,7 +250,7 @@ def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float
             # Served at new points only; persisting points keep Box2D's warm start.
             new_point = points[:, new_column] * in_std[new_column] + in_mean[new_column]
             error = tf.where(new_point[:, None] > 0.5, error, builtin_error)
-        if args.loss == "solver-projected":
+        if args.loss in ("solver-projected", "solver-projected-max"):
             return projected(points, ends, geometry, masses, inverse, step_of, error, builtin_error)
 
         def squares(e):
@@ -269,14 +273,32 @@ def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float
         raw = points * in_std + in_mean
         builtin = tf.gather(raw, builtin_columns, axis=1)
         solution = builtin - builtin_error  # Box2D's warm start plus the solver's correction
-        changes = projected_changes_after(solution + error, tf.gather(raw, velocity_columns, axis=1),
-                                          friction_bounds(solution, step_of), ends, geometry, masses, inverse,
-                                          sweeps=args.sweeps, omega=args.omega)
+        v_free, mu = tf.gather(raw, velocity_columns, axis=1), friction_bounds(solution, step_of)
+
+        def changes_from(start):
+            return projected_changes_after(start, v_free, mu, ends, geometry, masses, inverse,
+                                           sweeps=args.sweeps, omega=args.omega)
+
+        changes = changes_from(solution + error)
+        if args.loss == "solver-projected-max":
+            # The solver stops when a sweep's largest change falls below 1e-4 N s and removes a
+            # roughly fixed share per sweep, so the iterations a warm start saves go with the log
+            # of that largest change; an 8-norm per step is a max that passes gradients to more
+            # than one point.
+            n_steps = tf.reduce_max(step_of) + 1
+
+            def log_norm(c):
+                return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(tf.abs(c) ** 8 * loss_weight, axis=1),
+                                                                step_of, n_steps) + MAX_NORM_FLOOR) / 8.0
+
+            per_step = tf.add_n([log_norm(m) - log_norm(b) for m, b in
+                                 zip(changes, changes_from(solution + builtin_error))]) / len(args.sweeps)
+            return per_step, tf.ones_like(per_step)
         per_point = tf.add_n([tf.reduce_sum(tf.square(c) * loss_weight, axis=1) / scales[j]
                               for j, c in enumerate(changes)]) / len(args.sweeps)
         return per_point, tf.ones_like(per_point)
 
-    if args.loss == "solver-projected":
+    if args.loss in ("solver-projected", "solver-projected-max"):
         builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")]
         velocity_columns = [inputs.index("vn"), inputs.index("vt")]
     return batch_loss

@@ -81,7 +81,8 @@ def test_projected_sweeps_keep_the_limits_and_leave_the_recorded_solution_nearly
     assert float(tf.reduce_max(tf.abs(kept))) < 0.01 < float(tf.reduce_max(tf.abs(moved)))
 
 
-@pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log", "solver-projected"])
+@pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log", "solver-projected",
+                                  "solver-projected-max"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
     out = tmp_path / "graph.onnx"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
@@ -90,7 +91,7 @@ def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data,
     card = json.loads(out.with_suffix(".json").read_text())
     assert card["kind"] == "graph" and card["combine"] == "residual" and card["input_name"] == "points"
     assert card["parity_max_abs_error"] < 1e-4
-    if loss == "solver-log":  # per step, log(the model's residual / Box2D's): 0 for no correction
+    if loss in ("solver-log", "solver-projected-max"):  # per step, log(the model's / Box2D's): 0 for no correction
         assert card["validation"]["loss_no_correction"] == 0.0 and abs(card["validation"]["loss"]) < 1.0
     else:
         assert card["validation"]["loss"] <= card["validation"]["loss_no_correction"] * 1.5
