@@ -30,7 +30,7 @@
 #   graph-projected-max-1-799  as graph-projected-1-799 with the loss the stopping rule reads: per
 #                              step, the log of the largest change a sweep still makes over
 #                              Box2D's warm start's (--loss solver-projected-max), 2 epochs
-#                              (with a -t1 card)
+#                              (with -t1, -t0.3 and -t2 cards; -t1 is the default)
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
 #                              training/round2_data.sh first), 10,000 steps of each file, 10
@@ -98,7 +98,9 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-projected-max-1-799 --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 \
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
-            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799.json" --correction-threshold 1.0 ;;
+            for t in 1.0 0.3 2.0; do   # 1 N s is the default's; the others are in the ablation
+                "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799.json" --correction-threshold $t
+            done ;;
         graph-oracle-mse|graph-final-mse-o200)
             local DATA=(--train data/thesis-oracle-train-1-200.h5 --train data/family-oracle-train-1-200.h5
                         --val data/thesis-oracle-val-801-806.h5 --val data/family-oracle-val-801-806.h5
