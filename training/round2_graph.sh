@@ -31,6 +31,10 @@
 #                              step, the log of the largest change a sweep still makes over
 #                              Box2D's warm start's (--loss solver-projected-max), 2 epochs
 #                              (with -t1, -t0.3 and -t2 cards; -t1 is the default)
+#   graph-projected-max-w64    the max loss from random weights on a network twice as wide (64
+#                              features per point), 3 epochs of 3,000 steps per 1-799 file
+#                              (with a -t1 card): is the default's network too small?
+#   graph-projected-max-w32    its control: the same at the default's width
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
 #                              training/round2_data.sh first), 10,000 steps of each file, 10
@@ -101,6 +105,11 @@ run() {
             for t in 1.0 0.3 2.0; do   # 1 N s is the default's; the others are in the ablation
                 "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799.json" --correction-threshold $t
             done ;;
+        graph-projected-max-w64|graph-projected-max-w32)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --width "${1##*-w}" --max-steps-per-file 3000 \
+                --epochs 3 --lr 1e-3
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-oracle-mse|graph-final-mse-o200)
             local DATA=(--train data/thesis-oracle-train-1-200.h5 --train data/family-oracle-train-1-200.h5
                         --val data/thesis-oracle-val-801-806.h5 --val data/family-oracle-val-801-806.h5
