@@ -31,6 +31,8 @@
 #                              step, the log of the largest change a sweep still makes over
 #                              Box2D's warm start's (--loss solver-projected-max), 2 epochs
 #                              (with -t1, -t0.3 and -t2 cards; -t1 is the default)
+#   graph-projected-max-1-799-e4  2 more epochs of graph-projected-max-1-799 from its weights, on
+#                              other steps (--seed 1) at half the peak rate (with a -t1 card)
 #   graph-projected-max-w64    the max loss from random weights on a network twice as wide (64
 #                              features per point), 3 epochs of 3,000 steps per 1-799 file
 #                              (with a -t1 card): is the default's network too small?
@@ -105,6 +107,12 @@ run() {
             for t in 1.0 0.3 2.0; do   # 1 N s is the default's; the others are in the ablation
                 "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799.json" --correction-threshold $t
             done ;;
+        graph-projected-max-1-799-e4)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            # other steps than the first two epochs saw (--seed 1 overrides DATA's), at half the peak rate
+            variant graph-projected-max-1-799-e4 --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 \
+                --lr 2.5e-4 --seed 1 --init runs/graph-cache/graph-projected-max-1-799.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-e4.json" --correction-threshold 1.0 ;;
         graph-projected-max-w64|graph-projected-max-w32)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --width "${1##*-w}" --max-steps-per-file 3000 \
