@@ -18,6 +18,12 @@ bodies keep nothing: they absorb any impulse), and every point updates its
 state from its own and its two bodies' sums, with a residual connection.
 Sums, not means: a body's total load is what the points around it share.
 
+With `pooled`, every round also hands each point the mean state of all points
+of its step: a graph-wide summary that reaches past the rounds' few contacts
+(a pile's slow, pile-wide modes are what the solver's iterations are spent on).
+A batch of several steps passes `step_of` (P,), each point's step; without it
+the whole input is one step, as the server runs it.
+
 Plain tf.Module, no Keras: the weights are a dict of arrays (saved as .npz)
 and the same tf.function is trained and exported (tf2onnx, opset 17).
 """
@@ -39,6 +45,7 @@ class GraphConfig:
     width: int = 32  # features per point and per body message
     rounds: int = 3  # message-passing rounds
     kind: str = "graph"
+    pooled: bool = False  # each round also reads the mean state of the step's points
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
@@ -48,7 +55,7 @@ def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
     for r in range(c.rounds):
         shapes[f"round{r}_to_a"] = (w, w)
         shapes[f"round{r}_to_b"] = (w, w)
-        shapes[f"round{r}_update0"] = (3 * w, w)
+        shapes[f"round{r}_update0"] = ((4 if c.pooled else 3) * w, w)
         shapes[f"round{r}_update1"] = (w, w)
     shapes["decode0"] = (w, w)
     shapes["decode1"] = (w, c.out_channels)
@@ -100,7 +107,9 @@ class ContactGraphNet:
         y = self.tf.matmul(x, self.variables[f"{name}/kernel"]) + self.variables[f"{name}/bias"]
         return self.tf.nn.relu(y) if relu else y
 
-    def __call__(self, points, ends, dynamic):
+    def __call__(self, points, ends, dynamic, step_of=None):
+        """points (P, F), ends (P, 2), dynamic (B, 1) as in the module docstring;
+        step_of (P,) int32, each point's step, read only by a pooled network."""
         tf = self.tf
         h = self._dense(self._dense(points, "encode0"), "encode1")
         a, b = ends[:, 0], ends[:, 1]
@@ -117,8 +126,20 @@ class ContactGraphNet:
                 load = (tf.math.unsorted_segment_sum(to_a, a, n_bodies)
                         + tf.math.unsorted_segment_sum(to_b, b, n_bodies)) * dynamic
                 u = tf.concat([h, tf.gather(load, a), tf.gather(load, b)], axis=1)
+            if self.config.pooled:
+                u = tf.concat([u, self._step_mean(h, step_of)], axis=1)
             h = h + self._dense(self._dense(u, f"round{r}_update0"), f"round{r}_update1", relu=False)
         return self._dense(self._dense(h, "decode0"), "decode1", relu=False)
+
+    def _step_mean(self, h, step_of):
+        """(P, W): the mean of h over each point's step."""
+        tf = self.tf
+        if step_of is None:
+            return tf.zeros_like(h) + tf.reduce_mean(h, axis=0, keepdims=True)
+        n_steps = tf.reduce_max(step_of) + 1
+        total = tf.math.unsorted_segment_sum(h, step_of, n_steps)
+        count = tf.math.unsorted_segment_sum(tf.ones_like(h[:, :1]), step_of, n_steps)
+        return tf.gather(total / tf.maximum(count, 1.0), step_of)
 
     def signature(self) -> list:
         tf = self.tf

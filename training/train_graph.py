@@ -80,6 +80,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s)")
+    parser.add_argument("--pooled", action="store_true",
+                        help="each round also reads the mean state of all points of the step, a graph-wide "
+                             "summary; with --init from a network without it, the summary's weights start at 0")
     parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log", "solver-projected",
                                            "solver-projected-max"),
                         default="solver",
@@ -233,7 +236,7 @@ def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float
     scales = tf.constant(residual_scales, tf.float32)
 
     def batch_loss(points, ends, dynamic, y, geometry, masses, inverse, step_of):
-        pred = net(points, ends, dynamic)
+        pred = net(points, ends, dynamic, step_of)
         if args.loss == "mse":
             per_point = tf.reduce_sum(tf.square(pred - y) * loss_weight, axis=1)
             return per_point, tf.ones_like(per_point)
@@ -325,7 +328,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names, normalization=normalization(train))
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
-                         rounds=args.rounds)
+                         rounds=args.rounds, pooled=args.pooled)
     if args.init is not None:
         net = ContactGraphNet(config, initial_weights(args.init, config))
     else:
@@ -347,10 +350,16 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
     with np.load(path, allow_pickle=False) as f:
         weights = {k: f[k] for k in f.files}
     expected = {k: v.shape for k, v in init_weights(config).items()}
+    if config.pooled:
+        # A network without the summary: its update layers gain zero rows for it, so the
+        # pooled network starts as exactly that network.
+        for k, v in list(weights.items()):
+            if k.endswith("_update0/kernel") and k in expected and v.shape[0] < expected[k][0] == 4 * config.width:
+                weights[k] = np.concatenate([v, np.zeros((expected[k][0] - v.shape[0], v.shape[1]), v.dtype)])
     got = {k: v.shape for k, v in weights.items()}
     if got != expected:
         raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
-                         f"{config.rounds} with {config.in_channels} inputs")
+                         f"{config.rounds}{' --pooled' if config.pooled else ''} with {config.in_channels} inputs")
     return weights
 
 
@@ -449,7 +458,7 @@ def _write(net, fitted: Fitted, validate, spec: GridSpec, scaling: Scaling, args
         training={"train": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(sources, train)],
                   "val": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(val_sources, val)],
                   "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
-                                                               "rounds", "tangent_weight", "seed", "loss", "sweeps", "omega",
+                                                               "rounds", "pooled", "tangent_weight", "seed", "loss", "sweeps", "omega",
                                                                "max_steps_per_file", "max_val_steps")},
                   "init": None if args.init is None else str(args.init),
                   "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,

@@ -148,6 +148,46 @@ def test_a_run_goes_on_from_an_earlier_runs_weights(data, tmp_path, capsys):
     assert not (tmp_path / "wide.onnx").exists()
 
 
+def test_a_pooled_network_starts_as_the_plain_one_and_pools_each_step_alone(graphs, data, tmp_path):
+    from training.graph_model import ContactGraphNet, GraphConfig, init_weights
+
+    plain_config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2)
+    pooled_config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, pooled=True)
+    plain = init_weights(plain_config, seed=1)
+    plain["decode1/kernel"] = np.random.default_rng(2).normal(size=plain["decode1/kernel"].shape).astype(np.float32)
+    weights_file = tmp_path / "plain.weights.npz"
+    np.savez(weights_file, **plain)
+    from training.train_graph import initial_weights
+    padded = initial_weights(weights_file, pooled_config)  # zero rows for the summary
+    x, _, e, d = graphs.batch([3, 5])
+    n3 = graphs.point_offsets[4] - graphs.point_offsets[3]
+    step_of = np.repeat(np.int32([0, 1]), [n3, len(x) - n3]).astype(np.int32)
+    np.testing.assert_allclose(ContactGraphNet(pooled_config, padded)(x, e, d, step_of).numpy(),
+                               ContactGraphNet(plain_config, plain)(x, e, d).numpy(), rtol=1e-5, atol=1e-6)
+    # With weights on the summary, a batch of two steps gives each step what it gets alone,
+    # as the server runs it (one step, no step_of).
+    trained = init_weights(pooled_config, seed=3)
+    trained["decode1/kernel"] = plain["decode1/kernel"]
+    net = ContactGraphNet(pooled_config, trained)
+    together = net(x, e, d, step_of).numpy()
+    x5, _, e5, d5 = graphs.batch([5])
+    np.testing.assert_allclose(together[n3:], net(x5, e5, d5).numpy(), rtol=1e-4, atol=1e-5)
+    assert not np.allclose(together[:n3], ContactGraphNet(plain_config, plain)(x, e, d).numpy()[:n3], atol=1e-3)
+
+
+def test_train_graph_pooled_from_a_plain_run_exports_a_model_onnx_runtime_runs_like_tensorflow(data, tmp_path):
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--rounds", "1", "--width", "8", "--loss", "mse", "--cache",
+              str(tmp_path / "cache"), "--quiet"]
+    assert main(common + ["--out", str(tmp_path / "plain.onnx")]) == 0
+    assert main(common + ["--out", str(tmp_path / "pooled.onnx"), "--pooled", "--init",
+                          str(tmp_path / "cache" / "plain.weights.npz")]) == 0
+    card = json.loads((tmp_path / "pooled.json").read_text())
+    assert card["architecture"]["config"]["pooled"] is True and card["parity_max_abs_error"] < 1e-4
+    session = ort.InferenceSession(str(tmp_path / "pooled.onnx"), providers=["CPUExecutionProvider"])
+    assert {i.name for i in session.get_inputs()} == {"points", "ends", "dynamic"}  # served as any graph model
+
+
 def test_a_diverging_run_says_so_and_writes_nothing(data, tmp_path, capsys):
     out = tmp_path / "m.onnx"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
