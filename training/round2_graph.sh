@@ -33,6 +33,15 @@
 #                              (with -t1, -t0.3 and -t2 cards; -t1 is the default)
 #   graph-projected-max-1-799-e4  2 more epochs of graph-projected-max-1-799 from its weights, on
 #                              other steps (--seed 1) at half the peak rate (with a -t1 card)
+#   graph-projected-max-1-799-long  1 more epoch of graph-projected-max-1-799 from its weights, on
+#                              the same steps, with the sweeps the loss runs at 256 and 1,024
+#                              instead of 16, 64 and 256: nearer the ~300 sweeps the solver takes
+#                              (with a -t1 card); 27 min on two cores shared with other runs
+#   graph-projected-max-1-799-pooled  graph-projected-max-1-799's recipe (from graph-mse-1-799-e16's
+#                              weights) on a network whose rounds also read the mean state of
+#                              the step's points (--pooled): a graph-wide summary (with a -t1 card)
+#   graph-projected-max-1-799-pooled-e4  2 more epochs of it, as graph-projected-max-1-799-e4 is of
+#                              the default (other steps, --seed 1, half the peak rate; with a -t1 card)
 #   graph-projected-max-w64    the max loss from random weights on a network twice as wide (64
 #                              features per point), 3 epochs of 3,000 steps per 1-799 file
 #                              (with a -t1 card): is the default's network too small?
@@ -113,6 +122,25 @@ run() {
             variant graph-projected-max-1-799-e4 --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 \
                 --lr 2.5e-4 --seed 1 --init runs/graph-cache/graph-projected-max-1-799.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-e4.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-long)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            # 1,024 unrolled sweeps overflowed a TensorFlow compute thread's stack (8 MB, set by
+            # ulimit -s): a segfault at the end of the first epoch. With 512 MB it runs.
+            ( ulimit -s 524288
+              variant graph-projected-max-1-799-long --loss solver-projected-max --sweeps 256,1024 \
+                  --max-steps-per-file 3000 --epochs 1 --lr 2.5e-4 \
+                  --init runs/graph-cache/graph-projected-max-1-799.weights.npz )
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-pooled)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-max-1-799-pooled --pooled --loss solver-projected-max --max-steps-per-file 3000 \
+                --epochs 2 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-pooled.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-pooled-e4)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-max-1-799-pooled-e4 --pooled --loss solver-projected-max --max-steps-per-file 3000 \
+                --epochs 2 --lr 2.5e-4 --seed 1 --init runs/graph-cache/graph-projected-max-1-799-pooled.weights.npz
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-pooled-e4.json" --correction-threshold 1.0 ;;
         graph-projected-max-w64|graph-projected-max-w32)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --width "${1##*-w}" --max-steps-per-file 3000 \
