@@ -29,7 +29,8 @@ from simclient.client import WarmStartClient
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
-    parser.add_argument("--model", default="pressure", help="model to time (default pressure, the shipped one)")
+    parser.add_argument("--model", default="default",
+                        help="model to time (default: default, the model users are served; pressure is round 1's)")
     parser.add_argument("--seed", type=int, default=900, help="thesis-world seed (default 900)")
     parser.add_argument("--steps", type=int, default=250, help="steps recorded and sent (default 250)")
     parser.add_argument("--rounds", type=int, default=4, help="times the recorded steps are streamed (default 4)")
