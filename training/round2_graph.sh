@@ -42,6 +42,8 @@
 #                              the step's points (--pooled): a graph-wide summary (with a -t1 card)
 #   graph-projected-max-1-799-pooled-e4  2 more epochs of it, as graph-projected-max-1-799-e4 is of
 #                              the default (other steps, --seed 1, half the peak rate; with a -t1 card)
+#   graph-projected-max-1-799-pooled-long  1 more epoch of graph-projected-max-1-799-pooled as -long
+#                              is of the default: the sweeps run to 256 and 1,024 (with a -t1 card)
 #   graph-projected-max-w64    the max loss from random weights on a network twice as wide (64
 #                              features per point), 3 epochs of 3,000 steps per 1-799 file
 #                              (with a -t1 card): is the default's network too small?
@@ -131,6 +133,13 @@ run() {
                   --max-steps-per-file 3000 --epochs 1 --lr 2.5e-4 \
                   --init runs/graph-cache/graph-projected-max-1-799.weights.npz )
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-pooled-long)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            ( ulimit -s 524288   # as for graph-projected-max-1-799-long
+              variant graph-projected-max-1-799-pooled-long --pooled --loss solver-projected-max --sweeps 256,1024 \
+                  --max-steps-per-file 3000 --epochs 1 --lr 2.5e-4 \
+                  --init runs/graph-cache/graph-projected-max-1-799-pooled.weights.npz )
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-pooled-long.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-pooled)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-projected-max-1-799-pooled --pooled --loss solver-projected-max --max-steps-per-file 3000 \
