@@ -37,6 +37,9 @@
 #                              the same steps, with the sweeps the loss runs at 256 and 1,024
 #                              instead of 16, 64 and 256: nearer the ~300 sweeps the solver takes
 #                              (with a -t1 card); 27 min on two cores shared with other runs
+#   graph-projected-max-1-799-long-e2  1 more epoch of -long from its weights, on other steps
+#                              (--seed 1) at half its rate (with a -t1 card): does the long-sweep
+#                              loss keep paying with more training?
 #   graph-projected-max-1-799-pooled  graph-projected-max-1-799's recipe (from graph-mse-1-799-e16's
 #                              weights) on a network whose rounds also read the mean state of
 #                              the step's points (--pooled): a graph-wide summary (with a -t1 card)
@@ -133,6 +136,14 @@ run() {
                   --max-steps-per-file 3000 --epochs 1 --lr 2.5e-4 \
                   --init runs/graph-cache/graph-projected-max-1-799.weights.npz )
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-long-e2)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            # other steps than -long's epoch saw (--seed 1), at half its rate
+            ( ulimit -s 524288   # as for graph-projected-max-1-799-long
+              variant graph-projected-max-1-799-long-e2 --loss solver-projected-max --sweeps 256,1024 \
+                  --max-steps-per-file 3000 --epochs 1 --lr 1.25e-4 --seed 1 \
+                  --init runs/graph-cache/graph-projected-max-1-799-long.weights.npz )
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-pooled-long)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             ( ulimit -s 524288   # as for graph-projected-max-1-799-long
