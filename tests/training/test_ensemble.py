@@ -1,0 +1,81 @@
+"""training.ensemble: several shipped contact-graph models served as one, over a real server."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deepcontact.modelcard import ModelCard, ModelCardError
+from training.card_variant import card_variant
+from training.ensemble import build_ensemble, main
+
+SHIPPED = Path(__file__).parents[2] / "models"
+MEMBERS = ("graph-projected-max-1-799", "graph-projected-max-1-799-pooled")  # two normalizations, two networks
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """The two members (cards and ONNX files), their ensemble `both` and its `both-t1` card."""
+    folder = tmp_path_factory.mktemp("ensemble")
+    for name in MEMBERS:
+        for suffix in (".json", ".onnx"):
+            shutil.copy(SHIPPED / f"{name}{suffix}", folder)
+    build_ensemble([folder / f"{name}.json" for name in MEMBERS], "both")
+    card_variant(folder / "both.json", correction_threshold=1.0)
+    return folder
+
+
+def served(folder: Path, model: str, world, steps) -> list[np.ndarray]:
+    """Each step's warm start from a real server on loopback, (P, 2) N s."""
+    import grpc
+
+    from deepcontact import wire
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.serve import Server
+
+    server = Server(models=folder).start()
+    try:
+        with grpc.insecure_channel(server.address) as channel:
+            requests = [wire.encode_step(k, model, bodies, points, world=world if k == 0 else None,
+                                         builtin=points["builtin"]) for k, (bodies, points) in enumerate(steps)]
+            replies = list(pb_grpc.WarmStartStub(channel).Stream(iter(requests)))
+    finally:
+        server.stop()
+    return [np.stack(wire.decode_impulses(reply), axis=1) for reply in replies]
+
+
+def test_an_ensemble_serves_the_mean_of_its_members_corrections(folder, thesis_steps):
+    world, steps = thesis_steps
+    builtin = [points["builtin"] for _, points in steps]
+    a, b, both, both_t1 = (served(folder, name, world, steps) for name in (*MEMBERS, "both", "both-t1"))
+    for k in range(len(steps)):
+        mean = ((a[k] - builtin[k]) + (b[k] - builtin[k])) / 2
+        np.testing.assert_allclose(both[k], builtin[k] + mean, atol=2e-5)
+        # The threshold reads the mean correction, not each member's.
+        kept = np.abs(mean[:, 0]) > 1.0
+        np.testing.assert_allclose(both_t1[k], builtin[k] + mean * kept[:, None], atol=2e-5)
+    assert any((np.abs((x - y)[:, 0]) > 1.0).any() for x, y in zip(both, builtin))  # some points corrected
+
+
+def test_the_ensembles_card_names_its_members_and_folds_their_normalization_into_the_graph(folder):
+    card = ModelCard.load(folder / "both.json")
+    members = [ModelCard.load(folder / f"{name}.json") for name in MEMBERS]
+    assert card.kind == "graph" and card.combine == "residual" and card.gridspec.normalization == {}
+    assert card.architecture["config"]["members"] == list(MEMBERS)
+    assert card.parameters == sum(m.parameters for m in members)
+    assert card.parity_max_abs_error < 1e-4
+    assert card.commands[-1].startswith("python -m training.ensemble")  # and the members' own before it
+    assert set(members[0].commands + members[1].commands) <= set(card.commands)
+
+
+def test_an_ensemble_refuses_members_it_cannot_average(folder, tmp_path, capsys):
+    for suffix in (".json", ".onnx"):
+        shutil.copy(SHIPPED / f"pressure{suffix}", tmp_path)
+    with pytest.raises(ModelCardError, match="kind graph, combine residual"):
+        build_ensemble([folder / f"{MEMBERS[0]}.json", tmp_path / "pressure.json"], "mixed")
+    assert main([str(folder / f"{MEMBERS[0]}.json"), "--name", "alone"]) == 2
+    assert "at least two member cards" in capsys.readouterr().err
+    assert not (folder / "alone.onnx").exists() and not (tmp_path / "mixed.onnx").exists()

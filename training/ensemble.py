@@ -1,0 +1,179 @@
+"""Several contact-graph models served as one: the mean of their corrections.
+
+    python -m training.ensemble models/A.json models/B.json models/C.json --name graph-ensemble3
+        # models/graph-ensemble3.onnx and models/graph-ensemble3.json
+
+Each member is a graph card (kind "graph", combine "residual") with its own
+input and output normalization (statistics of the steps it was trained on).
+The ensemble is one ONNX graph with the same three inputs the server feeds a
+graph model (points (P, F) raw channel values, ends (P, 2), dynamic (B, 1)):
+
+    for each member m:  x_m = (points - in_mean_m) / in_std_m
+                        c_m = member_m(x_m, ends, dynamic) * out_std_m + out_mean_m   (P, 2) N s
+    impulses = mean over m of c_m                                                     (P, 2) N s
+
+so its card carries no normalization (every channel (0, 1)) and the server's
+GraphPredictor serves it unchanged, thresholds (`correction_threshold`)
+applied to the mean. Why: the members' errors at a point are partly their own
+(different steps, losses, a graph-wide summary); the mean keeps what they
+agree on. The price is one network's inference per member, run in one session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.io import write_bytes_atomic
+from deepcontact.modelcard import ModelCard, ModelCardError
+
+GRAPH_INPUTS = ("points", "ends", "dynamic")
+
+
+def _member(path: Path) -> ModelCard:
+    card = ModelCard.load(path)
+    if card.kind != "graph" or card.combine != "residual":
+        raise ModelCardError(f"{path}: an ensemble member is a graph model serving corrections "
+                             f"(kind graph, combine residual); this card is kind {card.kind!r}, "
+                             f"combine {card.combine!r}")
+    return card
+
+
+def ensemble_onnx(members: list[tuple[ModelCard, Path]]):
+    """One onnx.ModelProto averaging the members' denormalized outputs; `members`
+    are (card, card path) pairs with the same input and target channels."""
+    import onnx
+    from onnx import TensorProto, compose, helper, numpy_helper
+
+    first = members[0][0]
+    inputs, targets = first.gridspec.inputs, first.gridspec.targets
+    nodes, initializers, opsets, corrections = [], [], {}, []
+    for i, (card, path) in enumerate(members):
+        model = onnx.load(str(card.onnx_path(path)))
+        got = [x.name for x in model.graph.input]
+        if sorted(got) != sorted(GRAPH_INPUTS) or [o.name for o in model.graph.output] != [card.output_name]:
+            raise ModelCardError(f"{path}: a graph model takes {', '.join(GRAPH_INPUTS)} and returns "
+                                 f"{card.output_name!r}; this one takes {got}")
+        for opset in model.opset_import:
+            opsets[opset.domain] = max(opsets.get(opset.domain, 0), opset.version)
+        p = f"m{i}/"
+        model = compose.add_prefix(model, p)
+        in_mean, in_std = card.gridspec.normalization_arrays(inputs)
+        out_mean, out_std = card.gridspec.normalization_arrays(targets)
+        for name, value in (("in_mean", in_mean), ("in_std", in_std), ("out_mean", out_mean),
+                            ("out_std", out_std)):
+            initializers.append(numpy_helper.from_array(value.astype(np.float32), p + name))
+        nodes += [
+            helper.make_node("Sub", ["points", p + "in_mean"], [p + "points_centred"]),
+            helper.make_node("Div", [p + "points_centred", p + "in_std"], [p + "points"]),
+            helper.make_node("Identity", ["ends"], [p + "ends"]),
+            helper.make_node("Identity", ["dynamic"], [p + "dynamic"]),
+            *model.graph.node,
+            helper.make_node("Mul", [p + card.output_name, p + "out_std"], [p + "scaled"]),
+            helper.make_node("Add", [p + "scaled", p + "out_mean"], [p + "correction"]),
+        ]
+        initializers += model.graph.initializer
+        corrections.append(p + "correction")
+    nodes.append(helper.make_node("Mean", corrections, ["impulses"]))
+    graph = helper.make_graph(
+        nodes, "ensemble",
+        [helper.make_tensor_value_info("points", TensorProto.FLOAT, ["P", len(inputs)]),
+         helper.make_tensor_value_info("ends", TensorProto.INT32, ["P", 2]),
+         helper.make_tensor_value_info("dynamic", TensorProto.FLOAT, ["B", 1])],
+        [helper.make_tensor_value_info("impulses", TensorProto.FLOAT, ["P", len(targets)])],
+        initializer=initializers)
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid(d, v) for d, v in sorted(opsets.items())],
+                              producer_name="deepcontact.training.ensemble")
+    proto.ir_version = onnx.load(str(first.onnx_path(members[0][1]))).ir_version
+    onnx.checker.check_model(proto)
+    return proto
+
+
+def _parity(proto_bytes: bytes, members: list[tuple[ModelCard, Path]], n_points: int = 64,
+            seed: int = 0) -> float:
+    """Largest |ensemble - mean of the members run one by one| over random steps, N s."""
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(seed)
+    card = members[0][0]
+    n_bodies = 20
+    points = rng.normal(0.0, 1.0, (n_points, len(card.gridspec.inputs))).astype(np.float32)
+    ends = rng.integers(0, n_bodies, (n_points, 2)).astype(np.int32)
+    dynamic = (rng.random((n_bodies, 1)) > 0.1).astype(np.float32)
+    want = []
+    for member, path in members:
+        session = ort.InferenceSession(str(member.onnx_path(path)), providers=["CPUExecutionProvider"])
+        in_mean, in_std = member.gridspec.normalization_arrays(member.gridspec.inputs)
+        out_mean, out_std = member.gridspec.normalization_arrays(member.gridspec.targets)
+        y = session.run([member.output_name], {"points": (points - in_mean) / in_std, "ends": ends,
+                                               "dynamic": dynamic})[0]
+        want.append(y * out_std + out_mean)
+    session = ort.InferenceSession(proto_bytes, providers=["CPUExecutionProvider"])
+    got = session.run(["impulses"], {"points": points, "ends": ends, "dynamic": dynamic})[0]
+    return float(np.max(np.abs(got - np.mean(want, axis=0))))
+
+
+def build_ensemble(card_paths: list[Path], name: str, out_dir: Path | None = None) -> Path:
+    """Write out_dir/NAME.onnx and its card (default out_dir: the first member's folder);
+    returns the card's path. Members must read the same channels in the same order."""
+    if len(card_paths) < 2:
+        raise ValueError("an ensemble needs at least two member cards")
+    members = [(_member(Path(p)), Path(p)) for p in card_paths]
+    first = members[0][0]
+    for card, path in members[1:]:
+        if card.gridspec.inputs != first.gridspec.inputs or card.gridspec.targets != first.gridspec.targets:
+            raise ModelCardError(f"{path}: reads {list(card.gridspec.inputs)} -> {list(card.gridspec.targets)}, "
+                                 f"{members[0][1]} reads {list(first.gridspec.inputs)} -> "
+                                 f"{list(first.gridspec.targets)}; members must agree")
+    if len({card.name for card, _ in members}) < len(members):
+        raise ValueError("a member is named twice")
+    command = " ".join(["python -m training.ensemble", *(shlex.quote(str(p)) for p in card_paths),
+                        "--name", shlex.quote(name)] + (["--out-dir", shlex.quote(str(out_dir))] if out_dir else []))
+    out_dir = Path(out_dir) if out_dir is not None else members[0][1].parent
+    data = ensemble_onnx(members).SerializeToString()
+    parity = _parity(data, members)
+    onnx_path = write_bytes_atomic(out_dir / f"{name}.onnx", data)
+    described = [{"name": card.name, "parameters": card.parameters,
+                  "onnx_sha256": hashlib.sha256(card.onnx_path(path).read_bytes()).hexdigest(),
+                  "validation_loss": card.validation.get("loss"), "commands": list(card.commands)}
+                 for card, path in members]
+    card = ModelCard(
+        name=name, kind="graph", onnx_file=onnx_path.name,
+        gridspec=dataclasses.replace(first.gridspec, normalization={}),  # folded into the graph
+        fixed_grid=False, input_name="points", output_name="impulses", combine="residual",
+        parameters=sum(c.parameters for c, _ in members),
+        architecture={"config": {"kind": "graph-ensemble", "members": [c.name for c, _ in members]},
+                      "onnx_bytes": len(data), "parameters": {"total": sum(c.parameters for c, _ in members)}},
+        training={"ensemble_of": described}, parity_max_abs_error=parity,
+        commands=tuple(cmd for member, _ in members for cmd in member.commands) + (command,))
+    return card.save(out_dir / f"{name}.json")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m training.ensemble",
+        description="serve several contact-graph models as one: an ONNX file that averages their "
+                    "corrections, with its card (members: graph cards with combine residual)")
+    parser.add_argument("cards", type=Path, nargs="+", help="the members' cards, e.g. models/graph-*.json")
+    parser.add_argument("--name", required=True, help="the ensemble's name: writes NAME.onnx and NAME.json")
+    parser.add_argument("--out-dir", type=Path, help="where to write (default: the first member's folder)")
+    args = parser.parse_args(argv)
+    try:
+        path = build_ensemble(args.cards, args.name, args.out_dir)
+    except (ModelCardError, ValueError) as exc:
+        print(f"ensemble: {exc}", file=sys.stderr)
+        return 2
+    card = ModelCard.load(path)
+    print(f"wrote {path} and {card.onnx_file}: {len(args.cards)} members, {card.parameters:,} parameters, "
+          f"largest difference from the members' mean {card.parity_max_abs_error:.2g} N s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
