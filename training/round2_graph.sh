@@ -40,6 +40,9 @@
 #   graph-projected-max-1-799-long-e2  1 more epoch of -long from its weights, on other steps
 #                              (--seed 1) at half its rate (with a -t1 card): does the long-sweep
 #                              loss keep paying with more training?
+#   graph-ensemble3            the mean correction of graph-projected-max-1-799, -pooled and -long
+#                              (training/ensemble.py; train those three first), with a -t1 card
+#   graph-ensemble-long-e2     the same with -long-e2 in -long's place (with a -t1 card)
 #   graph-projected-max-1-799-pooled  graph-projected-max-1-799's recipe (from graph-mse-1-799-e16's
 #                              weights) on a network whose rounds also read the mean state of
 #                              the step's points (--pooled): a graph-wide summary (with a -t1 card)
@@ -144,6 +147,11 @@ run() {
                   --max-steps-per-file 3000 --epochs 1 --lr 1.25e-4 --seed 1 \
                   --init runs/graph-cache/graph-projected-max-1-799-long.weights.npz )
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --correction-threshold 1.0 ;;
+        graph-ensemble3|graph-ensemble-long-e2)
+            local last=graph-projected-max-1-799-long; [ "$1" = graph-ensemble-long-e2 ] && last+=-e2
+            "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799.json" \
+                "$OUT/graph-projected-max-1-799-pooled.json" "$OUT/$last.json" --name "$1" --out-dir "$OUT"
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-pooled-long)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             ( ulimit -s 524288   # as for graph-projected-max-1-799-long
