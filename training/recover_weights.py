@@ -1,0 +1,124 @@
+"""A contact-graph model's weights back from its ONNX file, for `train-graph --init`.
+
+    python -m training.recover_weights models/graph-projected-max-1-799-long-e2.json
+        # runs/graph-cache/graph-projected-max-1-799-long-e2.weights.npz
+
+`train-graph` keeps each run's weights in its cache (runs/graph-cache/NAME.weights.npz),
+which git does not hold; a fresh clone has only the shipped ONNX files. To train a
+shipped model further, this writes the .npz `--init` reads.
+
+tf2onnx names the weight tensors after the traced ops ("MatMul_9/ReadVariableOp:0"),
+not after the variables, so the mapping is found by experiment: a network of the card's
+configuration (architecture.config) with a distinct random value in every weight is
+exported the same way (training.graph_model.to_onnx), and each of its tensors is matched
+by value to the variable it came from. The shipped file's tensors of the same names are
+then that model's weights. Finally the recovered network is run against the shipped
+ONNX file on a random step; the largest difference must be under 1e-4 (normalized units),
+or nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.modelcard import ModelCard, ModelCardError
+
+PARITY_TOLERANCE = 1e-4
+
+
+class RecoveryError(RuntimeError):
+    """The ONNX file's tensors do not map onto the configuration's weights."""
+
+
+def _initializers(onnx_bytes: bytes) -> dict[str, np.ndarray]:
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load_from_string(onnx_bytes)
+    return {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+
+
+def tensor_names(config) -> dict[str, str]:
+    """{weight key ("edge0/kernel", ...): ONNX tensor name} for a network of `config`,
+    found by exporting one with distinct random weights."""
+    from training.graph_model import ContactGraphNet, init_weights, to_onnx
+
+    rng = np.random.default_rng(0)
+    probe = {k: rng.standard_normal(v.shape).astype(np.float32) for k, v in init_weights(config).items()}
+    exported = _initializers(to_onnx(ContactGraphNet(config, probe)))
+    names = {}
+    for key, value in probe.items():
+        hits = [n for n, t in exported.items() if t.shape == value.shape and np.array_equal(t, value)]
+        if len(hits) != 1:
+            raise RecoveryError(f"weight {key} {value.shape} appears {len(hits)} times in the exported graph "
+                                f"(tf2onnx folded or copied it); its value cannot be recovered by name")
+        names[key] = hits[0]
+    return names
+
+
+def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
+    """(weights, parity): the weights of the graph model `card_path` describes, and the
+    largest difference (normalized units) between them run in TensorFlow and its ONNX file."""
+    import onnxruntime as ort
+
+    from training.graph_model import ContactGraphNet, GraphConfig
+
+    card = ModelCard.load(card_path)
+    if card.kind != "graph":
+        raise ModelCardError(f"{card_path}: weights are recovered from graph models only (this card is kind {card.kind!r})")
+    config = GraphConfig(**card.architecture.get("config", {}))
+    onnx_bytes = card.onnx_path(card_path).read_bytes()
+    shipped = _initializers(onnx_bytes)
+    names = tensor_names(config)
+    missing = sorted(n for n in names.values() if n not in shipped)
+    if missing:
+        raise RecoveryError(f"{card_path}: the ONNX file lacks {missing[:3]}...: it was exported by other code "
+                            f"than this checkout's training/graph_model.py")
+    weights = {k: shipped[n].astype(np.float32) for k, n in names.items()}
+
+    # A random step: 40 points between 12 bodies of which 10 dynamic.
+    rng = np.random.default_rng(1)
+    points = rng.standard_normal((40, config.in_channels)).astype(np.float32)
+    ends = rng.integers(0, 12, size=(40, 2)).astype(np.int32)
+    dynamic = (np.arange(12) < 10).astype(np.float32)[:, None]
+    session = ort.InferenceSession(onnx_bytes, providers=["CPUExecutionProvider"])
+    onnx_out = session.run(None, {"points": points, "ends": ends, "dynamic": dynamic})[0]
+    tf_out = np.asarray(ContactGraphNet(config, weights, incidence="matmul")(points, ends, dynamic))
+    return weights, float(np.max(np.abs(onnx_out - tf_out)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m training.recover_weights",
+        description="recover a shipped contact-graph model's weights from its ONNX file, as the "
+                    ".weights.npz train-graph --init reads (run caches are not in git)")
+    parser.add_argument("card", type=Path, help="the model's card, e.g. models/graph-projected-max-1-799-long-e2.json")
+    parser.add_argument("--out", type=Path, help="where to write (default runs/graph-cache/NAME.weights.npz, "
+                                                 "NAME the ONNX file's stem, where train-graph leaves its own)")
+    args = parser.parse_args(argv)
+    try:
+        weights, parity = recover(args.card)
+    except (ModelCardError, RecoveryError, OSError) as e:
+        print(f"recover_weights: {e}", file=sys.stderr)
+        return 2
+    if parity > PARITY_TOLERANCE:
+        print(f"recover_weights: the recovered network differs from the ONNX file by {parity:.2e} "
+              f"(more than {PARITY_TOLERANCE}); nothing written", file=sys.stderr)
+        return 2
+    card = ModelCard.load(args.card)
+    out = args.out or Path("runs/graph-cache") / f"{card.onnx_path(args.card).stem}.weights.npz"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    part = out.with_name(out.name + ".part.npz")
+    np.savez(part, **weights)
+    part.replace(out)
+    print(f"wrote {out}: {len(weights)} tensors, {sum(w.size for w in weights.values()):,} parameters, "
+          f"largest difference from the ONNX file {parity:.1e}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
