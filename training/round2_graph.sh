@@ -40,6 +40,10 @@
 #   graph-projected-max-1-799-long-e2  1 more epoch of -long from its weights, on other steps
 #                              (--seed 1) at half its rate (with a -t1 card): does the long-sweep
 #                              loss keep paying with more training?
+#   graph-projected-max-1-799-long-e3  1 more epoch of -long-e2 from its weights, on other steps
+#                              again (--seed 2) at half its rate (with a -t1 card); from a fresh
+#                              clone, `python -m training.recover_weights` on -long-e2's card
+#                              first (docs/models.md); 1,549 s on two cores
 #   graph-ensemble3            the mean correction of graph-projected-max-1-799, -pooled and -long
 #                              (training/ensemble.py; train those three first), with a -t1 card
 #   graph-ensemble-long-e2     the same with -long-e2 in -long's place (with a -t1 card)
@@ -147,6 +151,13 @@ run() {
                   --max-steps-per-file 3000 --epochs 1 --lr 1.25e-4 --seed 1 \
                   --init runs/graph-cache/graph-projected-max-1-799-long.weights.npz )
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-long-e3)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            ( ulimit -s 524288   # as for graph-projected-max-1-799-long
+              variant graph-projected-max-1-799-long-e3 --loss solver-projected-max --sweeps 256,1024 \
+                  --max-steps-per-file 3000 --epochs 1 --lr 6.25e-5 --seed 2 \
+                  --init runs/graph-cache/graph-projected-max-1-799-long-e2.weights.npz )
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e3.json" --correction-threshold 1.0 ;;
         graph-ensemble3|graph-ensemble-long-e2)
             local last=graph-projected-max-1-799-long; [ "$1" = graph-ensemble-long-e2 ] && last+=-e2
             "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799.json" \
