@@ -47,6 +47,7 @@
 #   graph-ensemble3            the mean correction of graph-projected-max-1-799, -pooled and -long
 #                              (training/ensemble.py; train those three first), with a -t1 card
 #   graph-ensemble-long-e2     the same with -long-e2 in -long's place (with a -t1 card)
+#   graph-ensemble-e2-e3       the mean correction of -long-e2 and -long-e3 (train both first)
 #   graph-projected-max-1-799-pooled  graph-projected-max-1-799's recipe (from graph-mse-1-799-e16's
 #                              weights) on a network whose rounds also read the mean state of
 #                              the step's points (--pooled): a graph-wide summary (with a -t1 card)
@@ -163,6 +164,9 @@ run() {
             "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799.json" \
                 "$OUT/graph-projected-max-1-799-pooled.json" "$OUT/$last.json" --name "$1" --out-dir "$OUT"
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-ensemble-e2-e3)
+            "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799-long-e2.json" \
+                "$OUT/graph-projected-max-1-799-long-e3.json" --name "$1" --out-dir "$OUT" ;;
         graph-projected-max-1-799-pooled-long)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             ( ulimit -s 524288   # as for graph-projected-max-1-799-long
