@@ -117,6 +117,25 @@ def spec_for_data(card: ModelCard, scene: dict, path: Path) -> GridSpec:
     return dataclasses.replace(spec, origin=wanted.origin, shape=wanted.shape)
 
 
+def errors_by_phase(warm: dict[str, np.ndarray], truth: np.ndarray, point_step: np.ndarray,
+                    names) -> dict[str, dict[str, Any]]:
+    """Each warm start's errors in windows of PHASE_STEPS simulation steps.
+
+    Impacts while the bodies fall and pile up dominate the errors early on; later
+    the pile rests and Box2D's builtin warm start (last step's impulse) is hard to
+    beat, so one number over the whole run hides which phase a model helps in.
+    warm: name -> (P, C) impulses (N s); truth (P, C) N s; point_step (P,) each
+    point's step. Windows without points are left out.
+    """
+    out = {}
+    for lo in range(0, int(point_step.max()) + 1, PHASE_STEPS):  # a handful of windows
+        sel = np.flatnonzero((point_step >= lo) & (point_step < lo + PHASE_STEPS))
+        if len(sel):
+            out[f"{lo}-{lo + PHASE_STEPS - 1}"] = {
+                "points": int(len(sel)), **{k: point_errors(v[sel], truth[sel], names) for k, v in warm.items()}}
+    return out
+
+
 def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int = 0,
              batch_size: int = 32) -> dict[str, Any]:
     """Scores of ``model_path`` on ``data_path`` (see the module docstring); a JSON-able dict."""
@@ -176,16 +195,7 @@ def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int =
         warm["builtin"] = np.concatenate(builtin)
     warm["grid_oracle"] = np.concatenate(oracle_vals)
     baselines = {k: point_errors(v, truth_a, names) for k, v in warm.items() if k != "model"}
-    # By phase of the simulation: impacts while the bodies fall and pile up
-    # dominate the errors early on; later the pile rests and Box2D's builtin
-    # warm start (last step's impulse) is hard to beat.
-    point_step = np.concatenate(step_of_point)
-    by_steps = {}
-    for lo in range(0, int(point_step.max()) + 1, PHASE_STEPS):
-        sel = np.flatnonzero((point_step >= lo) & (point_step < lo + PHASE_STEPS))
-        if len(sel):
-            by_steps[f"{lo}-{lo + PHASE_STEPS - 1}"] = {
-                "points": int(len(sel)), **{k: point_errors(v[sel], truth_a[sel], names) for k, v in warm.items()}}
+    by_steps = errors_by_phase(warm, truth_a, np.concatenate(step_of_point), names)
     return {
         "model": {"name": card.name, "kind": card.kind, "file": str(model_path), "parameters": card.parameters},
         "data": {"file": str(data_path), "scene": scene.get("name"), "seeds": seeds, "steps": int(len(index)),

@@ -130,3 +130,17 @@ def test_evaluate_refuses_a_model_without_its_card_or_data(pressure_run, data, t
     onnx_path.with_suffix(".json").unlink()
     assert command(evaluate_command, "--model", onnx_path, "--data", data / "val.h5") == 2
     assert "no model card" in capsys.readouterr().err
+
+
+def test_errors_by_phase_scores_each_window_of_steps_and_skips_empty_ones():
+    names = ("impulse_normal", "impulse_tangent")
+    truth = np.zeros((4, 2))
+    warm = {"zero": np.zeros((4, 2)), "model": np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 0.0], [0.0, 2.0]])}
+    step = evaluate_command.PHASE_STEPS
+    point_step = np.array([0, step - 1, 2 * step, 2 * step + 3])  # nothing in the second window
+    phases = evaluate_command.errors_by_phase(warm, truth, point_step, names)
+    assert list(phases) == [f"0-{step - 1}", f"{2 * step}-{3 * step - 1}"]
+    early, late = phases[f"0-{step - 1}"], phases[f"{2 * step}-{3 * step - 1}"]
+    assert early["points"] == late["points"] == 2
+    assert early["model"]["impulse_normal"]["mse"] == 1.0 and late["model"]["impulse_normal"]["mse"] == 0.0
+    assert late["model"]["impulse_tangent"]["mse"] == 2.0 and late["zero"]["impulse_tangent"]["mse"] == 0.0
