@@ -97,6 +97,26 @@ def quantized(onnx_path: Path, input_name: str, calibration: list[np.ndarray], o
     return out
 
 
+def time_in_turns(session_of: dict, feed, grids, repeats: int) -> dict[str, list[float]]:
+    """Seconds per run of each named session on every grid, `repeats` times each.
+
+    The variants take turns on each grid, so a slow spell of a shared machine
+    falls on all of them alike; each session's first run plans its memory and is
+    not timed. feed(name, grid) gives that session's inputs.
+    """
+    for name, session in session_of.items():
+        session.run(None, feed(name, grids[0]))
+    times = {n: [] for n in session_of}
+    for x in grids:  # loop over steps
+        for _ in range(repeats):
+            for name, session in session_of.items():
+                inputs = feed(name, x)
+                t0 = time.perf_counter()
+                session.run(None, inputs)
+                times[name].append(time.perf_counter() - t0)
+    return times
+
+
 def run(args: argparse.Namespace) -> int:
     import onnxruntime as ort
 
@@ -142,16 +162,7 @@ def run(args: argparse.Namespace) -> int:
 
     names = list(sessions) + list(crops)
     session_of = {**sessions, **{c: sessions["default"] for c in crops}}
-    for name in names:  # first runs plan memory; not timed
-        session_of[name].run(None, feed(name, timed[0]))
-    times = {n: [] for n in names}
-    for x in timed:  # loop over steps; variants take turns on each
-        for _ in range(args.repeats):
-            for name in names:
-                inputs = feed(name, x)
-                t0 = time.perf_counter()
-                session_of[name].run(None, inputs)
-                times[name].append(time.perf_counter() - t0)
+    times = time_in_turns(session_of, feed, timed, args.repeats)
     out = card.output_name
     reference = [sessions["default"].run([out], {card.input_name: x})[0] for x in timed]
     errors = [sessions["int8"].run([out], {card.input_name: x})[0] - r for x, r in zip(timed, reference)]

@@ -52,6 +52,33 @@ def record_steps(seed: int, steps: int):
     return out
 
 
+def time_steps(address: str, world, model: str, recorded, rounds: int) -> tuple[dict[str, list], list[float]]:
+    """Send every recorded step `rounds` times; the first round warms up and is not kept.
+
+    recorded: [(bodies, points)] as record_steps gives them. Returns the server's
+    stage timings per step (us; "outside_inference" is total - inference) and the
+    client's round trips (s).
+    """
+    stages = {k: [] for k in ("decode", "p2g", "inference", "g2p", "total", "outside_inference")}
+    round_trip = []
+    with WarmStartClient(address, world=world) as client:
+        for r in range(rounds):
+            for k, (bodies, points) in enumerate(recorded):  # one request per step: what is timed
+                msg = wire.encode_step(k, model, bodies, points, builtin=points["builtin"])
+                t0 = time.perf_counter()
+                reply = client.step(msg, timeout=10.0)
+                rt = time.perf_counter() - t0
+                if r == 0:
+                    continue
+                round_trip.append(rt)
+                t = reply.timings
+                for name, value in (("decode", t.decode_us), ("p2g", t.p2g_us), ("inference", t.inference_us),
+                                    ("g2p", t.g2p_us), ("total", t.total_us),
+                                    ("outside_inference", t.total_us - t.inference_us)):
+                    stages[name].append(value)
+    return stages, round_trip
+
+
 def run(args: argparse.Namespace) -> int:
     from server.process import ServerProcess
     from simclient.client import StepFailed
@@ -80,24 +107,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     thesis = SceneSpec.thesis()  # the worlds these steps come from
     world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics)
-    stages = {k: [] for k in ("decode", "p2g", "inference", "g2p", "total", "outside_inference")}
-    round_trip = []
     try:
-        with WarmStartClient(server.address, world=world) as client:
-            for r in range(args.rounds):
-                for k, (bodies, points) in enumerate(recorded):
-                    msg = wire.encode_step(k, args.model, bodies, points, builtin=points["builtin"])
-                    t0 = time.perf_counter()
-                    reply = client.step(msg, timeout=10.0)
-                    rt = time.perf_counter() - t0
-                    if r == 0:
-                        continue  # warm-up round
-                    round_trip.append(rt)
-                    t = reply.timings
-                    for name, value in (("decode", t.decode_us), ("p2g", t.p2g_us), ("inference", t.inference_us),
-                                        ("g2p", t.g2p_us), ("total", t.total_us),
-                                        ("outside_inference", t.total_us - t.inference_us)):
-                        stages[name].append(value)
+        stages, round_trip = time_steps(server.address, world, args.model, recorded, args.rounds)
     except StepFailed as exc:
         print(f"deepcontact bench server: a step failed: {exc}", file=sys.stderr)
         return 1
