@@ -595,19 +595,8 @@ def p2g_sets(
     e, n_outside = _stencil_entries(pos, spec, st, world_of, tolerance)
     grids = _splat_grids(e, values, st, batch) if n_outside == 0 else None
     kept = None  # per set (kept indices or None for all, outside indices), on the careful path
-    if grids is None:  # the careful path: find what is wrong, raise or drop
-        kept = []
-        for s in sets:
-            # Dropped particles' values are checked too: they go into lost_value.
-            _check_finite_values(values[s.start : s.stop, s.cols], s.label, s.names)
-            _, keep, out_idx = _split_outside(pos[s.start : s.stop], spec, outside, tolerance, s.label)
-            kept.append((keep, out_idx))
-        rows = np.concatenate(
-            [np.arange(s.start, s.stop) if k is None else s.start + k for s, (k, _) in zip(sets, kept)]
-        )
-        sizes = [s.stop - s.start if k is None else len(k) for s, (k, _) in zip(sets, kept)]
-        world_of = np.repeat(np.array([s.world for s in sets], dtype=np.intp), sizes) if batch > 1 else None
-        e, _ = _stencil_entries(pos[rows], spec, st, world_of, tolerance)
+    if grids is None:
+        e, kept, sizes, rows = _entries_of_kept(pos, values, sets, spec, st, batch, outside, tolerance)
         grids = _splat_grids(e, values[rows], st, batch)
 
     plan_ = None
@@ -617,8 +606,43 @@ def p2g_sets(
         plan_ = TransferPlan(spec, s.stop - s.start, keep, out_idx, e.particles(start, start + sizes[plan_set]))
     if not reports:
         return grids, None, plan_
+    return grids, _reports_by_world(e, values, sets, sizes, kept, batch), plan_
 
-    # Reports: cheap unless some particles are lost or outside.
+
+def _entries_of_kept(
+    pos: np.ndarray, values: np.ndarray, sets: Sequence[ParticleSet], spec: GridSpec, st, batch: int,
+    outside: str, tolerance: float,
+):
+    """The careful path of :func:`p2g_sets`: find what is wrong, raise or drop it.
+
+    Returns ``(entries, kept, sizes, rows)``: the stencil entries of the
+    kept particles only, ``kept[j]`` = (kept indices within set j or None
+    for all, indices outside the grid), ``sizes[j]`` the number kept, and
+    ``rows`` the kept particles' rows of ``pos`` and ``values``.
+    Dropped particles' values are checked too: they go into ``lost_value``.
+    """
+    kept = []
+    for s in sets:
+        _check_finite_values(values[s.start : s.stop, s.cols], s.label, s.names)
+        _, keep, out_idx = _split_outside(pos[s.start : s.stop], spec, outside, tolerance, s.label)
+        kept.append((keep, out_idx))
+    rows = np.concatenate(
+        [np.arange(s.start, s.stop) if k is None else s.start + k for s, (k, _) in zip(sets, kept)]
+    )
+    sizes = [s.stop - s.start if k is None else len(k) for s, (k, _) in zip(sets, kept)]
+    world_of = np.repeat(np.array([s.world for s in sets], dtype=np.intp), sizes) if batch > 1 else None
+    e, _ = _stencil_entries(pos[rows], spec, st, world_of, tolerance)
+    return e, kept, sizes, rows
+
+
+def _reports_by_world(
+    e, values: np.ndarray, sets: Sequence[ParticleSet], sizes: list[int], kept, batch: int
+) -> list[list[TransferReport]]:
+    """``reports[b]``: the :class:`TransferReport` of each of world b's sets, in order.
+
+    Cheap unless some particles are lost or outside (``kept`` is None when
+    none is outside; ``sizes[j]`` counts set j's kept particles).
+    """
     any_lost = bool(e.lost.any())
     per_world: list[list[TransferReport]] = [[] for _ in range(batch)]
     start = 0
@@ -632,7 +656,7 @@ def p2g_sets(
             report = TransferReport(n, _NO_INDEX, _NO_INDEX, np.zeros(s.width))
         per_world[s.world].append(report)
         start += size
-    return grids, per_world, plan_
+    return per_world
 
 
 def _lost_report(n: int, keep, out_idx, lost_local: np.ndarray | None, vals: np.ndarray) -> TransferReport:
