@@ -99,11 +99,20 @@ def run(args: argparse.Namespace) -> int:
         },
     }
 
+    _print_table(results, spec)
+    if args.json:
+        write_json_atomic(args.json, results)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _print_table(results: dict, spec) -> None:
+    """The timings of `results` (as run() builds them), one line per transfer."""
     print(
-        f"thesis world, seed {args.seed}, after {args.settle_steps} steps: {results['bodies']} bodies, "
+        f"thesis world, seed {results['seed']}, after {results['settle_steps']} steps: {results['bodies']} bodies, "
         f"{results['contact_points']} contact points; grid {spec.ny} x {spec.nx}, {spec.kernel}, h = {spec.h} m"
     )
-    shape_in, shape_out = "x".join(map(str, inputs.shape)), "x".join(map(str, target.shape))
+    shape_in, shape_out = "x".join(map(str, results["input_shape"])), "x".join(map(str, results["target_shape"]))
     labels = {
         "p2g_inputs": f"P2G inputs    -> {shape_in}",
         "g2p_sph": f"G2P SPH       <- {shape_out}",
@@ -111,12 +120,8 @@ def run(args: argparse.Namespace) -> int:
         "g2p_bilinear": f"G2P bilinear  <- {shape_out}",
     }
     for key, label in labels.items():
-        t = timings[key]
+        t = results["timings_us"][key]
         goal = ""
         if key in TARGETS_US:
             goal = f"   (target {TARGETS_US[key]:.0f} us: {'met' if results['meets_targets'][key] else 'MISSED'})"
         print(f"  {label:26s} median {t['median']:8.1f} us   p90 {t['p90']:8.1f} us{goal}")
-    if args.json:
-        write_json_atomic(args.json, results)
-        print(f"wrote {args.json}")
-    return 0
