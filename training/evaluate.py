@@ -136,6 +136,46 @@ def errors_by_phase(warm: dict[str, np.ndarray], truth: np.ndarray, point_step: 
     return out
 
 
+class _BatchScorer:
+    """Runs the model on batches of steps and keeps what evaluate() scores.
+
+    add() queues one step: its input grid (ny, nx, C_in) and target grid
+    (ny, nx, C_out) in physical units, and its contact points (P, 2) m; a
+    full batch is run at once. Per step it accumulates the squared error in
+    normalized units, and the model's and the grid oracle's impulses at the
+    points (P, C_out) N s, G2P'd with the card's transfer.
+    """
+
+    def __init__(self, card: ModelCard, session, spec: GridSpec, method: str, opts: dict, batch_size: int):
+        self.card, self.session, self.spec, self.method, self.opts = card, session, spec, method, opts
+        self.batch_size = batch_size
+        self.mean_t, self.std_t = spec.normalization_arrays(spec.targets)
+        self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.sq_sum, self.sq_count, self.onnx_s = 0.0, 0, 0.0
+        self.model_vals: list[np.ndarray] = []
+        self.oracle_vals: list[np.ndarray] = []
+
+    def add(self, grid: np.ndarray, target: np.ndarray, pos: np.ndarray) -> None:
+        self.pending.append((grid, target, pos))
+        if len(self.pending) == self.batch_size:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        spec = self.spec
+        x = np.stack([spec.normalize(g, "inputs") for g, _, _ in self.pending])
+        t0 = time.perf_counter()
+        pred = self.session.run([self.card.output_name], {self.card.input_name: x})[0]
+        self.onnx_s += time.perf_counter() - t0
+        for p, (_, target, pos) in zip(pred, self.pending):  # loop over the batch's steps
+            self.sq_sum += float(np.square(p.astype(np.float64) - (target - self.mean_t) / self.std_t).sum())
+            self.sq_count += p.size
+            self.model_vals.append(g2p(spec.denormalize(p, "targets"), pos, spec, self.method, **self.opts)[0])
+            self.oracle_vals.append(g2p(target, pos, spec, self.method, **self.opts)[0])
+        self.pending.clear()
+
+
 def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int = 0,
              batch_size: int = 32) -> dict[str, Any]:
     """Scores of ``model_path`` on ``data_path`` (see the module docstring); a JSON-able dict."""
@@ -154,25 +194,9 @@ def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int =
     opts = {"outside": transfer["outside"], "tolerance": transfer["tolerance"]}
     method = transfer.get("g2p", "sph")
     names = spec.targets
-    mean_t, std_t = spec.normalization_arrays(names)
 
-    sq_sum, sq_count, onnx_s = 0.0, 0, 0.0
-    model_vals, oracle_vals, truth, builtin, step_of_point = [], [], [], [], []
-    pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-
-    def flush() -> None:
-        nonlocal sq_sum, sq_count, onnx_s
-        x = np.stack([spec.normalize(g, "inputs") for g, _, _ in pending])
-        t0 = time.perf_counter()
-        pred = session.run([card.output_name], {card.input_name: x})[0]
-        onnx_s += time.perf_counter() - t0
-        for p, (_, target, pos) in zip(pred, pending):  # loop over steps
-            sq_sum += float(np.square(p.astype(np.float64) - (target - mean_t) / std_t).sum())
-            sq_count += p.size
-            model_vals.append(g2p(spec.denormalize(p, "targets"), pos, spec, method, **opts)[0])
-            oracle_vals.append(g2p(target, pos, spec, method, **opts)[0])
-        pending.clear()
-
+    scorer = _BatchScorer(card, session, spec, method, opts, batch_size)
+    truth, builtin, step_of_point = [], [], []
     t_start = time.perf_counter()
     for i, step in iter_steps(data_path, steps, index):
         try:
@@ -182,30 +206,27 @@ def evaluate(model_path, data_path, *, max_steps: int | None = None, seed: int =
         except ValueError as exc:
             row = steps[i]
             raise EvaluateError(f"{data_path}: seed {row['seed']} step {row['step']}: {exc}") from None
-        pending.append((grid, target, particle_positions("contacts", step)))
+        scorer.add(grid, target, particle_positions("contacts", step))
         builtin.append(step.contacts["builtin"])
         step_of_point.append(np.full(len(step.contacts), steps[i]["step"], np.int32))
-        if len(pending) == batch_size:
-            flush()
-    if pending:
-        flush()
+    scorer.flush()
     truth_a = np.concatenate(truth)
-    warm = {"model": np.concatenate(model_vals), "zero": np.zeros_like(truth_a)}
+    warm = {"model": np.concatenate(scorer.model_vals), "zero": np.zeros_like(truth_a)}
     if tuple(names) == ("impulse_normal", "impulse_tangent"):
         warm["builtin"] = np.concatenate(builtin)
-    warm["grid_oracle"] = np.concatenate(oracle_vals)
+    warm["grid_oracle"] = np.concatenate(scorer.oracle_vals)
     baselines = {k: point_errors(v, truth_a, names) for k, v in warm.items() if k != "model"}
     by_steps = errors_by_phase(warm, truth_a, np.concatenate(step_of_point), names)
     return {
         "model": {"name": card.name, "kind": card.kind, "file": str(model_path), "parameters": card.parameters},
         "data": {"file": str(data_path), "scene": scene.get("name"), "seeds": seeds, "steps": int(len(index)),
                  "points": int(len(truth_a)), "grid": list(spec.shape), "max_steps": max_steps, "seed": seed},
-        "grid_mse": sq_sum / sq_count,
-        "contact": point_errors(np.concatenate(model_vals), truth_a, names),
+        "grid_mse": scorer.sq_sum / scorer.sq_count,
+        "contact": point_errors(warm["model"], truth_a, names),
         "baselines": baselines,
         "by_steps": by_steps,
         "timing": {"seconds": round(time.perf_counter() - t_start, 2),
-                   "onnx_ms_per_step": round(1e3 * onnx_s / len(index), 3), "batch_size": batch_size},
+                   "onnx_ms_per_step": round(1e3 * scorer.onnx_s / len(index), 3), "batch_size": batch_size},
     }
 
 

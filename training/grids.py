@@ -207,49 +207,11 @@ def build_grid_set(path: str | os.PathLike, spec: GridSpec, index: np.ndarray, o
         meta = _meta(path, spec, index, ds)
     finally:
         ds.close()
-    n, (ny, nx) = len(index), spec.shape
-    counts = steps["point_count"][index].astype(np.int64)
-    offsets = np.concatenate([[0], np.cumsum(counts)])
     tmp = out_dir.with_name(f".{out_dir.name}.{os.getpid()}.part")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        mm = np.lib.format.open_memmap
-        inputs = mm(tmp / "inputs.npy", "w+", np.float32, (n, ny, nx, len(spec.inputs)))
-        targets = mm(tmp / "targets.npy", "w+", np.float32, (n, ny, nx, len(spec.targets)))
-        stencil = None
-        p_pos = np.empty((offsets[-1], 2), np.float32)
-        p_tgt = np.empty((offsets[-1], len(spec.targets)), np.float32)
-        p_bui = np.empty((offsets[-1], 2), np.float32)
-        opts = {"outside": TRANSFER["outside"], "tolerance": TRANSFER["tolerance"]}
-        for k, (i, step) in enumerate(iter_steps(path, steps, index)):
-            try:
-                inputs[k], contacts = step_to_grids(step, spec, return_plan=True, **opts)
-                targets[k] = targets_to_grids(step, spec, **opts)
-                p_tgt[offsets[k]:offsets[k + 1]] = channel_values(spec.targets, step)
-            except ValueError as exc:
-                row = steps[i]
-                raise GridDataError(f"{path}: seed {row['seed']} step {row['step']}: {exc}") from None
-            rows = slice(offsets[k], offsets[k + 1])
-            nodes, weights = contacts.g2p_operator()
-            if stencil is None:
-                shape = (int(offsets[-1]), nodes.shape[1])
-                stencil = (mm(tmp / "point_nodes.npy", "w+", np.int32, shape),
-                           mm(tmp / "point_weights.npy", "w+", np.float32, shape))
-            stencil[0][rows], stencil[1][rows] = nodes, weights
-            p_pos[rows] = particle_positions("contacts", step)
-            p_bui[rows] = step.contacts["builtin"]
-            if progress is not None:
-                progress(1)
-        inputs.flush()
-        targets.flush()
-        for a in stencil:
-            a.flush()
-        del inputs, targets, stencil
-        for name, arr in (("point_offsets", offsets), ("point_positions", p_pos), ("point_targets", p_tgt),
-                          ("point_builtin", p_bui), ("point_new", ~p_bui.any(axis=1)),
-                          ("steps", index.astype(np.int64))):
-            np.save(tmp / f"{name}.npy", arr, allow_pickle=False)
+        _write_grid_arrays(tmp, path, spec, steps, index, progress)
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         shutil.rmtree(out_dir, ignore_errors=True)
         os.replace(tmp, out_dir)
@@ -257,6 +219,53 @@ def build_grid_set(path: str | os.PathLike, spec: GridSpec, index: np.ndarray, o
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return load_grid_set(out_dir)
+
+
+def _write_grid_arrays(out: Path, path: Path, spec: GridSpec, steps: np.ndarray, index: np.ndarray,
+                       progress: Callable[[int], None] | None) -> None:
+    """The .npy files of a GridSet (all but meta.json) for rows ``index`` of ``path``, into ``out``.
+
+    The grids and the points' G2P stencils are written step by step into
+    memory-mapped files, so a set larger than memory can be built; the
+    per-point arrays are small and saved at the end.
+    """
+    n, (ny, nx) = len(index), spec.shape
+    counts = steps["point_count"][index].astype(np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    mm = np.lib.format.open_memmap
+    inputs = mm(out / "inputs.npy", "w+", np.float32, (n, ny, nx, len(spec.inputs)))
+    targets = mm(out / "targets.npy", "w+", np.float32, (n, ny, nx, len(spec.targets)))
+    stencil = None
+    p_pos = np.empty((offsets[-1], 2), np.float32)
+    p_tgt = np.empty((offsets[-1], len(spec.targets)), np.float32)
+    p_bui = np.empty((offsets[-1], 2), np.float32)
+    opts = {"outside": TRANSFER["outside"], "tolerance": TRANSFER["tolerance"]}
+    for k, (i, step) in enumerate(iter_steps(path, steps, index)):
+        try:
+            inputs[k], contacts = step_to_grids(step, spec, return_plan=True, **opts)
+            targets[k] = targets_to_grids(step, spec, **opts)
+            p_tgt[offsets[k]:offsets[k + 1]] = channel_values(spec.targets, step)
+        except ValueError as exc:
+            row = steps[i]
+            raise GridDataError(f"{path}: seed {row['seed']} step {row['step']}: {exc}") from None
+        rows = slice(offsets[k], offsets[k + 1])
+        nodes, weights = contacts.g2p_operator()
+        if stencil is None:
+            shape = (int(offsets[-1]), nodes.shape[1])
+            stencil = (mm(out / "point_nodes.npy", "w+", np.int32, shape),
+                       mm(out / "point_weights.npy", "w+", np.float32, shape))
+        stencil[0][rows], stencil[1][rows] = nodes, weights
+        p_pos[rows] = particle_positions("contacts", step)
+        p_bui[rows] = step.contacts["builtin"]
+        if progress is not None:
+            progress(1)
+    for a in (inputs, targets, *stencil):
+        a.flush()
+    del inputs, targets, stencil
+    for name, arr in (("point_offsets", offsets), ("point_positions", p_pos), ("point_targets", p_tgt),
+                      ("point_builtin", p_bui), ("point_new", ~p_bui.any(axis=1)),
+                      ("steps", index.astype(np.int64))):
+        np.save(out / f"{name}.npy", arr, allow_pickle=False)
 
 
 def load_grid_set(out_dir: str | os.PathLike) -> GridSet:
