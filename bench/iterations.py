@@ -115,21 +115,30 @@ def run(args: argparse.Namespace) -> int:
         if server_proc is not None:
             server_proc.stop()
 
-    summaries = {name: pooled_summary(r) for name, r in runs.items()}
-    ratios = ratios_to_builtin(runs)
-    write_json_atomic(args.out / "summary.json", {
-        "seeds": seeds, "scene": spec.name, "scene_spec": spec_to_dict(spec), "deadline_ms": args.deadline_ms,
-        "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries,
-        "ratios_to_builtin": {name: {k: r.to_dict() for k, r in rs.items()} for name, rs in ratios.items()},
-        "per_seed_mean_iterations": {name: [_seed_mean(r) for r in rs] for name, rs in runs.items()}})
-    table = markdown_table(summaries, seeds, spec.name, ratios)
-    tmp = args.out / ".results.md.part"
-    tmp.write_text(table)
-    tmp.replace(args.out / "results.md")
+    table = _write_results(args.out, runs, spec, seeds, args.deadline_ms)
     plot_figures(runs, spec.solver.velocity_iterations, spec.solver.velocity_threshold, args.out)
     print(table)
     print(f"wrote {args.out}/summary.json, results.md and figures")
     return 0
+
+
+def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int], deadline_ms: float) -> str:
+    """summary.json and results.md in ``out``, each written whole or not at all; returns the table.
+
+    runs: {warm start: [run_simulation result per seed, in seed order]}.
+    """
+    summaries = {name: pooled_summary(r) for name, r in runs.items()}
+    ratios = ratios_to_builtin(runs)
+    write_json_atomic(out / "summary.json", {
+        "seeds": seeds, "scene": spec.name, "scene_spec": spec_to_dict(spec), "deadline_ms": deadline_ms,
+        "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries,
+        "ratios_to_builtin": {name: {k: r.to_dict() for k, r in rs.items()} for name, rs in ratios.items()},
+        "per_seed_mean_iterations": {name: [_seed_mean(r) for r in rs] for name, rs in runs.items()}})
+    table = markdown_table(summaries, seeds, spec.name, ratios)
+    tmp = out / ".results.md.part"
+    tmp.write_text(table)
+    tmp.replace(out / "results.md")
+    return table
 
 
 def simulate_all(spec, names: list[str], seeds: list[int], *, target: str | None, deadline_ms: float,
