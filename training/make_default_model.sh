@@ -17,7 +17,7 @@
 #   bash training/make_default_model.sh          (make default-model)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). Measured on the 2-core development machine: docs/models.md. The other
+# (DEFAULT_ONLY=1). Measured on 2-core machines (about 2 h 50 min for the default): docs/models.md. The other
 # models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
 # they hold); run directories are always started afresh.
