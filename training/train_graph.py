@@ -218,50 +218,79 @@ class Scaling:
                 *gs.solver_batch(steps), step_of)
 
 
-def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float], inputs: tuple[str, ...]):
-    """batch_loss(points, ends, dynamic, y, geometry, masses, inverse, step_of) -> (losses,
-    weights) for --loss: a batch's loss is sum(losses) / sum(weights); per point for mse,
-    relative, solver and solver-projected, per step for solver-log. `inputs` names the
-    points' columns."""
-    import tensorflow as tf
+class BatchLoss:
+    """A batch's loss for --loss: batch_loss(points, ends, dynamic, y, geometry, masses,
+    inverse, step_of) -> (losses, weights), the loss being sum(losses) / sum(weights);
+    per point for mse, relative, solver and solver-projected, per step for solver-log
+    and solver-projected-max.
 
-    from training.graph_loss import friction_bounds, projected_changes_after, residuals_after
+    points (P, F) and y (P, T) are normalized (Scaling); `inputs` names the points'
+    columns. The solver losses score the error a served correction leaves, in N s."""
 
-    new_column = inputs.index("new_point")
+    POINT_LOSSES = ("mse", "relative")
+    PROJECTED_LOSSES = ("solver-projected", "solver-projected-max")
 
-    out_mean, out_std, in_mean, in_std = scaling.out_mean, scaling.out_std, scaling.in_mean, scaling.in_std
-    loss_weight = tf.constant([1.0] + [args.tangent_weight] * (len(out_mean) - 1), tf.float32)
-    # Solver loss: each checkpoint's mean squared residual, divided by what Box2D's
-    # own warm start (no correction) leaves there on the training data, so each counts alike.
-    scales = tf.constant(residual_scales, tf.float32)
+    def __init__(self, net, args, scaling: Scaling, residual_scales: list[float], inputs: tuple[str, ...]):
+        import tensorflow as tf
 
-    def batch_loss(points, ends, dynamic, y, geometry, masses, inverse, step_of):
-        pred = net(points, ends, dynamic, step_of)
-        if args.loss == "mse":
-            per_point = tf.reduce_sum(tf.square(pred - y) * loss_weight, axis=1)
-            return per_point, tf.ones_like(per_point)
-        if args.loss == "relative":
+        self.tf, self.net, self.args = tf, net, args
+        self.out_mean, self.out_std = scaling.out_mean, scaling.out_std
+        self.in_mean, self.in_std = scaling.in_mean, scaling.in_std
+        self.new_column = inputs.index("new_point")
+        self.builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")]
+        self.velocity_columns = [inputs.index("vn"), inputs.index("vt")]
+        self.loss_weight = tf.constant([1.0] + [args.tangent_weight] * (len(self.out_mean) - 1), tf.float32)
+        # Solver loss: each checkpoint's mean squared residual, divided by what Box2D's
+        # own warm start (no correction) leaves there on the training data, so each counts alike.
+        self.scales = tf.constant(residual_scales, tf.float32)
+
+    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of):
+        pred = self.net(points, ends, dynamic, step_of)
+        if self.args.loss in self.POINT_LOSSES:
+            return self._at_points(pred, y)
+        error, builtin_error = self._errors(points, pred, y)
+        solver = (ends, geometry, masses, inverse, step_of)
+        if self.args.loss in self.PROJECTED_LOSSES:
+            return self._projected(points, *solver, error, builtin_error)
+        return self._unconstrained(*solver, error, builtin_error)
+
+    def _at_points(self, pred, y):
+        """mse and relative: each point's squared error, normalized units."""
+        tf = self.tf
+        if self.args.loss == "mse":
+            per_point = tf.reduce_sum(tf.square(pred - y) * self.loss_weight, axis=1)
+        else:
             # Each point's error relative to its own correction (floored at RELATIVE_FLOOR):
             # small corrections, where a warm start's value lies, count as much as large ones.
-            target = y * out_std + out_mean
-            per_point = tf.reduce_sum(tf.square((pred - y) * out_std / (tf.abs(target) + RELATIVE_FLOOR))
-                                      * loss_weight, axis=1)
-            return per_point, tf.ones_like(per_point)
-        error = (pred - y) * out_std  # N s: the served correction minus the solver's
-        builtin_error = -(y * out_std + out_mean)  # Box2D's warm start misses the whole correction
-        if args.combine == "new-points":
+            target = y * self.out_std + self.out_mean
+            per_point = tf.reduce_sum(tf.square((pred - y) * self.out_std / (tf.abs(target) + RELATIVE_FLOOR))
+                                      * self.loss_weight, axis=1)
+        return per_point, tf.ones_like(per_point)
+
+    def _errors(self, points, pred, y):
+        """(error, builtin_error), (P, T) N s: what the served warm start and Box2D's own miss
+        of the solver's end."""
+        tf = self.tf
+        error = (pred - y) * self.out_std  # the served correction minus the solver's
+        builtin_error = -(y * self.out_std + self.out_mean)  # Box2D's warm start misses the whole correction
+        if self.args.combine == "new-points":
             # Served at new points only; persisting points keep Box2D's warm start.
-            new_point = points[:, new_column] * in_std[new_column] + in_mean[new_column]
+            c = self.new_column
+            new_point = points[:, c] * self.in_std[c] + self.in_mean[c]
             error = tf.where(new_point[:, None] > 0.5, error, builtin_error)
-        if args.loss in ("solver-projected", "solver-projected-max"):
-            return projected(points, ends, geometry, masses, inverse, step_of, error, builtin_error)
+        return error, builtin_error
+
+    def _unconstrained(self, ends, geometry, masses, inverse, step_of, error, builtin_error):
+        """solver and solver-log: Jacobi sweeps of the problem without its limits, on the error."""
+        tf, args = self.tf, self.args
+        from training.graph_loss import residuals_after
 
         def squares(e):
             rs = residuals_after(e, ends, geometry, masses, inverse, sweeps=args.sweeps, omega=args.omega)
-            return [tf.reduce_sum(tf.square(r) * loss_weight, axis=1) for r in rs]
+            return [tf.reduce_sum(tf.square(r) * self.loss_weight, axis=1) for r in rs]
 
         if args.loss == "solver":
-            per_point = tf.add_n([r / scales[j] for j, r in enumerate(squares(error))]) / len(args.sweeps)
+            per_point = tf.add_n([r / self.scales[j] for j, r in enumerate(squares(error))]) / len(args.sweeps)
             return per_point, tf.ones_like(per_point)
         # solver-log: per step, log(what the model leaves / what Box2D's warm start leaves), the
         # iterations saved being about proportional to it (the solver removes a fixed share per sweep).
@@ -272,11 +301,15 @@ def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float
             for m, b in zip(squares(error), squares(builtin_error))]) / len(args.sweeps)
         return per_step, tf.ones_like(per_step)
 
-    def projected(points, ends, geometry, masses, inverse, step_of, error, builtin_error):
-        raw = points * in_std + in_mean
-        builtin = tf.gather(raw, builtin_columns, axis=1)
+    def _projected(self, points, ends, geometry, masses, inverse, step_of, error, builtin_error):
+        """solver-projected and -max: projected sweeps of the whole problem from the served impulses."""
+        tf, args = self.tf, self.args
+        from training.graph_loss import friction_bounds, projected_changes_after
+
+        raw = points * self.in_std + self.in_mean
+        builtin = tf.gather(raw, self.builtin_columns, axis=1)
         solution = builtin - builtin_error  # Box2D's warm start plus the solver's correction
-        v_free, mu = tf.gather(raw, velocity_columns, axis=1), friction_bounds(solution, step_of)
+        v_free, mu = tf.gather(raw, self.velocity_columns, axis=1), friction_bounds(solution, step_of)
 
         def changes_from(start):
             return projected_changes_after(start, v_free, mu, ends, geometry, masses, inverse,
@@ -291,20 +324,15 @@ def batch_loss_function(net, args, scaling: Scaling, residual_scales: list[float
             n_steps = tf.reduce_max(step_of) + 1
 
             def log_norm(c):
-                return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(tf.abs(c) ** 8 * loss_weight, axis=1),
+                return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(tf.abs(c) ** 8 * self.loss_weight, axis=1),
                                                                 step_of, n_steps) + MAX_NORM_FLOOR) / 8.0
 
             per_step = tf.add_n([log_norm(m) - log_norm(b) for m, b in
                                  zip(changes, changes_from(solution + builtin_error))]) / len(args.sweeps)
             return per_step, tf.ones_like(per_step)
-        per_point = tf.add_n([tf.reduce_sum(tf.square(c) * loss_weight, axis=1) / scales[j]
+        per_point = tf.add_n([tf.reduce_sum(tf.square(c) * self.loss_weight, axis=1) / self.scales[j]
                               for j, c in enumerate(changes)]) / len(args.sweeps)
         return per_point, tf.ones_like(per_point)
-
-    if args.loss in ("solver-projected", "solver-projected-max"):
-        builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")]
-        velocity_columns = [inputs.index("vn"), inputs.index("vt")]
-    return batch_loss
 
 
 @dataclasses.dataclass
@@ -337,7 +365,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
         net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)
     net.tf.random.set_seed(args.seed)
     residual_scales = _residual_scales(train, args) if args.loss in ("solver", "solver-projected") else [1.0]
-    batch_loss = batch_loss_function(net, args, scaling, residual_scales, spec.inputs)
+    batch_loss = BatchLoss(net, args, scaling, residual_scales, spec.inputs)
     fitted, validate = _train(net, train, val, args, scaling, batch_loss)
     return _write(net, fitted, validate, spec, scaling, args, command=command, read_seconds=read_seconds,
                   sources=sources, val_sources=val_sources, train=train, val=val)
@@ -363,12 +391,12 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
     return weights
 
 
-def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss):
-    """Adam on a cosine schedule over args.epochs, stopping after args.patience epochs
-    without a better validation loss. Returns (Fitted, validate), validate() scoring
-    the net's current weights on `val`."""
+def _compiled_steps(net, batch_loss, lr: float):
+    """(optimizer, train_step, val_step): Adam at `lr`, and the two traced functions of a
+    normalized batch (Scaling.batch): train_step applies one update and returns the batch's
+    loss, val_step returns (sum of losses, sum of weights)."""
     tf = net.tf
-    optimizer = tf.keras.optimizers.Adam(learning_rate=args.lr)
+    optimizer = tf.keras.optimizers.Adam(learning_rate=lr)
     spec_in = net.signature() + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
                                  tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
                                  tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32)]
@@ -385,6 +413,15 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     def val_step(*batch):
         losses, weights = batch_loss(*batch)
         return tf.reduce_sum(losses), tf.reduce_sum(weights)
+
+    return optimizer, train_step, val_step
+
+
+def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss):
+    """Adam on a cosine schedule over args.epochs, stopping after args.patience epochs
+    without a better validation loss. Returns (Fitted, validate), validate() scoring
+    the net's current weights on `val`."""
+    optimizer, train_step, val_step = _compiled_steps(net, batch_loss, args.lr)
 
     def validate() -> float:
         total, count = 0.0, 0.0
