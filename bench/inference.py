@@ -1,6 +1,6 @@
 """`deepcontact bench inference`: what ONNX Runtime levers do to a grid model's inference.
 
-    deepcontact bench inference --model default
+    deepcontact bench inference --model pressure
 
 Records a thesis world on a benchmark seed, turns its steps into the model's
 normalized input grids exactly as the server does, and times one inference per
@@ -38,7 +38,9 @@ from deepcontact.io import write_json_atomic
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
-    parser.add_argument("--model", default="default", help="grid model to time (default: default)")
+    # Not "default": the shipped default is a contact-graph model, which has no grid to crop.
+    parser.add_argument("--model", default="pressure",
+                        help="grid model to time (default: %(default)s, the thesis's model)")
     parser.add_argument("--seed", type=int, default=900, help="thesis-world seed (default 900)")
     parser.add_argument("--steps", type=int, default=250, help="steps recorded (default 250)")
     parser.add_argument("--repeats", type=int, default=3, help="times each step is timed per variant (default 3)")
@@ -117,37 +119,36 @@ def time_in_turns(session_of: dict, feed, grids, repeats: int) -> dict[str, list
     return times
 
 
-def run(args: argparse.Namespace) -> int:
-    import onnxruntime as ort
+class _Refused(ValueError):
+    """The arguments name nothing this bench can time; the message says why."""
 
-    from bench.server import record_steps
+
+def _checked(args: argparse.Namespace):
+    """(card, card_path, crop heights) from the arguments, or _Refused."""
     from deepcontact.modelcard import ModelCard, ModelCardError
 
+    card_path = args.models / f"{args.model}.json"
     try:
-        card_path = args.models / f"{args.model}.json"
         card = ModelCard.load(card_path)
     except (ModelCardError, OSError) as exc:
-        print(f"deepcontact bench inference: {exc}", file=sys.stderr)
-        return 2
+        raise _Refused(str(exc)) from exc
     if card.kind == "graph":
-        print(f"deepcontact bench inference: {args.model} is a graph model; this bench times grid models "
-              "(bench server times any model)", file=sys.stderr)
-        return 2
+        raise _Refused(f"{args.model} is a graph model; this bench times grid models (bench server times any model)")
     try:
         rows = [int(r) for r in args.rows.split(",") if r]
     except ValueError:
-        print(f"deepcontact bench inference: --rows takes heights like 32,24, got {args.rows!r}", file=sys.stderr)
-        return 2
-    grids = input_grids(card, record_steps(args.seed, args.steps))
-    if len(grids) < 8:
-        print(f"deepcontact bench inference: only {len(grids)} steps with contacts; give more --steps", file=sys.stderr)
-        return 2
-    calibration, timed = grids[::2][:64], grids[1::2]  # calibrate and time on different steps
-    onnx_path = card.onnx_path(card_path)
+        raise _Refused(f"--rows takes heights like 32,24, got {args.rows!r}") from None
+    return card, card_path, rows
+
+
+def _variant_sessions(onnx_path: Path, input_name: str, calibration: list[np.ndarray]) -> dict:
+    """{variant: InferenceSession} for the variants the module docstring lists (rows=N aside)."""
+    import onnxruntime as ort
+
     level = ort.GraphOptimizationLevel
     with tempfile.TemporaryDirectory() as tmp:
-        int8_path = quantized(onnx_path, card.input_name, calibration, Path(tmp) / "int8.onnx")
-        sessions = {
+        int8_path = quantized(onnx_path, input_name, calibration, Path(tmp) / "int8.onnx")
+        return {
             "default": _session(onnx_path),
             "no-spinning": _session(onnx_path, **{"session.intra_op.allow_spinning": "0"}),
             "extended": _session(onnx_path, level.ORT_ENABLE_EXTENDED),
@@ -155,6 +156,22 @@ def run(args: argparse.Namespace) -> int:
             "no-arena": _session(onnx_path, arena=False),
             "int8": _session(int8_path),
         }
+
+
+def run(args: argparse.Namespace) -> int:
+    from bench.server import record_steps
+
+    try:
+        card, card_path, rows = _checked(args)
+    except _Refused as exc:
+        print(f"deepcontact bench inference: {exc}", file=sys.stderr)
+        return 2
+    grids = input_grids(card, record_steps(args.seed, args.steps))
+    if len(grids) < 8:
+        print(f"deepcontact bench inference: only {len(grids)} steps with contacts; give more --steps", file=sys.stderr)
+        return 2
+    calibration, timed = grids[::2][:64], grids[1::2]  # calibrate and time on different steps
+    sessions = _variant_sessions(card.onnx_path(card_path), card.input_name, calibration)
     crops = {f"rows={r}": r for r in rows if r < card.gridspec.ny}
 
     def feed(name, x):

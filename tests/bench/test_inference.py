@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+from pathlib import Path
 
+from bench.inference import add_arguments
 from deepcontact.cli import main
+from deepcontact.modelcard import ModelCard
 
 
 def test_bench_inference_times_every_lever_against_the_default_session(tmp_path, model_dir, capsys):
@@ -22,3 +26,12 @@ def test_bench_inference_refuses_what_it_cannot_time(tmp_path, model_dir, capsys
     assert main(["bench", "inference", "--models", str(model_dir), "--model", "nope"]) == 2
     assert "nope" in capsys.readouterr().err
     assert main(["bench", "inference", "--models", str(model_dir), "--model", "tiny", "--rows", "a"]) == 2
+
+
+def test_bench_inference_times_a_shipped_grid_model_when_no_model_is_named():
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args([])
+    # The README runs it bare: its default must be a shipped model this bench can time.
+    card = ModelCard.load(Path(__file__).parents[2] / args.models / f"{args.model}.json")
+    assert card.kind != "graph"
