@@ -35,6 +35,7 @@ import numpy as np
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard
+from training import machine
 from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, GraphSet, build_graph_set
 from training.grids import GridDataError
 
@@ -500,7 +501,8 @@ def _write(net, fitted: Fitted, validate, spec: GridSpec, scaling: Scaling, args
                   "init": None if args.init is None else str(args.init),
                   "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                   "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
-                  "read_seconds": round(read_seconds, 1), "history": fitted.history},
+                  "read_seconds": round(read_seconds, 1), "history": fitted.history,
+                  "machine": machine.describe()},
         validation={"epoch": fitted.epoch, "loss": fitted.loss, "loss_no_correction": no_correction,
                     "points": int(sum(len(g.targets) for g in val))},
         parity_max_abs_error=parity,

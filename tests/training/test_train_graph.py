@@ -96,6 +96,7 @@ def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data,
     else:
         assert card["validation"]["loss"] <= card["validation"]["loss_no_correction"] * 1.5
     assert card["training"]["settings"]["loss"] == loss and card["training"]["epochs_run"] == 2
+    assert {"cpu", "vector", "cores"} <= set(card["training"]["machine"])  # what a rebuild is checked against
     assert set(card["gridspec"]["normalization"]) == set(GRAPH_INPUTS) | {"correction_normal", "correction_tangent"}
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     assert [i.name for i in session.get_inputs()] == ["points", "ends", "dynamic"]
