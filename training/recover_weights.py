@@ -2,6 +2,9 @@
 
     python -m training.recover_weights models/graph-projected-max-1-799-long-e2.json
         # runs/graph-cache/graph-projected-max-1-799-long-e2.weights.npz
+    python -m training.recover_weights models/graph-mse-1-799-e16.json \
+        --against runs/graph-cache/graph-mse-1-799-e16.weights.npz
+        # did a rebuild give the shipped weights? prints the largest difference; exit 0 if none
 
 `train-graph` keeps each run's weights in its cache (runs/graph-cache/NAME.weights.npz),
 which git does not hold; a fresh clone has only the shipped ONNX files. To train a
@@ -91,6 +94,29 @@ def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
     return weights, float(np.max(np.abs(onnx_out - tf_out)))
 
 
+def largest_differences(shipped: dict[str, np.ndarray], rebuilt: dict[str, np.ndarray]) -> dict[str, float]:
+    """{weight key: largest absolute difference} over the keys of `shipped`; inf where
+    `rebuilt` lacks the key or holds another shape."""
+    out = {}
+    for k, w in shipped.items():
+        r = rebuilt.get(k)
+        out[k] = float(np.max(np.abs(w - r))) if r is not None and r.shape == w.shape else float("inf")
+    return out
+
+
+def _compare(card_path: Path, weights: dict[str, np.ndarray], against: Path) -> int:
+    """Print how far the weights file `against` is from the shipped ones; 0 if identical, 1 if not."""
+    with np.load(against, allow_pickle=False) as f:
+        rebuilt = {k: f[k] for k in f.files}
+    diffs = largest_differences(weights, rebuilt)
+    worst = max(diffs, key=diffs.get)
+    same = diffs[worst] == 0.0 and set(rebuilt) == set(weights)
+    print(f"{against} against {card_path}: {len(weights)} tensors, "
+          + ("identical" if same else f"largest difference {diffs[worst]:.3g} ({worst}), "
+                                      f"{sum(d > 0 for d in diffs.values())} of {len(diffs)} tensors differ"))
+    return 0 if same else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m training.recover_weights",
@@ -99,12 +125,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("card", type=Path, help="the model's card, e.g. models/graph-projected-max-1-799-long-e2.json")
     parser.add_argument("--out", type=Path, help="where to write (default runs/graph-cache/NAME.weights.npz, "
                                                  "NAME the ONNX file's stem, where train-graph leaves its own)")
+    parser.add_argument("--against", type=Path, metavar="WEIGHTS",
+                        help="write nothing; compare this .weights.npz (a rebuild's, from train-graph's cache) "
+                             "with the shipped weights and exit 0 if they are identical, 1 if not")
     args = parser.parse_args(argv)
     try:
         weights, parity = recover(args.card)
     except (ModelCardError, RecoveryError, OSError) as e:
         print(f"recover_weights: {e}", file=sys.stderr)
         return 2
+    if args.against is not None:
+        try:
+            return _compare(args.card, weights, args.against)
+        except (OSError, ValueError) as e:
+            print(f"recover_weights: {args.against}: {e}", file=sys.stderr)
+            return 2
     if parity > PARITY_TOLERANCE:
         print(f"recover_weights: the recovered network differs from the ONNX file by {parity:.2e} "
               f"(more than {PARITY_TOLERANCE}); nothing written", file=sys.stderr)

@@ -34,3 +34,19 @@ def test_a_grid_model_is_refused(tmp_path, capsys):
     assert main([str(SHIPPED / "pressure.json"), "--out", str(tmp_path / "x.npz")]) == 2
     assert "graph models only" in capsys.readouterr().err
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_a_rebuild_is_compared_with_the_shipped_weights(tmp_path, capsys):
+    card = SHIPPED / "graph-mse-1-799-e16.json"
+    same = tmp_path / "same.npz"
+    assert main([str(card), "--out", str(same)]) == 0
+    assert main([str(card), "--against", str(same)]) == 0
+    assert "identical" in capsys.readouterr().out
+
+    weights = dict(np.load(same))
+    weights["decode1/bias"] = weights["decode1/bias"] + 0.25
+    moved = tmp_path / "moved.npz"
+    np.savez(moved, **weights)
+    assert main([str(card), "--against", str(moved)]) == 1
+    assert "largest difference 0.25 (decode1/bias), 1 of 32 tensors differ" in capsys.readouterr().out
+    assert main([str(card), "--against", str(tmp_path / "none.npz")]) == 2
