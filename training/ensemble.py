@@ -17,6 +17,17 @@ GraphPredictor serves it unchanged, thresholds (`correction_threshold`)
 applied to the mean. Why: the members' errors at a point are partly their own
 (different steps, losses, a graph-wide summary); the mean keeps what they
 agree on. The price is one network's inference per member, run in one session.
+
+With `--agree K` the mean is served only where the members agree, per point and
+component, and Box2D's warm start (a zero correction) elsewhere:
+
+    impulses = mean * [std over m of c_m < K * |mean|]                             (P, 2) N s
+
+Why: at the corrections of 0.1-1 N s, where a warm start's value lies, a
+single model's sign is right 60-80 % of the time and its size seldom within
+half (docs/results.md, "Where the iterations are"); where members trained with
+different losses agree, it is right far more often. The gate serves those
+points and leaves the others to Box2D.
 """
 
 from __future__ import annotations
@@ -45,9 +56,11 @@ def _member(path: Path) -> ModelCard:
     return card
 
 
-def ensemble_onnx(members: list[tuple[ModelCard, Path]]):
+def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = None):
     """One onnx.ModelProto averaging the members' denormalized outputs; `members`
-    are (card, card path) pairs with the same input and target channels."""
+    are (card, card path) pairs with the same input and target channels. With
+    `agree` K, the mean only where the members' standard deviation is below K
+    times its size (module docstring), zero elsewhere."""
     import onnx
     from onnx import TensorProto, compose, helper, numpy_helper
 
@@ -80,7 +93,11 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]]):
         ]
         initializers += model.graph.initializer
         corrections.append(p + "correction")
-    nodes.append(helper.make_node("Mean", corrections, ["impulses"]))
+    if agree is None:
+        nodes.append(helper.make_node("Mean", corrections, ["impulses"]))
+    else:
+        nodes += _agreement_gate(corrections, agree)
+        initializers.append(numpy_helper.from_array(np.array(agree, np.float32), "agree"))
     graph = helper.make_graph(
         nodes, "ensemble",
         [helper.make_tensor_value_info("points", TensorProto.FLOAT, ["P", len(inputs)]),
@@ -95,9 +112,41 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]]):
     return proto
 
 
+def _agreement_gate(corrections: list[str], agree: float) -> list:
+    """Nodes from the members' corrections (each (P, 2)) to `impulses`: their mean where
+    their standard deviation (population, over members) is below agree * |mean|, else 0.
+    Reads the initializer `agree`."""
+    from onnx import TensorProto, helper
+
+    squares = [f"{c}_squared" for c in corrections]
+    return [
+        helper.make_node("Mean", corrections, ["mean"]),
+        *(helper.make_node("Mul", [c, c], [s]) for c, s in zip(corrections, squares)),
+        helper.make_node("Mean", squares, ["mean_square"]),
+        helper.make_node("Mul", ["mean", "mean"], ["square_mean"]),
+        # E[c^2] - E[c]^2 can round below 0; the comparison is on variances, so no Sqrt.
+        helper.make_node("Sub", ["mean_square", "square_mean"], ["variance"]),
+        helper.make_node("Mul", ["agree", "agree"], ["agree_squared"]),
+        helper.make_node("Mul", ["square_mean", "agree_squared"], ["allowed"]),
+        helper.make_node("Less", ["variance", "allowed"], ["agreed"]),
+        helper.make_node("Cast", ["agreed"], ["agreed_float"], to=TensorProto.FLOAT),
+        helper.make_node("Mul", ["mean", "agreed_float"], ["impulses"]),
+    ]
+
+
+def agreed_mean(corrections: np.ndarray, agree: float | None) -> np.ndarray:
+    """The served correction from the members' (M, P, 2): their mean, gated as the ONNX graph
+    gates it when `agree` is given."""
+    mean = corrections.mean(axis=0)
+    if agree is None:
+        return mean
+    variance = np.mean(np.square(corrections), axis=0) - np.square(mean)
+    return np.where(variance < np.square(mean) * agree**2, mean, 0.0)
+
+
 def _parity(proto_bytes: bytes, members: list[tuple[ModelCard, Path]], n_points: int = 64,
-            seed: int = 0) -> float:
-    """Largest |ensemble - mean of the members run one by one| over random steps, N s."""
+            seed: int = 0, agree: float | None = None) -> float:
+    """Largest |ensemble - (gated) mean of the members run one by one| over random steps, N s."""
     import onnxruntime as ort
 
     rng = np.random.default_rng(seed)
@@ -116,14 +165,18 @@ def _parity(proto_bytes: bytes, members: list[tuple[ModelCard, Path]], n_points:
         want.append(y * out_std + out_mean)
     session = ort.InferenceSession(proto_bytes, providers=["CPUExecutionProvider"])
     got = session.run(["impulses"], {"points": points, "ends": ends, "dynamic": dynamic})[0]
-    return float(np.max(np.abs(got - np.mean(want, axis=0))))
+    return float(np.max(np.abs(got - agreed_mean(np.stack(want), agree))))
 
 
-def build_ensemble(card_paths: list[Path], name: str, out_dir: Path | None = None) -> Path:
+def build_ensemble(card_paths: list[Path], name: str, out_dir: Path | None = None,
+                   agree: float | None = None) -> Path:
     """Write out_dir/NAME.onnx and its card (default out_dir: the first member's folder);
-    returns the card's path. Members must read the same channels in the same order."""
+    returns the card's path. Members must read the same channels in the same order.
+    `agree` K: serve the mean only where the members agree (module docstring)."""
     if len(card_paths) < 2:
         raise ValueError("an ensemble needs at least two member cards")
+    if agree is not None and not agree > 0:
+        raise ValueError(f"--agree must be > 0 (the members' spread allowed, as a share of their mean); got {agree}")
     members = [(_member(Path(p)), Path(p)) for p in card_paths]
     first = members[0][0]
     for card, path in members[1:]:
@@ -134,10 +187,11 @@ def build_ensemble(card_paths: list[Path], name: str, out_dir: Path | None = Non
     if len({card.name for card, _ in members}) < len(members):
         raise ValueError("a member is named twice")
     command = " ".join(["python -m training.ensemble", *(shlex.quote(str(p)) for p in card_paths),
-                        "--name", shlex.quote(name)] + (["--out-dir", shlex.quote(str(out_dir))] if out_dir else []))
+                        "--name", shlex.quote(name)] + (["--out-dir", shlex.quote(str(out_dir))] if out_dir else [])
+                       + (["--agree", f"{agree:g}"] if agree is not None else []))
     out_dir = Path(out_dir) if out_dir is not None else members[0][1].parent
-    data = ensemble_onnx(members).SerializeToString()
-    parity = _parity(data, members)
+    data = ensemble_onnx(members, agree).SerializeToString()
+    parity = _parity(data, members, agree=agree)
     onnx_path = write_bytes_atomic(out_dir / f"{name}.onnx", data)
     described = [{"name": card.name, "parameters": card.parameters,
                   "onnx_sha256": hashlib.sha256(card.onnx_path(path).read_bytes()).hexdigest(),
@@ -148,7 +202,8 @@ def build_ensemble(card_paths: list[Path], name: str, out_dir: Path | None = Non
         gridspec=dataclasses.replace(first.gridspec, normalization={}),  # folded into the graph
         fixed_grid=False, input_name="points", output_name="impulses", combine="residual",
         parameters=sum(c.parameters for c, _ in members),
-        architecture={"config": {"kind": "graph-ensemble", "members": [c.name for c, _ in members]},
+        architecture={"config": {"kind": "graph-ensemble", "members": [c.name for c, _ in members],
+                                  **({"agree": agree} if agree is not None else {})},
                       "onnx_bytes": len(data), "parameters": {"total": sum(c.parameters for c, _ in members)}},
         training={"ensemble_of": described}, parity_max_abs_error=parity,
         commands=tuple(cmd for member, _ in members for cmd in member.commands) + (command,))
@@ -163,15 +218,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("cards", type=Path, nargs="+", help="the members' cards, e.g. models/graph-*.json")
     parser.add_argument("--name", required=True, help="the ensemble's name: writes NAME.onnx and NAME.json")
     parser.add_argument("--out-dir", type=Path, help="where to write (default: the first member's folder)")
+    parser.add_argument("--agree", type=float, metavar="K",
+                        help="serve the mean correction only where the members agree: their standard deviation "
+                             "below K times the mean's size (per point and component); Box2D's warm start elsewhere")
     args = parser.parse_args(argv)
     try:
-        path = build_ensemble(args.cards, args.name, args.out_dir)
+        path = build_ensemble(args.cards, args.name, args.out_dir, args.agree)
     except (ModelCardError, ValueError) as exc:
         print(f"ensemble: {exc}", file=sys.stderr)
         return 2
     card = ModelCard.load(path)
+    what = "the members' mean" if args.agree is None else f"the members' mean where they agree (K {args.agree:g})"
     print(f"wrote {path} and {card.onnx_file}: {len(args.cards)} members, {card.parameters:,} parameters, "
-          f"largest difference from the members' mean {card.parity_max_abs_error:.2g} N s")
+          f"largest difference from {what} {card.parity_max_abs_error:.2g} N s")
     return 0
 
 

@@ -48,6 +48,9 @@
 #                              (training/ensemble.py; train those three first), with a -t1 card
 #   graph-ensemble-long-e2     the same with -long-e2 in -long's place (with a -t1 card)
 #   graph-ensemble-e2-e3       the mean correction of -long-e2 and -long-e3 (train both first)
+#   graph-agree3               the mean correction of -long-e2, -pooled and graph-mse-1-799-e16
+#                              served only where they agree (--agree 0.2 and 0.35: graph-agree3-k0.2,
+#                              graph-agree3-k0.35); train the three first
 #   graph-projected-max-1-799-pooled  graph-projected-max-1-799's recipe (from graph-mse-1-799-e16's
 #                              weights) on a network whose rounds also read the mean state of
 #                              the step's points (--pooled): a graph-wide summary (with a -t1 card)
@@ -167,6 +170,13 @@ run() {
         graph-ensemble-e2-e3)
             "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799-long-e2.json" \
                 "$OUT/graph-projected-max-1-799-long-e3.json" --name "$1" --out-dir "$OUT" ;;
+        graph-agree3)
+            # Three networks of three losses; each K is its own ONNX graph (the gate is inside it).
+            for k in 0.2 0.35; do
+                "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799-long-e2.json" \
+                    "$OUT/graph-projected-max-1-799-pooled.json" "$OUT/graph-mse-1-799-e16.json" \
+                    --name "graph-agree3-k$k" --out-dir "$OUT" --agree $k
+            done ;;
         graph-projected-max-1-799-pooled-long)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             ( ulimit -s 524288   # as for graph-projected-max-1-799-long

@@ -10,7 +10,7 @@ import pytest
 
 from deepcontact.modelcard import ModelCard, ModelCardError
 from training.card_variant import card_variant
-from training.ensemble import build_ensemble, main
+from training.ensemble import agreed_mean, build_ensemble, main
 
 SHIPPED = Path(__file__).parents[2] / "models"
 MEMBERS = ("graph-projected-max-1-799", "graph-projected-max-1-799-pooled")  # two normalizations, two networks
@@ -18,13 +18,15 @@ MEMBERS = ("graph-projected-max-1-799", "graph-projected-max-1-799-pooled")  # t
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
-    """The two members (cards and ONNX files), their ensemble `both` and its `both-t1` card."""
+    """The two members (cards and ONNX files), their ensemble `both`, its `both-t1` card and
+    `agreed`, their mean served only where they agree to within half its size."""
     folder = tmp_path_factory.mktemp("ensemble")
     for name in MEMBERS:
         for suffix in (".json", ".onnx"):
             shutil.copy(SHIPPED / f"{name}{suffix}", folder)
     build_ensemble([folder / f"{name}.json" for name in MEMBERS], "both")
     card_variant(folder / "both.json", correction_threshold=1.0)
+    build_ensemble([folder / f"{name}.json" for name in MEMBERS], "agreed", agree=0.5)
     return folder
 
 
@@ -58,6 +60,25 @@ def test_an_ensemble_serves_the_mean_of_its_members_corrections(folder, thesis_s
         kept = np.abs(mean[:, 0]) > 1.0
         np.testing.assert_allclose(both_t1[k], builtin[k] + mean * kept[:, None], atol=2e-5)
     assert any((np.abs((x - y)[:, 0]) > 1.0).any() for x, y in zip(both, builtin))  # some points corrected
+
+
+def test_an_agreeing_ensemble_serves_the_mean_only_where_its_members_agree(folder, thesis_steps):
+    world, steps = thesis_steps
+    builtin = [points["builtin"] for _, points in steps]
+    a, b, agreed = (served(folder, name, world, steps) for name in (*MEMBERS, "agreed"))
+    gated = []
+    for k in range(len(steps)):
+        members = np.stack([a[k] - builtin[k], b[k] - builtin[k]])
+        np.testing.assert_allclose(agreed[k], builtin[k] + agreed_mean(members, 0.5), atol=2e-5)
+        # Two members agree to within half their mean when they differ by less than their mean.
+        mean = members.mean(axis=0)
+        far = np.abs(members[0] - members[1]) > 1.1 * np.abs(mean)
+        np.testing.assert_array_equal(agreed[k][far], builtin[k][far])
+        gated.append(far)
+    assert any(g.any() for g in gated) and not all(g.all() for g in gated)
+    assert ModelCard.load(folder / "agreed.json").architecture["config"]["agree"] == 0.5
+    assert main([*(str(folder / f"{name}.json") for name in MEMBERS), "--name", "none", "--agree", "0"]) == 2
+    assert not (folder / "none.onnx").exists()
 
 
 def test_the_ensembles_card_names_its_members_and_folds_their_normalization_into_the_graph(folder):
