@@ -13,7 +13,8 @@ of a warm start lies at persisting points whose correction is small (docs/result
 Per group: points; RMS of the solver's correction (Builtin's error); RMS error
 of the served warm start; the share of points where a correction is served
 (non-zero); and, among those, the share whose sign agrees with the solver's
-(0.5 is a coin toss).
+(0.5 is a coin toss) and the share within half the solver's correction of it
+(what the oracles say a warm start needs to pay).
 
 `--reference oracle` compares with the step solved from zero to convergence
 instead (files from `generate --oracle`): the recorded solve stops at 1e-4 N s
@@ -25,7 +26,9 @@ far that target lies from the converged solution.
 
 `--model A,B,...` serves the mean of the named models' warm starts: whether
 models that err differently cancel each other's errors (an ensemble), before
-anyone builds a server that runs several.
+anyone builds a server that runs several. With `--agree K`, that mean only where
+the models agree (their spread below K times its size, as `python -m
+training.ensemble --agree K` serves it), Box2D's warm start elsewhere.
 """
 
 from __future__ import annotations
@@ -53,6 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference", choices=("final", "oracle"), default="final",
                         help="the solver's correction: to the impulses the recorded solve ended at (final, default) "
                              "or to the step solved from zero to convergence (oracle; data from generate --oracle)")
+    parser.add_argument("--agree", type=float, metavar="K",
+                        help="with several models: serve their mean only where their standard deviation is below "
+                             "K times its size (python -m training.ensemble --agree), Box2D's warm start elsewhere")
     parser.add_argument("--json", metavar="FILE", help="write the table here as JSON")
 
 
@@ -81,6 +87,8 @@ def band_table(served: np.ndarray, solver: np.ndarray, new: np.ndarray) -> list[
             "rms_correction": _rms(solver[m]), "rms_error": _rms(served[m] - solver[m]),
             "served_share": float(given.sum() / max(m.sum(), 1)),
             "sign_agreement": float(np.mean(np.sign(served[given]) == np.sign(solver[given]))) if given.any() else None,
+            "within_half": (float(np.mean(np.abs(served[given] - solver[given]) <= 0.5 * np.abs(solver[given])))
+                            if given.any() else None),
         })
     return rows
 
@@ -89,12 +97,15 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x, dtype=np.float64)))) if len(x) else float("nan")
 
 
-def replay(predictors, path: Path, max_steps: int, reference: str = "final") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def replay(predictors, path: Path, max_steps: int, reference: str = "final",
+           agree: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(served, solver, new): the served and the solver's normal correction and the new-point
     flag at every point of up to max_steps recorded steps, (P,) each. With several
-    predictors, what is served is the mean of their warm starts. reference "oracle" takes
-    the solver's correction from the file's converged solve (ValueError when it has none)."""
+    predictors, what is served is the mean of their warm starts (where they agree, with
+    `agree`). reference "oracle" takes the solver's correction from the file's converged
+    solve (ValueError when it has none)."""
     from server.predictors import World
+    from training.ensemble import agreed_mean
     from training.grids import iter_steps, open_dataset, select_steps
 
     with open_dataset(path) as ds:
@@ -103,8 +114,8 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final") -> 
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # loop over steps, not points
         c = step.contacts
         world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
-        warm = np.mean([p.predict(step.bodies, c, world, 0, step.previous)[0][:, 0] for p in predictors], axis=0)
-        served.append(warm - c["builtin"][:, 0])
+        warm = np.stack([p.predict(step.bodies, c, world, 0, step.previous)[0][:, 0] for p in predictors])
+        served.append(agreed_mean(warm - c["builtin"][:, 0], agree))
         if reference == "oracle" and step.oracle is None:
             raise ValueError(f"{path} has no oracle impulses: record it with `deepcontact generate --oracle`")
         solved = step.oracle[:, 0] if reference == "oracle" else c["impulse"][:, 0]
@@ -125,25 +136,31 @@ def run(args: argparse.Namespace) -> int:
     if not names:
         print("deepcontact bench corrections: --model names no model", file=sys.stderr)
         return 2
+    if args.agree is not None and (len(names) < 2 or not args.agree > 0):
+        print("deepcontact bench corrections: --agree K needs K > 0 and at least two models (--model A,B)",
+              file=sys.stderr)
+        return 2
     try:
         predictors = [RecordedSolve() if name == "recorded" else load_model(args.models / f"{name}.json")
                       for name in names]
-        served, solver, new = replay(predictors, args.data, args.max_steps, args.reference)
+        served, solver, new = replay(predictors, args.data, args.max_steps, args.reference, args.agree)
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
         print(f"deepcontact bench corrections: {exc}", file=sys.stderr)
         return 2
     rows = band_table(served, solver, new)
     label = args.model if len(names) == 1 else f"the mean of {', '.join(names)}"
+    if args.agree is not None:
+        label += f" where they agree (K {args.agree:g})"
     against = "the converged solve's" if args.reference == "oracle" else "the solver's"
     print(f"{label} on {args.data} ({len(served)} points): the served correction against {against} "
           "(normal, N s)")
-    print("| points | n | RMS solver's correction | RMS error served | served share | sign agrees |")
-    print("|---|---|---|---|---|---|")
+    print("| points | n | RMS solver's correction | RMS error served | served share | sign agrees | within half |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
-        sign = "–" if r["sign_agreement"] is None else f"{r['sign_agreement']:.2f}"
+        sign, half = ("–" if r[k] is None else f"{r[k]:.2f}" for k in ("sign_agreement", "within_half"))
         print(f"| {r['group']} | {r['points']} | {r['rms_correction']:.3g} | {r['rms_error']:.3g} | "
-              f"{r['served_share']:.2f} | {sign} |")
+              f"{r['served_share']:.2f} | {sign} | {half} |")
     if args.json:
         write_json_atomic(args.json, {"model": args.model, "data": str(args.data), "reference": args.reference,
-                                      "rows": rows})
+                                      "agree": args.agree, "rows": rows})
     return 0

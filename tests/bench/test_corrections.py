@@ -24,6 +24,9 @@ def test_band_table_groups_persisting_points_by_the_solvers_correction():
     assert mid["rms_error"] == pytest.approx(0.2)  # Builtin's error where nothing is served
     assert rows["persisting, |c| in (1, inf]"]["rms_error"] == pytest.approx(1.0)
     assert rows["persisting, all"]["points"] == 4 and rows["new points"]["points"] == 1
+    # -1.0 served for -2.0: right sign, off by half; within half of it counts.
+    assert rows["persisting, |c| in (1, inf]"]["within_half"] == 1.0
+    assert small["within_half"] == 0.0 and mid["within_half"] is None
 
 
 def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_path, model_dir, capsys):
@@ -43,6 +46,14 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
                  "--max-steps", "20", "--json", str(mean)]) == 0
     assert json.loads(mean.read_text())["rows"] == rows  # the mean of a model and itself is the model
     assert "the mean of tiny, tiny" in capsys.readouterr().out
+    # A model agrees with itself wherever it corrects anything.
+    agreed = tmp_path / "agreed.json"
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny,tiny", "--agree", "0.2",
+                 "--data", str(data), "--max-steps", "20", "--json", str(agreed)]) == 0
+    assert json.loads(agreed.read_text())["rows"] == rows
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--agree", "0.2",
+                 "--data", str(data)]) == 2
+    assert "at least two models" in capsys.readouterr().err
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "nope", "--data", str(data)]) == 2
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny",
                  "--data", str(tmp_path / "none.h5")]) == 2
