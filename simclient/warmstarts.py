@@ -38,6 +38,9 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:relnoisy@R   the same with noise of R times each correction's size
     oracle:previous     the previous step's oracle at points that persist, builtin at new
                         ones: Box2D's warm start as if the last solve had converged
+    oracle:some@F       the oracle at a random share F of the points (seeded), builtin
+                        elsewhere: what a warm start exact where it is served, and served
+                        only at some points, is worth
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -49,13 +52,14 @@ import numpy as np
 
 LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
-           "relnoisy@R", "previous")
+           "relnoisy@R", "previous", "some@F")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
                       "big": "a correction size in N s, e.g. oracle:big@1",
                       "noisy": "a noise level in N s, e.g. oracle:noisy@0.05",
-                      "relnoisy": "a noise level relative to the correction, e.g. oracle:relnoisy@0.5"}
+                      "relnoisy": "a noise level relative to the correction, e.g. oracle:relnoisy@0.5",
+                      "some": "a share of the points, 0 < F <= 1, e.g. oracle:some@0.5"}
 #: oracle:noisy and oracle:relnoisy perturb the corrections of oracle:small at this size (N s).
 NOISY_SMALL = 1.0
 
@@ -143,7 +147,7 @@ class OracleMix(Provider):
                 self.value = float(value)
             except ValueError:
                 self.value = -1.0
-            if not self.value > 0:
+            if not self.value > 0 or (kind == "some" and self.value > 1):
                 raise ValueError(f"oracle:{kind}@... needs {_ORACLE_PARAMETERS[kind]}, got {variant!r}")
         elif variant not in ORACLES:
             raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
@@ -179,6 +183,9 @@ class OracleMix(Provider):
             if v == "relnoisy":
                 noise *= np.abs(exact - builtin)
             warm = np.where((correction <= NOISY_SMALL)[:, None], exact + noise, builtin)
+        elif v == "some":
+            served = self._rng.random(len(points)) < self.value
+            warm = np.where(served[:, None], exact, builtin)
         else:
             from deepcontact.gridspec import GridSpec
             from deepcontact.transfer import plan
