@@ -1,7 +1,10 @@
 """Seed ranges: which worlds may be used for what.
 
-    1 - 899       training and validation data, tuning, model selection
-    900 - 999     the project's benchmarks (never trained on)
+    1 - 899       training and validation data, tuning, model selection:
+        1 - 799       training data (what models are fitted on)
+        800 - 849     validation (what stops and compares training runs)
+        850 - 899     choosing (what picks one variant over another)
+    900 - 999     the project's benchmarks (never trained on; what results report)
     10000 and up  reserved for evaluation outside the project: no training
                   data, tuning or model selection ever touches them
 
@@ -11,7 +14,10 @@ data like benchmark seeds are.
 
 from __future__ import annotations
 
-TRAIN = range(1, 900)
+TRAIN = range(1, 900)  # what `generate` records without --allow-bench-seeds
+FIT = range(1, 800)
+VALIDATION = range(800, 850)
+CHOOSING = range(850, 900)
 BENCHMARK = range(900, 1000)
 RESERVED_FROM = 10000
 
@@ -45,9 +51,26 @@ def outside_training(seeds: list[int]) -> list[int]:
     return [s for s in seeds if s not in TRAIN]
 
 
+def as_ranges(seeds: list[int]) -> str:
+    """[1, 2, 3, 7, 850, 851] -> '1-3, 7, 850-851' (sorted, unique seeds)."""
+    parts, start = [], None
+    for i, seed in enumerate(seeds):
+        if start is None:
+            start = seed
+        if i + 1 == len(seeds) or seeds[i + 1] != seed + 1:
+            parts.append(str(start) if start == seed else f"{start}-{seed}")
+            start = None
+    return ", ".join(parts)
+
+
 def describe(seed: int) -> str:
-    if seed in TRAIN:
+    """'training', 'validation', 'choosing', 'benchmark', 'reserved' or 'unassigned'."""
+    if seed in FIT:
         return "training"
+    if seed in VALIDATION:
+        return "validation"
+    if seed in CHOOSING:
+        return "choosing"
     if seed in BENCHMARK:
         return "benchmark"
     if seed >= RESERVED_FROM:

@@ -77,3 +77,14 @@ def test_server_warm_starts_on_a_ray_cluster_need_a_reachable_server(tmp_path, c
     assert main(["bench", "iterations", "--seeds", "901", "--warm-starts", "builtin,server:pressure",
                  "--ray", "ray://head:10001", "--out", str(tmp_path / "out"), "--quiet"]) == 2
     assert "--server" in capsys.readouterr().err
+
+
+def test_runs_on_seeds_models_saw_are_flagged_and_choosing_seeds_are_not(tmp_path, capsys):
+    for seeds, flagged in (("848-851", True), ("850-851", False)):
+        assert main(["bench", "iterations", "--seeds", seeds, "--steps", "40", "--warm-starts", "builtin",
+                     "--out", str(tmp_path / seeds), "--quiet"]) == 0
+        warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning")]
+        # Only the validation seeds are named: 850-899 are held out for choosing variants.
+        assert warnings == (["warning: seeds 848-849 are training or validation seeds (1-849): models were fitted "
+                             "or stopped on them, so results there are not held out (choose on 850-899, report on "
+                             "900-999)"] if flagged else [])
