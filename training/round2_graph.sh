@@ -31,6 +31,9 @@
 #                              step, the log of the largest change a sweep still makes over
 #                              Box2D's warm start's (--loss solver-projected-max), 2 epochs
 #                              (with -t1, -t0.3 and -t2 cards; -t1 is the default)
+#   graph-projected-max-1-799-seed1, -seed2  graph-projected-max-1-799's recipe with --seed 1 (2):
+#                              other steps in another order, from the same weights (with -t1
+#                              cards): how far two draws of one recipe differ
 #   graph-projected-max-1-799-e4  2 more epochs of graph-projected-max-1-799 from its weights, on
 #                              other steps (--seed 1) at half the peak rate (with a -t1 card)
 #   graph-projected-max-1-799-long  1 more epoch of graph-projected-max-1-799 from its weights, on
@@ -132,6 +135,12 @@ run() {
             for t in 1.0 0.3 2.0; do   # 1 N s is the default's; the others are in the ablation
                 "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799.json" --correction-threshold $t
             done ;;
+        graph-projected-max-1-799-seed1|graph-projected-max-1-799-seed2)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            # graph-projected-max-1-799's recipe, other steps and order (--seed overrides DATA's)
+            variant "$1" --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --seed "${1##*-seed}" --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-e4)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             # other steps than the first two epochs saw (--seed 1 overrides DATA's), at half the peak rate
