@@ -34,6 +34,8 @@
 #   graph-projected-max-1-799-seed1, -seed2  graph-projected-max-1-799's recipe with --seed 1 (2):
 #                              other steps in another order, from the same weights (with -t1
 #                              cards): how far two draws of one recipe differ
+#   graph-projected-max-1-799-seed2-long  -long's epoch from -seed2's weights (with a -t1 card): does the
+#                              long-sweep step pay on another draw too?
 #   graph-projected-max-1-799-e4  2 more epochs of graph-projected-max-1-799 from its weights, on
 #                              other steps (--seed 1) at half the peak rate (with a -t1 card)
 #   graph-projected-max-1-799-long  1 more epoch of graph-projected-max-1-799 from its weights, on
@@ -147,6 +149,14 @@ run() {
             variant graph-projected-max-1-799-e4 --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 \
                 --lr 2.5e-4 --seed 1 --init runs/graph-cache/graph-projected-max-1-799.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-e4.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-seed2-long)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            # -long's step from -seed2's weights, on -seed2's steps (train -seed2 first)
+            ( ulimit -s 524288   # as for graph-projected-max-1-799-long
+              variant graph-projected-max-1-799-seed2-long --loss solver-projected-max --sweeps 256,1024 \
+                  --max-steps-per-file 3000 --epochs 1 --lr 2.5e-4 --seed 2 \
+                  --init runs/graph-cache/graph-projected-max-1-799-seed2.weights.npz )
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-seed2-long.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-long)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             # 1,024 unrolled sweeps overflowed a TensorFlow compute thread's stack (8 MB, set by
