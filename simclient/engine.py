@@ -23,7 +23,7 @@ import dataclasses
 
 import numpy as np
 
-PATCH_REVISION = 1
+PATCH_REVISION = 2
 """Layout revision of the patch this module speaks (B2_DEEPCONTACT_REVISION)."""
 
 _BUILD_HINT = (
@@ -172,6 +172,17 @@ class Engine:
         out = np.empty((self.world.contactPointCount, 2), dtype=np.float32)
         self.world.SolveOracle(out, self.config.dt, int(max_iterations), float(threshold))
         return out
+
+    def trial(self, normal: np.ndarray, tangent: np.ndarray) -> int:
+        """Velocity iterations this step's solve would take from these impulses
+        (N s, (n,) float32 each, export order), under this engine's limit and
+        stopping rule; the world is unchanged. Sets the step's warm start to
+        them: call `set_warm_start` again before `solve()` to start elsewhere.
+        Each trial costs a whole velocity solve.
+        """
+        self.world.SetWarmStart(normal, tangent)
+        stats = self.world.SolveTrial(self.config.dt, self.config.velocity_iterations, self.config.velocity_threshold)
+        return int(stats["velocity_iterations"])
 
     # -- phase 2 ---------------------------------------------------------
     def solve(self) -> StepStats:

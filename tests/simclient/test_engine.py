@@ -38,6 +38,28 @@ def test_oracle_leaves_the_world_unchanged(thesis_spec):
     assert with_oracle.bodies().tobytes() == without.bodies().tobytes()
 
 
+def test_a_trial_solve_costs_what_the_solve_does_and_changes_nothing(thesis_spec):
+    tried, plain = settled(thesis_spec), settled(thesis_spec)
+    for _ in range(5):
+        tried.collide()
+        points = tried.contacts()
+        builtin = (np.ascontiguousarray(points["builtin"][:, 0]), np.ascontiguousarray(points["builtin"][:, 1]))
+        zeros = np.zeros(len(points), np.float32)
+        cost = tried.trial(*builtin)
+        assert tried.trial(zeros, zeros) != cost  # another start, another count
+        tried.set_warm_start(*builtin)  # the trial from zeros left zeros as the step's warm start
+        assert tried.solve().velocity_iterations == cost
+        plain.step()
+    assert tried.bodies().tobytes() == plain.bodies().tobytes()
+
+
+def test_a_trial_solve_needs_a_warm_start_first(thesis_spec):
+    engine = settled(thesis_spec)
+    engine.collide()
+    with pytest.raises(RuntimeError, match="SetWarmStart"):
+        engine.world.SolveTrial(0.01, 100, 1e-4)
+
+
 def test_builtin_needs_fewer_iterations_than_none_on_a_settled_pile(thesis_spec):
     builtin, none = settled(thesis_spec, steps=200), settled(thesis_spec, steps=200)
     none.world.warmStarting = False
