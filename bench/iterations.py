@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         for provider in remote:
             # Fail before any work if the server is away or lacks a model; each task connects on its own.
             try:
-                connect(target, provider.model, connect_timeout=10.0, allow_fallback=False).close()
+                connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False).close()
             except (ValueError, ConnectionError) as exc:
                 print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
                 return 2
@@ -132,12 +132,14 @@ def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int
     """
     summaries = {name: pooled_summary(r) for name, r in runs.items()}
     ratios = ratios_to_builtin(runs)
+    picks = {name: p for name, r in runs.items() if (p := pick_summary(name, r)) is not None}
     write_json_atomic(out / "summary.json", {
         "seeds": seeds, "scene": spec.name, "scene_spec": spec_to_dict(spec), "deadline_ms": deadline_ms,
         "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries,
         "ratios_to_builtin": {name: {k: r.to_dict() for k, r in rs.items()} for name, rs in ratios.items()},
-        "per_seed_mean_iterations": {name: [_seed_mean(r) for r in rs] for name, rs in runs.items()}})
-    table = markdown_table(summaries, seeds, spec.name, ratios)
+        "per_seed_mean_iterations": {name: [_seed_mean(r) for r in rs] for name, rs in runs.items()},
+        "picks": picks})
+    table = markdown_table(summaries, seeds, spec.name, ratios) + pick_table(picks)
     tmp = out / ".results.md.part"
     tmp.write_text(table)
     tmp.replace(out / "results.md")
@@ -172,7 +174,7 @@ def simulate_one(spec_dict: dict, name: str, seed: int, target: str | None, dead
     provider = make_provider(name)  # a fresh provider per world: some keep state across steps
     client = None
     if provider.uses_server:
-        client = connect(target, provider.model, connect_timeout=10.0, allow_fallback=False)
+        client = connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False)
     try:
         result = run_simulation(spec_from_dict(spec_dict), seed, provider, client=client, deadline_ms=deadline_ms)
     finally:
@@ -211,6 +213,43 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
     reference = [_iterations(r) for r in runs["builtin"]]
     return {name: {stat: ratio_interval([_iterations(r) for r in rs], reference, stat) for stat in STATS}
             for name, rs in runs.items()}
+
+
+def pick_summary(name: str, results: list[dict]) -> dict | None:
+    """What the trial solves of a `pick:` warm start saw, or None for another warm start.
+
+    Every candidate (builtin, then the models) was solved from the same state at
+    every step with contacts (the picked trajectory's): per candidate, its mean
+    iterations there, that over builtin's, and the share of steps where it was
+    picked (builtin on ties), beat builtin and lost to it. Steps where a model
+    fell back (fewer trials) are left out.
+    """
+    rows = [t for r in results for t in r.get("trials", [])]
+    if not name.startswith("pick:") or not rows:
+        return None
+    width = max(map(len, rows))
+    a = np.array([t for t in rows if len(t) == width], float)  # (steps, candidates) iterations
+    best = a.argmin(axis=1)
+    means = a.mean(axis=0)
+    return {"candidates": ["builtin", *(c.name for c in make_provider(name).candidates)][:width], "steps": len(a),
+            "mean_iterations": means.tolist(), "over_builtin": (means / max(means[0], 1e-9)).tolist(),
+            "picked": [float((best == i).mean()) for i in range(width)],
+            "better_than_builtin": (a < a[:, :1]).mean(axis=0).tolist(),
+            "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist()}
+
+
+def pick_table(picks: dict) -> str:
+    """The trial solves of each `pick:` warm start as markdown ('' without one)."""
+    lines = []
+    for name, p in picks.items():
+        lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
+                      "(the picked trajectory's):", "",
+                  "| candidate | mean iterations | / builtin | picked | better than builtin | worse |",
+                  "|---|---|---|---|---|---|"]
+        for i, c in enumerate(p["candidates"]):
+            lines.append(f"| {c} | {p['mean_iterations'][i]:.1f} | {p['over_builtin'][i]:.3f} | {p['picked'][i]:.0%} | "
+                         f"{p['better_than_builtin'][i]:.0%} | {p['worse_than_builtin'][i]:.0%} |")
+    return "\n".join(lines) + ("\n" if lines else "")
 
 
 def markdown_table(summaries: dict, seeds: list[int], scene: str, ratios: dict | None = None) -> str:

@@ -108,6 +108,15 @@ def _ask_server(client, provider: Provider, engine, k: int, bodies, points, time
                    reconnect=client.reconnects > streams)
 
 
+def _pick(provider, client, engine, k: int, bodies, points, timeout: float):
+    """A pick: oracle's warm start for step k: every candidate asked, the cheapest by trial solves."""
+    if len(points) == 0:
+        return None
+    warms = [_ask_server(client, c, engine, k, bodies, points, timeout).warm if c.uses_server
+             else c.warm_start(engine, bodies, points, k) for c in provider.candidates]
+    return provider.pick(engine, points, warms)
+
+
 def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=None,
                    deadline_ms: float = DEFAULT_DEADLINE_MS, progress=None) -> dict:
     """Simulate (spec, seed) with `provider`; returns {"per_step": ..., "summary": ...}.
@@ -121,7 +130,8 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
         lower, upper = spec.domain
         client.world = wire.encode_world(lower, upper, spec.walls(), spec.physics)
         if provider.uses_server:  # the server readies the model for this grid before step 0
-            client.declare(provider.model, DECLARE_TIMEOUT_S)
+            for model in provider.models:
+                client.declare(model, DECLARE_TIMEOUT_S)
     records: list[StepRecord] = []
     timeout = deadline_ms / 1e3
     for k in range(spec.steps):
@@ -130,7 +140,9 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
         collide_s = laps.lap()
         bodies, points = engine.bodies(), engine.contacts()
         export_s = laps.lap()
-        if provider.uses_server:
+        if provider.picks:
+            served = _Served(warm=_pick(provider, client, engine, k, bodies, points, timeout))
+        elif provider.uses_server:
             served = _ask_server(client, provider, engine, k, bodies, points, timeout)
         else:
             served = _Served(warm=provider.warm_start(engine, bodies, points, k))
@@ -144,7 +156,10 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
                                collide_s=collide_s, export_s=export_s, provider_s=provider_s, inject_s=inject_s))
         if progress is not None:
             progress(k)
-    return {"per_step": _columns(records), "summary": summarize(records)}
+    result = {"per_step": _columns(records), "summary": summarize(records)}
+    if provider.picks:
+        result["trials"] = [list(t) for t in provider.trials]
+    return result
 
 
 def _record(stats, after: np.ndarray, served: _Served, provider: Provider, *, collide_s: float, export_s: float,
@@ -207,7 +222,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, required=True, help="world seed (benchmarks use 900-999)")
     parser.add_argument("--warm-start", required=True, metavar="W",
                         help="none, builtin, copy, copy2, copy0, extrapolate, or server:MODEL "
-                             "(server:random, server:bad, server:grid-identity, server:<onnx model>)")
+                             "(server:random, server:bad, server:grid-identity, server:<onnx model>); "
+                             "probes and oracles (oracle:VARIANT, solve@K, jitter@S, pick:W1+W2...) "
+                             "are listed in simclient/warmstarts.py")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="warm-start server for server:MODEL (any gRPC target, e.g. dns:///server:50051)")
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
@@ -228,7 +245,7 @@ def check_writable(path: Path) -> None:
 
 
 def connect(target: str, model: str, *, connect_timeout: float, allow_fallback: bool):
-    """A client for `target` that serves `model`, or None (fallbacks only).
+    """A client for `target` that serves `model` ("A+B": each of them), or None (fallbacks only).
     Raises SystemExit-worthy ValueError/ConnectionError with a message."""
     from simclient.client import WarmStartClient
 
@@ -241,9 +258,10 @@ def connect(target: str, model: str, *, connect_timeout: float, allow_fallback: 
         raise ConnectionError(f"no warm-start server at {target} (waited {connect_timeout:g} s); "
                               "start one with `deepcontact serve`, or pass --allow-fallback")
     names = [m.name for m in client.list_models()]
-    if model not in names:
+    missing = [m for m in model.split("+") if m not in names]
+    if missing:
         client.close()
-        raise ValueError(f"the server at {target} has no model {model!r}; it serves {', '.join(sorted(names))}")
+        raise ValueError(f"the server at {target} has no model {missing[0]!r}; it serves {', '.join(sorted(names))}")
     return client
 
 
@@ -260,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
     client = None
     if provider.uses_server:
         try:
-            client = connect(args.server, provider.model, connect_timeout=args.connect_timeout,
+            client = connect(args.server, "+".join(provider.models), connect_timeout=args.connect_timeout,
                              allow_fallback=args.allow_fallback)
         except (ValueError, ConnectionError) as exc:
             print(f"deepcontact simulate: {exc}", file=sys.stderr)

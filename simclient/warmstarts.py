@@ -21,6 +21,8 @@ Probes of what a model could use (docs/results.md, "Where the iterations are"):
     solve-active@K  the same on the contacts Box2D's warm start says are active:
                  normal impulses only where it is > 0 (or the point is new), tangent
                  ones only where last step's friction was inside the cone
+    jitter@S     builtin + Gaussian noise of S N s at persisting points (seeded): a
+                 control for pick:, candidates that know nothing
 Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:persisting   the oracle at points that persist, zero at new ones
     oracle:new          the oracle at new points, builtin where the point persists
@@ -44,13 +46,20 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
+Oracle over warm starts:
+    pick:W1+W2+...  each step, the engine solves the step from Box2D's warm start and
+                 from each of W1, W2, ... (any warm starts above, e.g. server:default;
+                 trial solves, the world unchanged) and keeps the one that takes the
+                 fewest iterations (builtin on a tie): what a perfect per-step choice
+                 among them is worth. A solve per candidate; not one a server could serve
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K")
+LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K",
+         "jitter@S")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F")
 #: Oracle variants that take a parameter after "@", and what it is.
@@ -67,6 +76,7 @@ NOISY_SMALL = 1.0
 class Provider:
     name: str
     uses_server = False
+    picks = False  # pick:...: the engine's trial solves choose among builtin and candidates
 
     def prepare(self, engine) -> None:
         """Before the first step (e.g. switch Box2D's own warm starting)."""
@@ -339,6 +349,29 @@ class PreviousOracle(Provider):
         self._keys, self._exact = keys[order], exact[order]
 
 
+class Jitter(Provider):
+    """Builtin plus Gaussian noise of `sigma` N s on both impulses at persisting
+    points (normal clamped at 0): a control for pick:, whose candidates differ
+    from Box2D's warm start by nothing a model knows."""
+
+    def __init__(self, sigma: float, seed: int = 0):
+        self.sigma = sigma
+        self.name = f"jitter@{sigma:g}"
+        self.reseed(seed)
+
+    def reseed(self, seed: int) -> None:
+        self._rng = np.random.default_rng(seed)  # a fresh provider per world: the same noise every run
+
+    def warm_start(self, engine, bodies, points, step):
+        if len(points) == 0:
+            return None
+        builtin = points["builtin"].astype(np.float64)
+        persisting = builtin.any(axis=1)[:, None]
+        warm = builtin + np.where(persisting, self._rng.normal(0.0, self.sigma, builtin.shape), 0.0)
+        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+        return _as_warm_start(warm)
+
+
 class Remote(Provider):
     """A model or provider on the warm-start server (see simclient.simulate)."""
 
@@ -349,9 +382,65 @@ class Remote(Provider):
         self.name = f"server:{model}"
         self.sends_oracle = model == "grid-identity"
 
+    @property
+    def models(self) -> tuple[str, ...]:
+        """Every model this provider asks the server for."""
+        return (self.model,)
+
+
+class Pick(Provider):
+    """An oracle over warm starts: each step, the engine solves the step from
+    Box2D's warm start and from each candidate's (trial solves, the world
+    unchanged) and keeps the one that takes the fewest iterations (builtin on
+    a tie). simclient.simulate asks every candidate, then calls pick()."""
+
+    picks = True
+
+    def __init__(self, candidates: list[Provider]):
+        self.candidates = candidates
+        for i, c in enumerate(candidates):
+            if isinstance(c, Jitter):
+                c.reseed(i)  # two jitters in one pick draw different noise
+        self.name = "pick:" + "+".join(c.name for c in candidates)
+        self.uses_server = any(c.uses_server for c in candidates)
+        self.sends_oracle = False
+        self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
+
+    @property
+    def models(self) -> tuple[str, ...]:
+        return tuple(m for c in self.candidates if c.uses_server for m in c.models)
+
+    @property
+    def model(self) -> str:
+        return self.models[0] if self.models else ""
+
+    def prepare(self, engine) -> None:
+        for c in self.candidates:
+            c.prepare(engine)
+
+    def observe(self, points_after_solve):
+        for c in self.candidates:
+            c.observe(points_after_solve)
+
+    def pick(self, engine, points, served: list) -> tuple[np.ndarray, np.ndarray]:
+        """The best for this step, by trial solves, of Box2D's warm start and the
+        candidates' (`served`: (normal, tangent) each, or None for Box2D's own)."""
+        builtin = (np.ascontiguousarray(points["builtin"][:, 0]), np.ascontiguousarray(points["builtin"][:, 1]))
+        candidates = [builtin] + [builtin if w is None else w for w in served]
+        iterations = [engine.trial(*w) for w in candidates]
+        self.trials.append(iterations)
+        return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
+
 
 def make_provider(name: str) -> Provider:
     """ValueError for an unknown name."""
+    if name.startswith("pick:"):
+        names = [n for n in name[len("pick:"):].split("+") if n]
+        if not names or any(n.startswith("pick:") for n in names):
+            raise ValueError(f"pick: takes warm starts joined by +, e.g. pick:server:default+server:pressure, got {name!r}")
+        if any(n in ("none", "builtin") for n in names):
+            raise ValueError(f"pick: always tries builtin; for zeros use server:zero, got {name!r}")
+        return Pick([make_provider(n) for n in names])
     if name.startswith("server:"):
         model = name.split(":", 1)[1]
         if not model:
@@ -363,6 +452,7 @@ def make_provider(name: str) -> Provider:
         return OracleMix(name.split(":", 1)[1])
     for prefix, parse, make, what in (
             ("lastchange@", float, LastChange, "a factor, e.g. lastchange@-0.5"),
+            ("jitter@", float, Jitter, "a noise level in N s, e.g. jitter@0.01"),
             ("solve@", int, LinearSolve, "a number of iterations, e.g. solve@10"),
             ("solve-active@", int, lambda k: LinearSolve(k, active=True), "a number of iterations, e.g. solve-active@20")):
         if name.startswith(prefix):
@@ -370,7 +460,7 @@ def make_provider(name: str) -> Provider:
                 value = parse(name[len(prefix):])
             except ValueError:
                 raise ValueError(f"{prefix}... needs {what}, got {name!r}") from None
-            if parse is int and value < 1:
+            if (parse is int and value < 1) or (prefix == "jitter@" and not value > 0):
                 raise ValueError(f"{prefix}... needs {what}, got {name!r}")
             return make(value)
     factories = {

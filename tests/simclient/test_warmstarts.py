@@ -69,6 +69,21 @@ def test_unknown_warm_starts_are_refused():
         make_provider("oracle:magic")
     with pytest.raises(ValueError, match="grid spacing"):
         make_provider("oracle:grid@-1")
+    for name, why in (("pick:", "joined by"), ("pick:pick:server:a", "joined by"), ("pick:builtin", "always tries"),
+                      ("pick:server:", "model name"), ("pick:magic", "unknown warm start"), ("jitter@0", "noise level")):
+        with pytest.raises(ValueError, match=why):
+            make_provider(name)
+    assert make_provider("pick:server:a+jitter@0.1+server:b").models == ("a", "b")
+
+
+def test_pick_never_does_worse_than_builtin_and_jitter_alone_wins_some_steps():
+    # Candidates that know nothing: the per-step choice still finds cheaper starts
+    # (docs/results.md, "Nor does choosing per step").
+    picked = run_simulation(SHORT, 901, make_provider("pick:jitter@0.01+jitter@0.01"))
+    its = [i for i, n in zip(picked["per_step"]["velocity_iterations"], picked["per_step"]["contact_points"]) if n]
+    assert its == [min(t) for t in picked["trials"]]
+    assert any(t[1] != t[2] for t in picked["trials"])  # the two jitters draw different noise
+    assert np.mean(its) < mean_iterations("builtin")
 
 
 def test_the_value_of_a_warm_start_lies_in_its_small_corrections():
