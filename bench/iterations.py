@@ -216,38 +216,43 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
 
 
 def pick_summary(name: str, results: list[dict]) -> dict | None:
-    """What the trial solves of a `pick:` warm start saw, or None for another warm start.
+    """What the trial solves of a `pick:` or `shadow:` warm start saw, or None for another warm start.
 
-    Every candidate (builtin, then the models) was solved from the same state at
+    Every candidate (builtin, then the others) was solved from the same state at
     every step with contacts (the picked trajectory's): per candidate, its mean
-    iterations there, that over builtin's, and the share of steps where it was
-    picked (builtin on ties), beat builtin and lost to it. Steps where a model
-    fell back (fewer trials) are left out.
+    iterations there, that over builtin's with its bootstrap interval over seeds,
+    and the share of steps where it was picked (builtin on ties), beat builtin
+    and lost to it. Steps where a model fell back (fewer trials) are left out.
     """
-    rows = [t for r in results for t in r.get("trials", [])]
-    if not name.startswith("pick:") or not rows:
+    if not name.startswith(("pick:", "shadow:")) or not any(r.get("trials") for r in results):
         return None
-    width = max(map(len, rows))
-    a = np.array([t for t in rows if len(t) == width], float)  # (steps, candidates) iterations
+    candidates = ["builtin", *(c.name for c in make_provider(name).candidates)]
+    width = len(candidates)
+    per_seed = [np.array([t for t in r.get("trials", []) if len(t) == width], float).reshape(-1, width)
+                for r in results]  # (steps, candidates) iterations per seed
+    a = np.concatenate(per_seed)
     best = a.argmin(axis=1)
-    means = a.mean(axis=0)
-    return {"candidates": ["builtin", *(c.name for c in make_provider(name).candidates)][:width], "steps": len(a),
-            "mean_iterations": means.tolist(), "over_builtin": (means / max(means[0], 1e-9)).tolist(),
+    return {"candidates": candidates, "steps": len(a), "mean_iterations": a.mean(axis=0).tolist(),
+            "over_builtin": [ratio_interval([s[:, i] for s in per_seed], [s[:, 0] for s in per_seed]).to_dict()
+                             for i in range(width)],
             "picked": [float((best == i).mean()) for i in range(width)],
             "better_than_builtin": (a < a[:, :1]).mean(axis=0).tolist(),
             "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist()}
 
 
 def pick_table(picks: dict) -> str:
-    """The trial solves of each `pick:` warm start as markdown ('' without one)."""
+    """The trial solves of each `pick:` and `shadow:` warm start as markdown ('' without one)."""
     lines = []
     for name, p in picks.items():
+        whose = "the first candidate's" if name.startswith("shadow:") else "the picked"
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
-                      "(the picked trajectory's):", "",
+                      f"({whose} trajectory):", "",
                   "| candidate | mean iterations | / builtin | picked | better than builtin | worse |",
                   "|---|---|---|---|---|---|"]
         for i, c in enumerate(p["candidates"]):
-            lines.append(f"| {c} | {p['mean_iterations'][i]:.1f} | {p['over_builtin'][i]:.3f} | {p['picked'][i]:.0%} | "
+            r = Ratio(**p["over_builtin"][i])
+            ratio = "1" if i == 0 else r.text() + (" ✓" if r.below_one() else "")
+            lines.append(f"| {c} | {p['mean_iterations'][i]:.1f} | {ratio} | {p['picked'][i]:.0%} | "
                          f"{p['better_than_builtin'][i]:.0%} | {p['worse_than_builtin'][i]:.0%} |")
     return "\n".join(lines) + ("\n" if lines else "")
 

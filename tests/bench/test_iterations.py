@@ -21,7 +21,7 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
     assert set(summary) == {"none", "builtin", "extrapolate", "server:tiny", "server:grid-identity", "pick:server:tiny+server:zero"}
     assert summary["server:tiny"]["p50_latency_ms"] > 0 and summary["server:tiny"]["fallback_steps"] == 0
     pick = written["picks"]["pick:server:tiny+server:zero"]  # the trial solves: every candidate on the same states
-    assert pick["candidates"] == ["builtin", "server:tiny", "server:zero"] and pick["over_builtin"][0] == 1.0
+    assert pick["candidates"] == ["builtin", "server:tiny", "server:zero"] and pick["over_builtin"][0]["value"] == 1.0
     assert abs(sum(pick["picked"]) - 1.0) < 1e-9
     assert pick["steps"] == summary["pick:server:tiny+server:zero"]["steps_with_contacts"]
     table = (out / "results.md").read_text()
