@@ -52,6 +52,8 @@ Oracle over warm starts:
                  trial solves, the world unchanged) and keeps the one that takes the
                  fewest iterations (builtin on a tie): what a perfect per-step choice
                  among them is worth. A solve per candidate; not one a server could serve
+    shadow:W1+W2+...  serves W1 every step, as W1 alone would, and trial-solves builtin
+                 and the others beside it: each against builtin on W1's own trajectory
 """
 
 from __future__ import annotations
@@ -396,12 +398,13 @@ class Pick(Provider):
 
     picks = True
 
-    def __init__(self, candidates: list[Provider]):
+    def __init__(self, candidates: list[Provider], serve_first: bool = False):
         self.candidates = candidates
+        self.serve_first = serve_first  # shadow: always serve the first candidate, trial-solve the rest beside it
         for i, c in enumerate(candidates):
             if isinstance(c, Jitter):
                 c.reseed(i)  # two jitters in one pick draw different noise
-        self.name = "pick:" + "+".join(c.name for c in candidates)
+        self.name = ("shadow:" if serve_first else "pick:") + "+".join(c.name for c in candidates)
         self.uses_server = any(c.uses_server for c in candidates)
         self.sends_oracle = False
         self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
@@ -429,18 +432,22 @@ class Pick(Provider):
         candidates = [builtin] + [builtin if w is None else w for w in served]
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
+        if self.serve_first:
+            return candidates[1]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
 
 
 def make_provider(name: str) -> Provider:
     """ValueError for an unknown name."""
-    if name.startswith("pick:"):
-        names = [n for n in name[len("pick:"):].split("+") if n]
-        if not names or any(n.startswith("pick:") for n in names):
-            raise ValueError(f"pick: takes warm starts joined by +, e.g. pick:server:default+server:pressure, got {name!r}")
-        if any(n in ("none", "builtin") for n in names):
-            raise ValueError(f"pick: always tries builtin; for zeros use server:zero, got {name!r}")
-        return Pick([make_provider(n) for n in names])
+    for prefix in ("pick:", "shadow:"):
+        if name.startswith(prefix):
+            names = [n for n in name[len(prefix):].split("+") if n]
+            if not names or any(n.startswith(("pick:", "shadow:")) for n in names):
+                raise ValueError(f"{prefix} takes warm starts joined by +, e.g. {prefix}server:default+server:pressure, "
+                                 f"got {name!r}")
+            if any(n in ("none", "builtin") for n in names):
+                raise ValueError(f"{prefix} always tries builtin; for zeros use server:zero, got {name!r}")
+            return Pick([make_provider(n) for n in names], serve_first=prefix == "shadow:")
     if name.startswith("server:"):
         model = name.split(":", 1)[1]
         if not model:

@@ -70,10 +70,19 @@ def test_unknown_warm_starts_are_refused():
     with pytest.raises(ValueError, match="grid spacing"):
         make_provider("oracle:grid@-1")
     for name, why in (("pick:", "joined by"), ("pick:pick:server:a", "joined by"), ("pick:builtin", "always tries"),
+                      ("shadow:none", "always tries"), ("shadow:pick:jitter@1", "joined by"),
                       ("pick:server:", "model name"), ("pick:magic", "unknown warm start"), ("jitter@0", "noise level")):
         with pytest.raises(ValueError, match=why):
             make_provider(name)
     assert make_provider("pick:server:a+jitter@0.1+server:b").models == ("a", "b")
+
+
+def test_shadow_serves_its_first_candidate_as_it_would_alone_and_prices_builtin_beside_it():
+    alone = run_simulation(SHORT, 901, make_provider("jitter@0.01"))
+    shadowed = run_simulation(SHORT, 901, make_provider("shadow:jitter@0.01"))
+    assert shadowed["per_step"]["velocity_iterations"] == alone["per_step"]["velocity_iterations"]
+    its = [i for i, n in zip(alone["per_step"]["velocity_iterations"], alone["per_step"]["contact_points"]) if n]
+    assert [t[1] for t in shadowed["trials"]] == its  # builtin's count on the same states is t[0]
 
 
 def test_pick_never_does_worse_than_builtin_and_jitter_alone_wins_some_steps():
