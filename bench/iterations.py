@@ -132,7 +132,7 @@ def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int
     """
     summaries = {name: pooled_summary(r) for name, r in runs.items()}
     ratios = ratios_to_builtin(runs)
-    picks = {name: p for name, r in runs.items() if (p := pick_summary(name, r)) is not None}
+    picks = {name: p for name, r in runs.items() if (p := pick_summary(name, r, runs.get("builtin"))) is not None}
     write_json_atomic(out / "summary.json", {
         "seeds": seeds, "scene": spec.name, "scene_spec": spec_to_dict(spec), "deadline_ms": deadline_ms,
         "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries,
@@ -215,7 +215,7 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
             for name, rs in runs.items()}
 
 
-def pick_summary(name: str, results: list[dict]) -> dict | None:
+def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = None) -> dict | None:
     """What the trial solves of a `pick:` or `shadow:` warm start saw, or None for another warm start.
 
     Every candidate (builtin, then the others) was solved from the same state at
@@ -223,6 +223,9 @@ def pick_summary(name: str, results: list[dict]) -> dict | None:
     iterations there, that over builtin's with its bootstrap interval over seeds,
     and the share of steps where it was picked (builtin on ties), beat builtin
     and lost to it. Steps where a model fell back (fewer trials) are left out.
+    With `builtin` (its own runs on the same seeds), also `trajectory`: builtin's
+    mean on this trajectory over its mean on its own, paired by seed. A
+    closed-loop ratio is the candidate's same-state ratio times that.
     """
     if not name.startswith(("pick:", "shadow:")) or not any(r.get("trials") for r in results):
         return None
@@ -237,7 +240,9 @@ def pick_summary(name: str, results: list[dict]) -> dict | None:
                              for i in range(width)],
             "picked": [float((best == i).mean()) for i in range(width)],
             "better_than_builtin": (a < a[:, :1]).mean(axis=0).tolist(),
-            "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist()}
+            "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist(),
+            "trajectory": (ratio_interval([s[:, 0] for s in per_seed], [_iterations(b) for b in builtin]).to_dict()
+                           if builtin is not None and len(builtin) == len(per_seed) else None)}
 
 
 def pick_table(picks: dict) -> str:
@@ -254,6 +259,9 @@ def pick_table(picks: dict) -> str:
             ratio = "1" if i == 0 else r.text() + (" ✓" if r.below_one() else "")
             lines.append(f"| {c} | {p['mean_iterations'][i]:.1f} | {ratio} | {p['picked'][i]:.0%} | "
                          f"{p['better_than_builtin'][i]:.0%} | {p['worse_than_builtin'][i]:.0%} |")
+        if p.get("trajectory"):
+            lines += ["", f"Builtin on this trajectory / builtin on its own: {Ratio(**p['trajectory']).text()} "
+                          "(paired by seed; the closed-loop ratio is a candidate's same-state ratio times this)."]
     return "\n".join(lines) + ("\n" if lines else "")
 
 

@@ -24,6 +24,7 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
     assert pick["candidates"] == ["builtin", "server:tiny", "server:zero"] and pick["over_builtin"][0]["value"] == 1.0
     assert abs(sum(pick["picked"]) - 1.0) < 1e-9
     assert pick["steps"] == summary["pick:server:tiny+server:zero"]["steps_with_contacts"]
+    assert pick["trajectory"]["seeds"] == 1 and pick["trajectory"]["value"] > 0  # builtin here against on its own
     table = (out / "results.md").read_text()
     assert "| builtin |" in table and "`pick:server:tiny+server:zero`: every candidate" in table
     for fig in ("fig20_contacts_iterations.png", "fig21_convergence.png", "fig26_mse.png"):
