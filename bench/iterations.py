@@ -222,7 +222,8 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     every step with contacts (the picked trajectory's): per candidate, its mean
     iterations there, that over builtin's with its bootstrap interval over seeds,
     and the share of steps where it was picked (builtin on ties), beat builtin
-    and lost to it. Steps where a model fell back (fewer trials) are left out.
+    and lost to it. A model that fell back at a step is priced as builtin there
+    (the table's fallbacks column counts such steps).
     With `builtin` (its own runs on the same seeds), also `trajectory`: builtin's
     mean on this trajectory over its mean on its own, paired by seed. A
     closed-loop ratio is the candidate's same-state ratio times that.

@@ -108,13 +108,21 @@ def _ask_server(client, provider: Provider, engine, k: int, bodies, points, time
                    reconnect=client.reconnects > streams)
 
 
-def _pick(provider, client, engine, k: int, bodies, points, timeout: float):
-    """A pick: oracle's warm start for step k: every candidate asked, the cheapest by trial solves."""
+def _pick(provider, client, engine, k: int, bodies, points, timeout: float) -> _Served:
+    """A pick:/shadow: oracle's warm start for step k: every candidate asked, the cheapest (or
+    the first) by trial solves. A server candidate that fell back is priced as builtin, and
+    the step counts as a fallback."""
     if len(points) == 0:
-        return None
-    warms = [_ask_server(client, c, engine, k, bodies, points, timeout).warm if c.uses_server
-             else c.warm_start(engine, bodies, points, k) for c in provider.candidates]
-    return provider.pick(engine, points, warms)
+        return _Served()
+    warms, reasons = [], []
+    for c in provider.candidates:
+        if c.uses_server:
+            asked = _ask_server(client, c, engine, k, bodies, points, timeout)
+            warms.append(asked.warm)
+            reasons.append(asked.fallback_reason)
+        else:
+            warms.append(c.warm_start(engine, bodies, points, k))
+    return _Served(warm=provider.pick(engine, points, warms), fallback_reason=next((r for r in reasons if r), None))
 
 
 def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=None,
@@ -141,7 +149,7 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
         bodies, points = engine.bodies(), engine.contacts()
         export_s = laps.lap()
         if provider.picks:
-            served = _Served(warm=_pick(provider, client, engine, k, bodies, points, timeout))
+            served = _pick(provider, client, engine, k, bodies, points, timeout)
         elif provider.uses_server:
             served = _ask_server(client, provider, engine, k, bodies, points, timeout)
         else:

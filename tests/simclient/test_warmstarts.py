@@ -85,6 +85,13 @@ def test_shadow_serves_its_first_candidate_as_it_would_alone_and_prices_builtin_
     assert [t[1] for t in shadowed["trials"]] == its  # builtin's count on the same states is t[0]
 
 
+def test_a_shadow_whose_server_is_away_serves_builtin_and_counts_the_fallbacks():
+    shadowed = run_simulation(SHORT, 901, make_provider("shadow:server:zero"), client=None)
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    assert shadowed["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
+    assert shadowed["summary"]["fallback_steps"] == builtin["summary"]["steps_with_contacts"] > 0
+
+
 def test_pick_never_does_worse_than_builtin_and_jitter_alone_wins_some_steps():
     # Candidates that know nothing: the per-step choice still finds cheaper starts
     # (docs/results.md, "Nor does choosing per step").
