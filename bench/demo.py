@@ -5,7 +5,9 @@ waits for its health check, runs the thesis world on a held-out seed with
 `none`, `builtin` and the shipped models through the server (the thesis-style
 `pressure` and `default`, the best measured variant: models/default.json says
 which), prints the table
-(iterations per step, round-trip latency, fallbacks), writes the figures to
+(iterations per step, round-trip latency, fallbacks) and, for the last model
+served again as a `shadow:`, every model's and builtin's iterations on its very
+states (one seed's closed-loop ratio is mostly where the trajectory went), writes the figures to
 the folder it names, and stops the server, also when a step fails. It is
 `deepcontact bench iterations` with a fixed small selection, so it lives with
 the benchmarks, above the parts it composes (server, simclient, deepcontact).
@@ -38,6 +40,9 @@ def run(args: argparse.Namespace) -> int:
               f"(models/pressure.onnx is rebuilt by `make default-model`)", file=sys.stderr)
         return 2
     servers = ",".join(f"server:{m}" for m in names)
+    # One seed's closed-loop ratio is mostly where its trajectory went; the shadow serves the
+    # last model again and prices builtin and the others on its very states (trial solves).
+    shadow = "shadow:" + "+".join(f"server:{m}" for m in [names[-1], *names[:-1]])
     for m in names:
         target = ModelCard.alias_target(args.models / f"{m}.json")
         if target:
@@ -45,11 +50,11 @@ def run(args: argparse.Namespace) -> int:
     parser = argparse.ArgumentParser()
     iterations.add_arguments(parser)
     bench_args = parser.parse_args([
-        "--seeds", str(args.seed), "--warm-starts", f"none,builtin,{servers}",
+        "--seeds", str(args.seed), "--warm-starts", f"none,builtin,{servers},{shadow}",
         "--models", str(args.models), "--out", str(args.out),
     ])
-    print(f"deepcontact demo: thesis world, seed {args.seed}; warm starts none, builtin, {servers} "
-          f"(a server on a free loopback port)", file=sys.stderr)
+    print(f"deepcontact demo: thesis world, seed {args.seed}; warm starts none, builtin, {servers}, and "
+          f"{shadow} (the same states priced for each) (a server on a free loopback port)", file=sys.stderr)
     code = iterations.run(bench_args)
     if code == 0:
         print(f"figures and table in {args.out}/ (fig20_contacts_iterations.png, fig21_convergence.png, "

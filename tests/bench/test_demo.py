@@ -18,8 +18,10 @@ def test_the_demo_runs_the_shipped_selection_and_names_what_an_alias_is(tmp_path
     captured = capsys.readouterr()
     assert "default is tiny" in captured.err
     assert "| server:default |" in captured.out and "| builtin |" in captured.out
+    assert "`shadow:server:default`: every candidate solved from the same state" in captured.out
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["warm_starts"]) == {"none", "builtin", "server:default"}
+    assert set(summary["warm_starts"]) == {"none", "builtin", "server:default", "shadow:server:default"}
+    assert summary["picks"]["shadow:server:default"]["candidates"] == ["builtin", "server:default"]
 
 
 def test_the_demo_says_which_card_is_missing(tmp_path, capsys):
