@@ -52,7 +52,11 @@ TIMING_FIELDS = ("p50_latency_ms", "p99_latency_ms", "median_client_us", "total_
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser)
     parser.add_argument("--seeds", default="901-910", help="benchmark seeds (default 901-910)")
-    parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS, help=f"comma-separated (default {DEFAULT_WARM_STARTS})")
+    parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS,
+                        help=f"comma-separated (default {DEFAULT_WARM_STARTS}); shadow:W1+W2+... serves W1 and "
+                             "prices builtin and W2... on its very states (the engine's trial solves), pick:W1+W2+... "
+                             "keeps the cheapest each step; both print a same-state table "
+                             "(all names: simclient/warmstarts.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
                              "over replicas); server: warm starts with --ray ADDRESS need it, as the cluster's "
