@@ -27,6 +27,8 @@ contact point, given Box2D's builtin warm start sent in the request:
                   there are noise the solver must first remove
     "new-points"  the model's impulse where the point is new this step
                   (builtin exactly zero), builtin where it persists
+    "persisting"  "residual" where the point persists, builtin (zero) where
+                  it is new: the value of a warm start lies at persisting points
 Several cards may name the same ONNX file, e.g. one model served two ways.
 
 An alias card serves another card's model under a second name, so that users
@@ -51,7 +53,7 @@ from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
 
 CARD_VERSION = 1
-COMBINE = ("replace", "residual", "new-points")
+COMBINE = ("replace", "residual", "new-points", "persisting")
 ALIAS_KEYS = frozenset({"name", "alias_of", "why"})
 
 
@@ -68,9 +70,9 @@ class ModelCard:
     fixed_grid: bool
     input_name: str = "grids"
     output_name: str = "impulses"
-    combine: str = "replace"  # "replace", "residual" or "new-points" (see above)
-    correction_scale: float = 1.0  # "residual": builtin + correction_scale x the model's correction
-    correction_threshold: float = 0.0  # "residual": drop corrections whose normal part is at most this (N s)
+    combine: str = "replace"  # "replace", "residual", "new-points" or "persisting" (see above)
+    correction_scale: float = 1.0  # "residual", "persisting": builtin + correction_scale x the model's correction
+    correction_threshold: float = 0.0  # "residual", "persisting": drop corrections whose normal part is at most this (N s)
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...

@@ -190,7 +190,7 @@ class ModelPredictor(Predictor):
                              f"{card.output_name!r}, the model has {inputs} and {outputs}")
         self._specs = _DomainSpecs(card.gridspec, card.fixed_grid, card.name, normalization=True,
                                    max_nodes=max_grid_nodes)
-        combined = ("builtin",) if card.combine in ("residual", "new-points") else ()
+        combined = ("builtin",) if card.combine in ("residual", "new-points", "persisting") else ()
         self.requires = tuple(sorted(set(needs(card.gridspec.inputs) + combined)))
         self.infer = self.run_session
         self._warm_shapes: set[tuple[int, ...]] = set()
@@ -268,7 +268,7 @@ class GraphPredictor(Predictor):
         self.inputs = spec.inputs
         self.in_mean, self.in_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.inputs))
         self.out_mean, self.out_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.targets))
-        combined = ("builtin",) if card.combine in ("residual", "new-points") else ()
+        combined = ("builtin",) if card.combine in ("residual", "new-points", "persisting") else ()
         self.requires = tuple(sorted(set(needs(spec.inputs) + combined + ("point_bodies",))))
         self.infer = self.run_session
         self.run_session(np.zeros((1, len(self.inputs)), np.float32), np.zeros((1, 2), np.int32),
@@ -305,6 +305,9 @@ def combine(how: str, predicted: np.ndarray, builtin: np.ndarray, scale: float =
     request's builtin warm start (both (P, 2)); see deepcontact.modelcard.
     A residual model's correction is dropped where its normal part is at most
     `threshold` N s, and multiplied by `scale` elsewhere."""
+    if how == "persisting":  # the correction at points Box2D already warm-starts only
+        predicted = predicted * builtin.any(axis=1)[:, None]
+        how = "residual"
     if how == "residual":
         if threshold > 0.0:
             predicted = predicted * (np.abs(predicted[:, :1]) > threshold)

@@ -2,7 +2,7 @@
 # The shipped default and the thesis's models from nothing (make default-model): data,
 # training, ONNX export, cards, evaluation on the validation seeds.
 #
-#   models/graph-projected-max-1-799-long-e2.onnx + .json, -t1.json
+#   models/graph-projected-max-1-799-long-e2.onnx + .json, -t1.json, -persisting.json
 #                         the contact-graph model (message passing over the contact points)
 #                         trained on 1,598 simulations of the thesis world and the scene
 #                         family: the squared error for 16 epochs, then the loss the solver's

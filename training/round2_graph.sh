@@ -43,8 +43,9 @@
 #                              instead of 16, 64 and 256: nearer the ~300 sweeps the solver takes
 #                              (with a -t1 card); 27 min on two cores shared with other runs
 #   graph-projected-max-1-799-long-e2  1 more epoch of -long from its weights, on other steps
-#                              (--seed 1) at half its rate (with a -t1 card): does the long-sweep
-#                              loss keep paying with more training?
+#                              (--seed 1) at half its rate (with a -t1 card, and a -persisting one
+#                              that serves its correction at persisting points only): does the
+#                              long-sweep loss keep paying with more training?
 #   graph-projected-max-1-799-long-e3  1 more epoch of -long-e2 from its weights, on other steps
 #                              again (--seed 2) at half its rate (with a -t1 card); from a fresh
 #                              clone, `python -m training.recover_weights` on -long-e2's card
@@ -173,7 +174,8 @@ run() {
               variant graph-projected-max-1-799-long-e2 --loss solver-projected-max --sweeps 256,1024 \
                   --max-steps-per-file 3000 --epochs 1 --lr 1.25e-4 --seed 1 \
                   --init runs/graph-cache/graph-projected-max-1-799-long.weights.npz )
-            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --correction-threshold 1.0 ;;
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --correction-threshold 1.0
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --combine persisting ;;
         graph-projected-max-1-799-long-e3)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             ( ulimit -s 524288   # as for graph-projected-max-1-799-long

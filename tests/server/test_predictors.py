@@ -164,6 +164,8 @@ def test_combine_serves_model_builtin_or_both():
     np.testing.assert_array_equal(combine("replace", predicted, builtin), predicted)
     np.testing.assert_array_equal(combine("residual", predicted, builtin), predicted + builtin)
     np.testing.assert_array_equal(combine("new-points", predicted, builtin), np.array([[0.5, 0.0], [2.0, 0.2], [0.0, -0.1]], np.float32))
+    # "persisting": the correction where Box2D already warm-starts the point, nothing at new ones.
+    np.testing.assert_allclose(combine("persisting", predicted, builtin), np.array([[1.5, 0.1], [0.0, 0.0], [3.0, 0.2]], np.float32))
     # A card's correction_scale shrinks a residual model's correction.
     np.testing.assert_allclose(combine("residual", predicted, builtin, 0.5), builtin + 0.5 * predicted)
     # Its correction_threshold drops the corrections whose normal part is at most that.
