@@ -232,9 +232,9 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     mean on this trajectory over its mean on its own, paired by seed. A
     closed-loop ratio is the candidate's same-state ratio times that.
     """
-    if not name.startswith(("pick:", "shadow:")) or not any(r.get("trials") for r in results):
+    if not name.startswith(("pick:", "shadow:", "mean:")) or not any(r.get("trials") for r in results):
         return None
-    candidates = ["builtin", *(c.name for c in make_provider(name).candidates)]
+    candidates = make_provider(name).labels
     width = len(candidates)
     per_seed = [np.array([t for t in r.get("trials", []) if len(t) == width], float).reshape(-1, width)
                 for r in results]  # (steps, candidates) iterations per seed
@@ -254,7 +254,7 @@ def pick_table(picks: dict) -> str:
     """The trial solves of each `pick:` and `shadow:` warm start as markdown ('' without one)."""
     lines = []
     for name, p in picks.items():
-        whose = "the first candidate's" if name.startswith("shadow:") else "the picked"
+        whose = {"shadow:": "the first candidate's", "mean:": "the mean's"}.get(name[:name.index(":") + 1], "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",
                   "| candidate | mean iterations | / builtin | picked | better than builtin | worse |",

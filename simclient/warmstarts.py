@@ -54,6 +54,8 @@ Oracle over warm starts:
                  among them is worth. A solve per candidate; not one a server could serve
     shadow:W1+W2+...  serves W1 every step, as W1 alone would, and trial-solves builtin
                  and the others beside it: each against builtin on W1's own trajectory
+    mean:W1+W2+...  serves the mean of W1, W2, ... and trial-solves builtin, each of them
+                 and the mean on the same states: does averaging two kinds of guess pay?
 """
 
 from __future__ import annotations
@@ -398,13 +400,19 @@ class Pick(Provider):
 
     picks = True
 
-    def __init__(self, candidates: list[Provider], serve_first: bool = False):
+    MODES = ("pick", "shadow", "mean")
+
+    def __init__(self, candidates: list[Provider], mode: str = "pick"):
+        if mode not in self.MODES:
+            raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
         self.candidates = candidates
-        self.serve_first = serve_first  # shadow: always serve the first candidate, trial-solve the rest beside it
+        # pick: serve the cheapest; shadow: serve the first, price the others beside it;
+        # mean: serve the candidates' mean, price it and each of them on the same state
+        self.mode = mode
         for i, c in enumerate(candidates):
             if isinstance(c, Jitter):
                 c.reseed(i)  # two jitters in one pick draw different noise
-        self.name = ("shadow:" if serve_first else "pick:") + "+".join(c.name for c in candidates)
+        self.name = f"{mode}:" + "+".join(c.name for c in candidates)
         self.uses_server = any(c.uses_server for c in candidates)
         self.sends_oracle = False
         self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
@@ -412,6 +420,11 @@ class Pick(Provider):
     @property
     def models(self) -> tuple[str, ...]:
         return tuple(m for c in self.candidates if c.uses_server for m in c.models)
+
+    @property
+    def labels(self) -> list[str]:
+        """What each entry of a trials row priced: builtin, the candidates (and their mean)."""
+        return ["builtin", *(c.name for c in self.candidates)] + (["mean"] if self.mode == "mean" else [])
 
     @property
     def model(self) -> str:
@@ -430,24 +443,30 @@ class Pick(Provider):
         candidates' (`served`: (normal, tangent) each, or None for Box2D's own)."""
         builtin = (np.ascontiguousarray(points["builtin"][:, 0]), np.ascontiguousarray(points["builtin"][:, 1]))
         candidates = [builtin] + [builtin if w is None else w for w in served]
+        if self.mode == "mean":
+            normal = np.mean([w[0] for w in candidates[1:]], axis=0, dtype=np.float64)
+            tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
+            candidates.append(_as_warm_start(np.stack([normal, tangent], axis=1)))
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
-        if self.serve_first:
+        if self.mode == "shadow":
             return candidates[1]
+        if self.mode == "mean":
+            return candidates[-1]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
 
 
 def make_provider(name: str) -> Provider:
     """ValueError for an unknown name."""
-    for prefix in ("pick:", "shadow:"):
+    for prefix in ("pick:", "shadow:", "mean:"):
         if name.startswith(prefix):
             names = [n for n in name[len(prefix):].split("+") if n]
-            if not names or any(n.startswith(("pick:", "shadow:")) for n in names):
+            if not names or any(n.startswith(("pick:", "shadow:", "mean:")) for n in names):
                 raise ValueError(f"{prefix} takes warm starts joined by +, e.g. {prefix}server:default+server:pressure, "
                                  f"got {name!r}")
             if any(n in ("none", "builtin") for n in names):
                 raise ValueError(f"{prefix} always tries builtin; for zeros use server:zero, got {name!r}")
-            return Pick([make_provider(n) for n in names], serve_first=prefix == "shadow:")
+            return Pick([make_provider(n) for n in names], mode=prefix[:-1])
     if name.startswith("server:"):
         model = name.split(":", 1)[1]
         if not model:

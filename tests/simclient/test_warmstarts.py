@@ -85,6 +85,15 @@ def test_shadow_serves_its_first_candidate_as_it_would_alone_and_prices_builtin_
     assert [t[1] for t in shadowed["trials"]] == its  # builtin's count on the same states is t[0]
 
 
+def test_mean_serves_the_candidates_mean_and_prices_it_beside_each_of_them():
+    provider = make_provider("mean:jitter@0.1+jitter@0.1")
+    assert provider.labels == ["builtin", "jitter@0.1", "jitter@0.1", "mean"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    assert [t[3] for t in served["trials"]] == its
+    assert any(t[3] not in (t[1], t[2]) for t in served["trials"])  # the mean is neither candidate
+
+
 def test_a_shadow_whose_server_is_away_serves_builtin_and_counts_the_fallbacks():
     shadowed = run_simulation(SHORT, 901, make_provider("shadow:server:zero"), client=None)
     builtin = run_simulation(SHORT, 901, make_provider("builtin"))
