@@ -55,7 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS,
                         help=f"comma-separated (default {DEFAULT_WARM_STARTS}); shadow:W1+W2+... serves W1 and "
                              "prices builtin and W2... on its very states (the engine's trial solves), pick:W1+W2+... "
-                             "keeps the cheapest each step; both print a same-state table "
+                             "keeps the cheapest each step, price:W1+W2+... serves builtin and prices W1, W2... on its "
+                             "states (the same in every run: checkpoints and models compared apart); all print a same-state table "
                              "(all names: simclient/warmstarts.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
@@ -220,7 +221,8 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
 
 
 def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = None) -> dict | None:
-    """What the trial solves of a `pick:` or `shadow:` warm start saw, or None for another warm start.
+    """What the trial solves of a `pick:`, `shadow:`, `mean:` or `price:` warm start saw, or None
+    for another warm start.
 
     Every candidate (builtin, then the others) was solved from the same state at
     every step with contacts (the picked trajectory's): per candidate, its mean
@@ -232,7 +234,7 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     mean on this trajectory over its mean on its own, paired by seed. A
     closed-loop ratio is the candidate's same-state ratio times that.
     """
-    if not name.startswith(("pick:", "shadow:", "mean:")) or not any(r.get("trials") for r in results):
+    if not name.startswith(("pick:", "shadow:", "mean:", "price:")) or not any(r.get("trials") for r in results):
         return None
     candidates = make_provider(name).labels
     width = len(candidates)
@@ -251,10 +253,10 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
 
 
 def pick_table(picks: dict) -> str:
-    """The trial solves of each `pick:` and `shadow:` warm start as markdown ('' without one)."""
+    """The trial solves of each `pick:`, `shadow:`, `mean:` and `price:` warm start as markdown ('' without one)."""
     lines = []
     for name, p in picks.items():
-        whose = {"shadow:": "the first candidate's", "mean:": "the mean's"}.get(name[:name.index(":") + 1], "the picked")
+        whose = {"shadow:": "the first candidate's", "mean:": "the mean's", "price:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",
                   "| candidate | mean iterations | / builtin | picked | better than builtin | worse |",

@@ -109,8 +109,8 @@ def _ask_server(client, provider: Provider, engine, k: int, bodies, points, time
 
 
 def _pick(provider, client, engine, k: int, bodies, points, timeout: float) -> _Served:
-    """A pick:/shadow: oracle's warm start for step k: every candidate asked, the cheapest (or
-    the first) by trial solves. A server candidate that fell back is priced as builtin, and
+    """A pick:/shadow:/mean:/price: oracle's warm start for step k: every candidate asked and
+    priced by trial solves, the cheapest (or the first, their mean, builtin) served. A server candidate that fell back is priced as builtin, and
     the step counts as a fallback."""
     if len(points) == 0:
         return _Served()

@@ -56,6 +56,10 @@ Oracle over warm starts:
                  and the others beside it: each against builtin on W1's own trajectory
     mean:W1+W2+...  serves the mean of W1, W2, ... and trial-solves builtin, each of them
                  and the mean on the same states: does averaging two kinds of guess pay?
+    price:W1+W2+...  serves builtin, so its steps are Builtin's own, and trial-solves
+                 W1, W2, ... beside it: every model priced on one set of states, the same
+                 in every run, so two models (or two checkpoints) measured apart are
+                 compared step by step, with no trajectory between them
 """
 
 from __future__ import annotations
@@ -400,14 +404,16 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean")
+    MODES = ("pick", "shadow", "mean", "price")
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
         if mode not in self.MODES:
             raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
         self.candidates = candidates
         # pick: serve the cheapest; shadow: serve the first, price the others beside it;
-        # mean: serve the candidates' mean, price it and each of them on the same state
+        # mean: serve the candidates' mean, price it and each of them on the same state;
+        # price: serve builtin, price the candidates on its states (the same states for every
+        # model and every run: a paired, trajectory-free comparison of any two models)
         self.mode = mode
         for i, c in enumerate(candidates):
             if isinstance(c, Jitter):
@@ -451,6 +457,8 @@ class Pick(Provider):
         self.trials.append(iterations)
         if self.mode == "shadow":
             return candidates[1]
+        if self.mode == "price":
+            return builtin  # the trials left the last candidate's as the step's warm start
         if self.mode == "mean":
             return candidates[-1]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
@@ -458,10 +466,10 @@ class Pick(Provider):
 
 def make_provider(name: str) -> Provider:
     """ValueError for an unknown name."""
-    for prefix in ("pick:", "shadow:", "mean:"):
+    for prefix in ("pick:", "shadow:", "mean:", "price:"):
         if name.startswith(prefix):
             names = [n for n in name[len(prefix):].split("+") if n]
-            if not names or any(n.startswith(("pick:", "shadow:", "mean:")) for n in names):
+            if not names or any(n.startswith(("pick:", "shadow:", "mean:", "price:")) for n in names):
                 raise ValueError(f"{prefix} takes warm starts joined by +, e.g. {prefix}server:default+server:pressure, "
                                  f"got {name!r}")
             if any(n in ("none", "builtin") for n in names):

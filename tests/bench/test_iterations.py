@@ -14,18 +14,24 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
     write_conv_model(models, "tiny")
     out = tmp_path / "out"
     assert main(["bench", "iterations", "--seeds", "901", "--steps", "30", "--warm-starts",
-                 "none,builtin,extrapolate,server:tiny,server:grid-identity,pick:server:tiny+server:zero", "--models", str(models),
+                 "none,builtin,extrapolate,server:tiny,server:grid-identity,pick:server:tiny+server:zero,price:server:tiny",
+                 "--models", str(models),
                  "--deadline-ms", "1000", "--out", str(out), "--quiet"]) == 0
     written = json.loads((out / "summary.json").read_text())
     summary = written["warm_starts"]
-    assert set(summary) == {"none", "builtin", "extrapolate", "server:tiny", "server:grid-identity", "pick:server:tiny+server:zero"}
+    assert set(summary) == {"none", "builtin", "extrapolate", "server:tiny", "server:grid-identity", "pick:server:tiny+server:zero",
+                            "price:server:tiny"}
     assert summary["server:tiny"]["p50_latency_ms"] > 0 and summary["server:tiny"]["fallback_steps"] == 0
     pick = written["picks"]["pick:server:tiny+server:zero"]  # the trial solves: every candidate on the same states
     assert pick["candidates"] == ["builtin", "server:tiny", "server:zero"] and pick["over_builtin"][0]["value"] == 1.0
     assert abs(sum(pick["picked"]) - 1.0) < 1e-9
     assert pick["steps"] == summary["pick:server:tiny+server:zero"]["steps_with_contacts"]
     assert pick["trajectory"]["seeds"] == 1 and pick["trajectory"]["value"] > 0  # builtin here against on its own
+    priced = written["picks"]["price:server:tiny"]  # served builtin: Builtin's own trajectory
+    assert priced["trajectory"]["value"] == 1.0
+    assert summary["price:server:tiny"]["mean_velocity_iterations"] == summary["builtin"]["mean_velocity_iterations"]
     table = (out / "results.md").read_text()
+    assert "`price:server:tiny`: every candidate solved from the same state at each of" in table
     assert "| builtin |" in table and "`pick:server:tiny+server:zero`: every candidate" in table
     for fig in ("fig20_contacts_iterations.png", "fig21_convergence.png", "fig26_mse.png"):
         assert (out / fig).stat().st_size > 10_000

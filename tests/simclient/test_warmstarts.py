@@ -71,6 +71,7 @@ def test_unknown_warm_starts_are_refused():
         make_provider("oracle:grid@-1")
     for name, why in (("pick:", "joined by"), ("pick:pick:server:a", "joined by"), ("pick:builtin", "always tries"),
                       ("shadow:none", "always tries"), ("shadow:pick:jitter@1", "joined by"),
+                      ("price:builtin", "always tries"), ("price:price:jitter@1", "joined by"),
                       ("pick:server:", "model name"), ("pick:magic", "unknown warm start"), ("jitter@0", "noise level")):
         with pytest.raises(ValueError, match=why):
             make_provider(name)
@@ -83,6 +84,18 @@ def test_shadow_serves_its_first_candidate_as_it_would_alone_and_prices_builtin_
     assert shadowed["per_step"]["velocity_iterations"] == alone["per_step"]["velocity_iterations"]
     its = [i for i, n in zip(alone["per_step"]["velocity_iterations"], alone["per_step"]["contact_points"]) if n]
     assert [t[1] for t in shadowed["trials"]] == its  # builtin's count on the same states is t[0]
+
+
+def test_price_steps_as_builtin_and_prices_each_candidate_on_builtins_states():
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    jitter = run_simulation(SHORT, 901, make_provider("shadow:jitter@0.01"))
+    priced = run_simulation(SHORT, 901, make_provider("price:jitter@0.01"))
+    assert priced["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
+    its = [i for i, n in zip(builtin["per_step"]["velocity_iterations"], builtin["per_step"]["contact_points"]) if n]
+    assert [t[0] for t in priced["trials"]] == its  # a trial from builtin's start is the step's own solve
+    # the same states in every run: a second run prices the same candidate the same way
+    assert run_simulation(SHORT, 901, make_provider("price:jitter@0.01"))["trials"] == priced["trials"]
+    assert [t[1] for t in priced["trials"]] != [t[1] for t in jitter["trials"]]  # jitter's own states differ
 
 
 def test_mean_serves_the_candidates_mean_and_prices_it_beside_each_of_them():
