@@ -113,6 +113,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start from these weights (the .weights.npz an earlier run left in --cache) instead of "
                              "random ones, for more epochs on a new schedule; same --width and --rounds, and the same "
                              "--train files, whose mean and std the weights were trained against")
+    parser.add_argument("--checkpoints", type=Path, metavar="DIR",
+                        help="also write every epoch's network to DIR as NAME-eK.onnx with its card, a models "
+                             "folder that `deepcontact bench iterations --models DIR --warm-starts "
+                             "builtin,price:server:NAME-e1+server:NAME-e2+...` prices on Builtin's own states: "
+                             "the epochs compared in iterations, step by step (docs/models.md)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -367,9 +372,14 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     net.tf.random.set_seed(args.seed)
     residual_scales = _residual_scales(train, args) if args.loss in ("solver", "solver-projected") else [1.0]
     batch_loss = BatchLoss(net, args, scaling, residual_scales, spec.inputs)
-    fitted, validate = _train(net, train, val, args, scaling, batch_loss)
-    return _write(net, fitted, validate, spec, scaling, args, command=command, read_seconds=read_seconds,
-                  sources=sources, val_sources=val_sources, train=train, val=val)
+    describe = _CardParts(spec, args, command=command, read_seconds=read_seconds, sources=sources,
+                          val_sources=val_sources, train=train, val=val)
+    checkpoint = None
+    if getattr(args, "checkpoints", None) is not None:
+        def checkpoint(epoch: int, fitted_so_far: "Fitted") -> None:
+            _write_checkpoint(net, epoch, fitted_so_far, describe, scaling, val)
+    fitted, validate = _train(net, train, val, args, scaling, batch_loss, on_epoch=checkpoint)
+    return _write(net, fitted, validate, describe, scaling, val)
 
 
 def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
@@ -418,10 +428,11 @@ def _compiled_steps(net, batch_loss, lr: float):
     return optimizer, train_step, val_step
 
 
-def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss):
+def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss, on_epoch=None):
     """Adam on a cosine schedule over args.epochs, stopping after args.patience epochs
     without a better validation loss. Returns (Fitted, validate), validate() scoring
-    the net's current weights on `val`."""
+    the net's current weights on `val`. on_epoch(epoch, fitted) is called after each
+    epoch's validation, the net holding that epoch's weights."""
     optimizer, train_step, val_step = _compiled_steps(net, batch_loss, args.lr)
 
     def validate() -> float:
@@ -463,6 +474,8 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
             fitted.loss, fitted.epoch, fitted.weights = val_loss, epoch, net.weights()
         print(f"epoch {epoch}: train {np.mean(losses):.4f}  val {val_loss:.4f}{'  (best)' if better else ''}",
               flush=True)
+        if on_epoch is not None:
+            on_epoch(epoch, fitted)
         if epoch - fitted.epoch >= args.patience:
             fitted.stop_reason = f"no better validation loss for {args.patience} epochs"
             break
@@ -470,14 +483,54 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     return fitted, validate
 
 
-def _write(net, fitted: Fitted, validate, spec: GridSpec, scaling: Scaling, args, *, command: str,
-           read_seconds: float, sources: list[str], val_sources: list[str], train: list[GraphSet],
-           val: list[GraphSet]) -> ModelCard:
-    """Export the best weights to args.out (ONNX, checked against TensorFlow) with their card."""
-    from training.graph_model import ContactGraphNet, config_to_dict, count_parameters, to_onnx
+@dataclasses.dataclass
+class _CardParts:
+    """What every card of one run shares: the final model's and each checkpoint's."""
 
-    config = net.config
-    final = ContactGraphNet(config, fitted.weights)
+    spec: GridSpec
+    args: argparse.Namespace
+    command: str
+    read_seconds: float
+    sources: list[str]
+    val_sources: list[str]
+    train: list[GraphSet]
+    val: list[GraphSet]
+
+    def card(self, net, weights: dict[str, np.ndarray], onnx_bytes: bytes, *, name: str, onnx_file: str,
+             parity: float, fitted: Fitted, validation: dict, **training) -> ModelCard:
+        """A graph card for these weights; `training` adds to or overrides the card's training record."""
+        from training.graph_model import config_to_dict, count_parameters
+
+        args, params = self.args, count_parameters(weights)
+        return ModelCard(
+            name=name, kind="graph", onnx_file=onnx_file, gridspec=self.spec, fixed_grid=False,
+            input_name="points", output_name="impulses", combine=args.combine, parameters=params,
+            architecture={"config": config_to_dict(net.config), "parameters": {"total": params, "trainable": params},
+                          "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "tensorflow": net.tf.__version__},
+            training={"train": [{"path": s, "steps_used": len(g), "points": len(g.targets)}
+                                for s, g in zip(self.sources, self.train)],
+                      "val": [{"path": s, "steps_used": len(g), "points": len(g.targets)}
+                              for s, g in zip(self.val_sources, self.val)],
+                      "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
+                                                                   "rounds", "pooled", "tangent_weight", "seed", "loss",
+                                                                   "sweeps", "omega", "max_steps_per_file", "max_val_steps")},
+                      "init": None if args.init is None else str(args.init),
+                      "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
+                      "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
+                      "read_seconds": round(self.read_seconds, 1), "history": list(fitted.history),
+                      "machine": machine.describe(), **training},
+            validation={**validation, "points": int(sum(len(g.targets) for g in self.val))},
+            parity_max_abs_error=parity,
+            commands=(self.command,),
+        )
+
+
+def _write(net, fitted: Fitted, validate, parts: _CardParts, scaling: Scaling, val: list[GraphSet]) -> ModelCard:
+    """Export the best weights to args.out (ONNX, checked against TensorFlow) with their card."""
+    from training.graph_model import ContactGraphNet, to_onnx
+
+    args = parts.args
+    final = ContactGraphNet(net.config, fitted.weights)
     onnx_bytes = to_onnx(final)
     parity = _parity(final, onnx_bytes, scaling.batch(val[0], np.arange(min(8, len(val[0])))))
     # The loss of a model that predicts no correction: Box2D's own warm start.
@@ -487,29 +540,31 @@ def _write(net, fitted: Fitted, validate, spec: GridSpec, scaling: Scaling, args
     out = Path(args.out)
     write_bytes_atomic(out, onnx_bytes)
     _save_npz(Path(args.cache) / f"{out.stem}.weights.npz", fitted.weights)
-    params = count_parameters(fitted.weights)
-    card = ModelCard(
-        name=args.name or out.stem, kind="graph", onnx_file=out.name, gridspec=spec, fixed_grid=False,
-        input_name="points", output_name="impulses", combine=args.combine, parameters=params,
-        architecture={"config": config_to_dict(config), "parameters": {"total": params, "trainable": params},
-                      "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "tensorflow": net.tf.__version__},
-        training={"train": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(sources, train)],
-                  "val": [{"path": s, "steps_used": len(g), "points": len(g.targets)} for s, g in zip(val_sources, val)],
-                  "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
-                                                               "rounds", "pooled", "tangent_weight", "seed", "loss", "sweeps", "omega",
-                                                               "max_steps_per_file", "max_val_steps")},
-                  "init": None if args.init is None else str(args.init),
-                  "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
-                  "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
-                  "read_seconds": round(read_seconds, 1), "history": fitted.history,
-                  "machine": machine.describe()},
-        validation={"epoch": fitted.epoch, "loss": fitted.loss, "loss_no_correction": no_correction,
-                    "points": int(sum(len(g.targets) for g in val))},
-        parity_max_abs_error=parity,
-        commands=(command,),
-    )
+    card = parts.card(final, fitted.weights, onnx_bytes, name=args.name or out.stem, onnx_file=out.name,
+                      parity=parity, fitted=fitted,
+                      validation={"epoch": fitted.epoch, "loss": fitted.loss, "loss_no_correction": no_correction})
     card.save(out.with_suffix(".json"))
     return card
+
+
+def _write_checkpoint(net, epoch: int, fitted: Fitted, parts: _CardParts, scaling: Scaling,
+                      val: list[GraphSet]) -> Path:
+    """This epoch's network (the net's current weights) as DIR/NAME-eK.onnx and its card,
+    DIR being args.checkpoints; the card's validation loss is this epoch's."""
+    from training.graph_model import to_onnx
+
+    args = parts.args
+    name = f"{args.name or Path(args.out).stem}-e{epoch}"
+    folder = Path(args.checkpoints)
+    folder.mkdir(parents=True, exist_ok=True)
+    onnx_bytes = to_onnx(net)
+    parity = _parity(net, onnx_bytes, scaling.batch(val[0], np.arange(min(8, len(val[0])))))
+    write_bytes_atomic(folder / f"{name}.onnx", onnx_bytes)
+    card = parts.card(net, net.weights(), onnx_bytes, name=name, onnx_file=f"{name}.onnx", parity=parity,
+                      fitted=fitted, validation={"epoch": epoch, "loss": fitted.history[-1][2]},
+                      checkpoint_of=args.name or Path(args.out).stem, epoch=epoch)
+    card.save(folder / f"{name}.json")
+    return folder / f"{name}.json"
 
 
 def _residual_scales(train: list[GraphSet], args) -> list[float]:

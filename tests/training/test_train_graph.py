@@ -269,3 +269,25 @@ def test_a_graph_model_refuses_requests_without_the_points_bodies(graph_models, 
         server.stop()
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "each point's two bodies" in err.value.details()
+
+
+def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins_states(data, tmp_path):
+    checkpoints = tmp_path / "epochs"
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"),
+                 "--out", str(tmp_path / "g.onnx"), "--epochs", "2", "--batch-size", "4", "--width", "8",
+                 "--rounds", "1", "--loss", "mse", "--cache", str(tmp_path / "cache"),
+                 "--checkpoints", str(checkpoints), "--quiet"]) == 0
+    final = json.loads((tmp_path / "g.json").read_text())
+    cards = [json.loads((checkpoints / f"g-e{k}.json").read_text()) for k in (1, 2)]
+    assert [c["training"]["epoch"] for c in cards] == [1, 2] and cards[1]["training"]["checkpoint_of"] == "g"
+    assert [c["validation"]["loss"] for c in cards] == [h[2] for h in final["training"]["history"]]
+    best = cards[final["validation"]["epoch"] - 1]
+    assert best["validation"]["loss"] == pytest.approx(final["validation"]["loss"])
+    # The folder is a models folder: both epochs priced, in one run, on the same (Builtin's) states.
+    out = tmp_path / "priced"
+    assert main(["bench", "iterations", "--models", str(checkpoints), "--seeds", "901", "--steps", "20",
+                 "--warm-starts", "builtin,price:server:g-e1+server:g-e2", "--deadline-ms", "1000",
+                 "--out", str(out), "--quiet"]) == 0
+    priced = json.loads((out / "summary.json").read_text())["picks"]["price:server:g-e1+server:g-e2"]
+    assert priced["candidates"] == ["builtin", "server:g-e1", "server:g-e2"]
+    assert priced["trajectory"]["value"] == 1.0 and all(r["value"] > 0 for r in priced["over_builtin"])
