@@ -31,6 +31,9 @@
 #                              step, the log of the largest change a sweep still makes over
 #                              Box2D's warm start's (--loss solver-projected-max), 2 epochs
 #                              (with -t1, -t0.3 and -t2 cards; -t1 is the default)
+#   graph-projected-max-epochs graph-projected-max-1-799's recipe for 6 epochs, every epoch kept
+#                              (--checkpoints) under runs/epochs/ to be priced with price: (not
+#                              shipped); about 32 min
 #   graph-projected-max-1-799-seed1, -seed2  graph-projected-max-1-799's recipe with --seed 1 (2):
 #                              other steps in another order, from the same weights (with -t1
 #                              cards): how far two draws of one recipe differ
@@ -138,6 +141,16 @@ run() {
             for t in 1.0 0.3 2.0; do   # 1 N s is the default's; the others are in the ablation
                 "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799.json" --correction-threshold $t
             done ;;
+        graph-projected-max-epochs)
+            # graph-projected-max-1-799's recipe for 6 epochs instead of 2, every epoch kept as a
+            # model (runs/epochs/graph-projected-max-epochs/, not shipped) to be priced in
+            # iterations on Builtin's states (docs/results.md, "The epochs priced")
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            local OUT=runs/epochs
+            mkdir -p "$OUT"
+            variant graph-projected-max-epochs --loss solver-projected-max --max-steps-per-file 3000 --epochs 6 \
+                --patience 6 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz \
+                --checkpoints runs/epochs/graph-projected-max-epochs ;;
         graph-projected-max-1-799-seed1|graph-projected-max-1-799-seed2)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             # graph-projected-max-1-799's recipe, other steps and order (--seed overrides DATA's)
