@@ -85,7 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
     parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log", "solver-projected",
-                                           "solver-projected-max"),
+                                           "solver-projected-max", "solver-projected-sweeps"),
                         default="solver",
                         help="mse: squared error of the correction at every point; relative: each point's error "
                              "over its own correction's size (+ 0.05 N s), so small corrections count as much as "
@@ -97,7 +97,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "friction cone), would still make after --sweeps sweeps from the served impulses, "
                              "each checkpoint scaled by Box2D's own warm start's; solver-projected-max: per step, "
                              "the log of the largest such change (an 8-norm) over Box2D's warm start's, the "
-                             "quantity the stopping rule compares with 1e-4 N s")
+                             "quantity the stopping rule compares with 1e-4 N s; solver-projected-sweeps: that "
+                             "log ratio times the sweeps per e-fold Box2D's warm start needs in that step "
+                             "(between the first and last --sweeps), an estimate of the sweeps saved, so that "
+                             "slow steps, which make the mean, count for more")
     parser.add_argument("--sweeps", default="16,64,256",
                         help="solver loss: sweep counts at which the residual is measured (default %(default)s)")
     parser.add_argument("--omega", type=float, default=0.5,
@@ -142,6 +145,10 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError
     except ValueError:
         print(f"train-graph: --sweeps takes sweep counts >= 0 like 16,64,256, got {args.sweeps!r}", file=sys.stderr)
+        return 2
+    if args.loss == "solver-projected-sweeps" and len(args.sweeps) < 2:
+        print("train-graph: --loss solver-projected-sweeps measures Box2D's pace between two --sweeps counts; "
+              f"give two or more, got {args.sweeps}", file=sys.stderr)
         return 2
     command = "deepcontact train-graph " + " ".join(shlex.quote(a) for a in sys.argv[2:])
     t0 = time.perf_counter()
@@ -234,7 +241,7 @@ class BatchLoss:
     columns. The solver losses score the error a served correction leaves, in N s."""
 
     POINT_LOSSES = ("mse", "relative")
-    PROJECTED_LOSSES = ("solver-projected", "solver-projected-max")
+    PROJECTED_LOSSES = ("solver-projected", "solver-projected-max", "solver-projected-sweeps")
 
     def __init__(self, net, args, scaling: Scaling, residual_scales: list[float], inputs: tuple[str, ...]):
         import tensorflow as tf
@@ -322,7 +329,7 @@ class BatchLoss:
                                            sweeps=args.sweeps, omega=args.omega)
 
         changes = changes_from(solution + error)
-        if args.loss == "solver-projected-max":
+        if args.loss in ("solver-projected-max", "solver-projected-sweeps"):
             # The solver stops when a sweep's largest change falls below 1e-4 N s and removes a
             # roughly fixed share per sweep, so the iterations a warm start saves go with the log
             # of that largest change; an 8-norm per step is a max that passes gradients to more
@@ -333,9 +340,20 @@ class BatchLoss:
                 return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(tf.abs(c) ** 8 * self.loss_weight, axis=1),
                                                                 step_of, n_steps) + MAX_NORM_FLOOR) / 8.0
 
+            builtin_changes = changes_from(solution + builtin_error)
             per_step = tf.add_n([log_norm(m) - log_norm(b) for m, b in
-                                 zip(changes, changes_from(solution + builtin_error))]) / len(args.sweeps)
-            return per_step, tf.ones_like(per_step)
+                                 zip(changes, builtin_changes)]) / len(args.sweeps)
+            if args.loss == "solver-projected-max":
+                return per_step, tf.ones_like(per_step)
+            # Sweeps saved ~ the log ratio times the sweeps the step needs per e-fold, which
+            # Box2D's warm start shows between the first and last checkpoint: a slow step (the
+            # hundreds of iterations that make the mean) counts for more than a quick one.
+            # At most one e-fold's floor: a step whose changes hardly fall (already below the stopping
+            # rule, about 1 in 8 of them, or stalled) weighs `span`, about 3 times the median step.
+            fall = log_norm(builtin_changes[0]) - log_norm(builtin_changes[-1])
+            span = float(args.sweeps[-1] - args.sweeps[0])
+            weight = tf.stop_gradient(span / tf.maximum(fall, 1.0))
+            return per_step * weight, weight
         per_point = tf.add_n([tf.reduce_sum(tf.square(c) * self.loss_weight, axis=1) / self.scales[j]
                               for j, c in enumerate(changes)]) / len(args.sweeps)
         return per_point, tf.ones_like(per_point)

@@ -82,7 +82,7 @@ def test_projected_sweeps_keep_the_limits_and_leave_the_recorded_solution_nearly
 
 
 @pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log", "solver-projected",
-                                  "solver-projected-max"])
+                                  "solver-projected-max", "solver-projected-sweeps"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
     out = tmp_path / "graph.onnx"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
@@ -91,7 +91,7 @@ def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data,
     card = json.loads(out.with_suffix(".json").read_text())
     assert card["kind"] == "graph" and card["combine"] == "residual" and card["input_name"] == "points"
     assert card["parity_max_abs_error"] < 1e-4
-    if loss in ("solver-log", "solver-projected-max"):  # per step, log(the model's / Box2D's): 0 for no correction
+    if loss in ("solver-log", "solver-projected-max", "solver-projected-sweeps"):  # per step, log(model's / Box2D's)
         assert card["validation"]["loss_no_correction"] == 0.0 and abs(card["validation"]["loss"]) < 1.0
     else:
         assert card["validation"]["loss"] <= card["validation"]["loss_no_correction"] * 1.5
@@ -113,6 +113,8 @@ def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "m.onnx"), "--omega", "1.5"]) == 2
     assert "--omega" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "m.onnx"), "--loss", "solver-projected-sweeps", "--sweeps", "64"]) == 2
+    assert "two or more" in capsys.readouterr().err
 
 
 def test_oracle_targets_fit_the_correction_to_the_converged_solve(data, tmp_path, capsys):
