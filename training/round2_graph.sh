@@ -33,7 +33,10 @@
 #                              (with -t1, -t0.3 and -t2 cards; -t1 is the default)
 #   graph-projected-max-epochs graph-projected-max-1-799's recipe for 6 epochs, every epoch kept
 #                              (--checkpoints) under runs/epochs/ to be priced with price: (not
-#                              shipped); about 32 min
+#                              shipped); about 10 min
+#   graph-projected-sweeps-1-799  graph-projected-max-1-799's recipe with --loss
+#                              solver-projected-sweeps (slow steps weigh more), 2 epochs, each kept
+#                              under runs/epochs/; about 4 min
 #   graph-projected-max-1-799-seed1, -seed2  graph-projected-max-1-799's recipe with --seed 1 (2):
 #                              other steps in another order, from the same weights (with -t1
 #                              cards): how far two draws of one recipe differ
@@ -151,6 +154,14 @@ run() {
             variant graph-projected-max-epochs --loss solver-projected-max --max-steps-per-file 3000 --epochs 6 \
                 --patience 6 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz \
                 --checkpoints runs/epochs/graph-projected-max-epochs ;;
+        graph-projected-sweeps-1-799)
+            # graph-projected-max-1-799's recipe with each step's log ratio weighted by the sweeps
+            # per e-fold Box2D's warm start needs there (--loss solver-projected-sweeps); every
+            # epoch kept under runs/epochs/ to be priced
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-sweeps-1-799 --loss solver-projected-sweeps --max-steps-per-file 3000 \
+                --epochs 2 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz \
+                --checkpoints runs/epochs/graph-projected-sweeps-1-799 ;;
         graph-projected-max-1-799-seed1|graph-projected-max-1-799-seed2)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             # graph-projected-max-1-799's recipe, other steps and order (--seed overrides DATA's)
