@@ -41,7 +41,7 @@ from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
 from simclient.scene import add_scene_arguments, spec_from_args, spec_from_dict, spec_to_dict
 from simclient.simulate import DEFAULT_DEADLINE_MS, StepRecord, run_simulation, summarize
-from simclient.warmstarts import make_provider
+from simclient.warmstarts import Pick, make_provider
 
 DEFAULT_WARM_STARTS = ("none,builtin,copy,copy2,copy0,extrapolate,"
                        "server:random,server:bad,server:grid-identity,server:pressure")
@@ -56,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated (default {DEFAULT_WARM_STARTS}); shadow:W1+W2+... serves W1 and "
                              "prices builtin and W2... on its very states (the engine's trial solves), pick:W1+W2+... "
                              "keeps the cheapest each step, price:W1+W2+... serves builtin and prices W1, W2... on its "
-                             "states (the same in every run: checkpoints and models compared apart); all print a same-state table "
+                             "states (the same in every run: checkpoints and models compared apart); all print a same-state table; "
+                             "server:* stands for every model the server serves, e.g. price:server:* "
                              "(all names: simclient/warmstarts.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
@@ -107,6 +108,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         from simclient.simulate import connect
 
+        if any(STAR in _candidates(n) for n in names):
+            try:
+                names = expand_served(names, target)
+            except (ValueError, ConnectionError) as exc:
+                print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+                return 2
+            remote = [p for p in (make_provider(n) for n in names) if p.uses_server]
         for provider in remote:
             # Fail before any work if the server is away or lacks a model; each task connects on its own.
             try:
@@ -128,6 +136,47 @@ def run(args: argparse.Namespace) -> int:
     print(table)
     print(f"wrote {args.out}/summary.json, results.md and figures")
     return 0
+
+
+STAR = "server:*"
+
+
+def expand_served(names: list[str], target: str) -> list[str]:
+    """`server:*` as every model the server at `target` serves (not its built-in providers such
+    as zero or grid-identity), in natural order (NAME-e2 before NAME-e10): a top-level entry
+    becomes one entry per model, one inside pick:/shadow:/mean:/price: one candidate per model.
+    Raises ConnectionError when the server is away, ValueError when it serves no model."""
+    import re
+
+    from simclient.client import WarmStartClient
+
+    client = WarmStartClient(target)
+    try:
+        if not client.wait_ready(10.0):
+            raise ConnectionError(f"no warm-start server at {target} to list for {STAR}")
+        served = [m.name for m in client.list_models() if m.kind != "provider"]
+    finally:
+        client.close()
+    if not served:
+        raise ValueError(f"{STAR}: the server at {target} serves no model (only providers)")
+    served.sort(key=lambda n: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", n)])
+    every = [f"server:{m}" for m in served]
+    out = []
+    for name in names:
+        if name == STAR:
+            out += every
+        elif STAR in _candidates(name):
+            head = name.partition(":")[0]
+            out.append(f"{head}:" + "+".join(c for part in _candidates(name) for c in (every if part == STAR else [part])))
+        else:
+            out.append(name)
+    return out
+
+
+def _candidates(name: str) -> list[str]:
+    """The warm starts a warm-start name stands for: a pick:/shadow:/mean:/price:'s candidates, else itself."""
+    head, _, rest = name.partition(":")
+    return rest.split("+") if head in Pick.MODES else [name]
 
 
 def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int], deadline_ms: float) -> str:
@@ -370,7 +419,10 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
         if traces:  # none in a run without contacts: the panel stays empty
             # Finished steps repeat their last residual (thesis §8.2.1), so the median stays defined.
             padded = np.array([np.pad(t, (0, max_iterations - len(t)), mode="edge") for t in traces])
-            ax2.semilogy(np.arange(1, max_iterations + 1), np.median(padded, axis=0), label=name, **style[name])
+            median = np.median(padded, axis=0)
+            ax2.plot(np.arange(1, max_iterations + 1), median, label=name, **style[name])
+            if median.max() > 0:  # the first steps of a short run may converge to no change at all
+                ax2.set_yscale("log")
     ax1.set(xlabel="iteration k", ylabel="steps still iterating (per simulation)",
             title="(a) steps needing more than k iterations")
     ax2.axhline(threshold, color="k", ls=":", lw=0.8)
@@ -379,9 +431,12 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     save_figure(fig, out / "fig21_convergence.png")
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
-    for name in runs:
-        ax1.semilogy(per_step(name, "mse_normal"), label=name, **style[name])
-        ax2.semilogy(per_step(name, "mse_tangent"), label=name, **style[name])
+    for ax, key in ((ax1, "mse_normal"), (ax2, "mse_tangent")):
+        curves = {name: per_step(name, key) for name in runs}
+        for name, curve in curves.items():
+            ax.plot(curve, label=name, **style[name])
+        if any(np.nanmax(c, initial=0.0) > 0 for c in curves.values()):  # a short run may have no error at all
+            ax.set_yscale("log")
     ax1.set(xlabel="step", ylabel="MSE (N s)^2", title="(a) warm start vs final impulse, normal")
     ax2.set(xlabel="step", ylabel="MSE (N s)^2", title="(b) tangent")
     ax2.legend(fontsize=7)

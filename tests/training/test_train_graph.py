@@ -285,10 +285,11 @@ def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins
     assert [c["validation"]["loss"] for c in cards] == [h[2] for h in final["training"]["history"]]
     best = cards[final["validation"]["epoch"] - 1]
     assert best["validation"]["loss"] == pytest.approx(final["validation"]["loss"])
-    # The folder is a models folder: both epochs priced, in one run, on the same (Builtin's) states.
+    # The folder is a models folder: both epochs priced, in one run, on the same (Builtin's) states;
+    # server:* names every model the server serves.
     out = tmp_path / "priced"
     assert main(["bench", "iterations", "--models", str(checkpoints), "--seeds", "901", "--steps", "20",
-                 "--warm-starts", "builtin,price:server:g-e1+server:g-e2", "--deadline-ms", "1000",
+                 "--warm-starts", "builtin,price:server:*", "--deadline-ms", "1000",
                  "--out", str(out), "--quiet"]) == 0
     priced = json.loads((out / "summary.json").read_text())["picks"]["price:server:g-e1+server:g-e2"]
     assert priced["candidates"] == ["builtin", "server:g-e1", "server:g-e2"]
