@@ -74,6 +74,8 @@
 #                              features per point), 3 epochs of 3,000 steps per 1-799 file
 #                              (with a -t1 card): is the default's network too small?
 #   graph-projected-max-w32    its control: the same at the default's width
+#   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
+#                              kept under runs/epochs/): more reach for the loss that gains per state
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
 #                              training/round2_data.sh first), 10,000 steps of each file, 10
@@ -239,6 +241,12 @@ run() {
             variant graph-projected-max-1-799-pooled-e4 --pooled --loss solver-projected-max --max-steps-per-file 3000 \
                 --epochs 2 --lr 2.5e-4 --seed 1 --init runs/graph-cache/graph-projected-max-1-799-pooled.weights.npz
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-pooled-e4.json" --correction-threshold 1.0 ;;
+        graph-projected-max-r6)
+            # graph-projected-max-w32's recipe with 6 message-passing rounds instead of 3: does
+            # the loss that gains per state gain from more reach? Epochs kept under runs/epochs/
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-max-r6 --loss solver-projected-max --rounds 6 --max-steps-per-file 3000 \
+                --epochs 3 --lr 1e-3 --checkpoints runs/epochs/graph-projected-max-r6 ;;
         graph-projected-max-w64|graph-projected-max-w32)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --width "${1##*-w}" --max-steps-per-file 3000 \
