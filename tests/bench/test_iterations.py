@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from deepcontact.cli import main
 from tests.server.conftest import write_conv_model
 
@@ -35,6 +37,22 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
     assert "| builtin |" in table and "`pick:server:tiny+server:zero`: every candidate" in table
     for fig in ("fig20_contacts_iterations.png", "fig21_convergence.png", "fig26_mse.png"):
         assert (out / fig).stat().st_size > 10_000
+
+
+def test_server_star_names_every_model_the_server_serves_and_no_provider(tmp_path, capsys):
+    from bench.iterations import expand_served
+    from server.process import ServerProcess
+
+    models = tmp_path / "models"
+    models.mkdir()
+    with ServerProcess(models) as server:  # providers only (zero, random, bad, grid-identity)
+        with pytest.raises(ValueError, match="serves no model"):
+            expand_served(["server:*"], server.address)
+    for name in ("tiny-e10", "tiny-e2"):
+        write_conv_model(models, name)
+    with ServerProcess(models) as server:
+        assert expand_served(["builtin", "server:*", "price:server:*+jitter@0.1"], server.address) == [
+            "builtin", "server:tiny-e2", "server:tiny-e10", "price:server:tiny-e2+server:tiny-e10+jitter@0.1"]
 
 
 def test_ratios_to_builtin_come_with_their_interval_over_seeds(tmp_path):
