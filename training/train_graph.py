@@ -48,7 +48,8 @@ TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracl
 CACHE_VERSION = 2  # GraphSet fields
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
-MAX_NORM_FLOOR = 1e-36  # (N s)^8: solver-projected-max's floor, (3e-5 N s)^8, below the 1e-4 N s stopping rule
+NORM_FLOOR = 3e-5  # N s: solver-projected-max's floor on a step's largest change, below the 1e-4 N s stopping rule
+NORMS = (2, 4, 8)  # --norm: higher ones underflow float32 (and their floor with them)
 DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
 
 
@@ -96,13 +97,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "solver-projected: the change the solver's sweeps, with their limits (normal >= 0, "
                              "friction cone), would still make after --sweeps sweeps from the served impulses, "
                              "each checkpoint scaled by Box2D's own warm start's; solver-projected-max: per step, "
-                             "the log of the largest such change (an 8-norm) over Box2D's warm start's, the "
+                             "the log of the largest such change (a --norm p-norm) over Box2D's warm start's, the "
                              "quantity the stopping rule compares with 1e-4 N s; solver-projected-sweeps: that "
                              "log ratio times the sweeps per e-fold Box2D's warm start needs in that step "
                              "(between the first and last --sweeps), an estimate of the sweeps saved, so that "
                              "slow steps, which make the mean, count for more")
     parser.add_argument("--sweeps", default="16,64,256",
                         help="solver loss: sweep counts at which the residual is measured (default %(default)s)")
+    parser.add_argument("--norm", type=int, choices=NORMS, default=8,
+                        help="solver-projected-max and -sweeps: the p of the p-norm over a step's points that "
+                             "stands in for their largest change (default %(default)s; a higher p is closer to the "
+                             "maximum the stopping rule reads and passes gradients to fewer points)")
     parser.add_argument("--omega", type=float, default=0.5,
                         help="solver loss: damping of the Jacobi sweeps, stable below about 0.6 here (default %(default)s)")
     parser.add_argument("--tangent-weight", type=float, default=1.0,
@@ -332,13 +337,14 @@ class BatchLoss:
         if args.loss in ("solver-projected-max", "solver-projected-sweeps"):
             # The solver stops when a sweep's largest change falls below 1e-4 N s and removes a
             # roughly fixed share per sweep, so the iterations a warm start saves go with the log
-            # of that largest change; an 8-norm per step is a max that passes gradients to more
-            # than one point.
+            # of that largest change; a p-norm per step (--norm, 8 by default) is a max that
+            # passes gradients to more than one point.
             n_steps = tf.reduce_max(step_of) + 1
 
             def log_norm(c):
-                return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(tf.abs(c) ** 8 * self.loss_weight, axis=1),
-                                                                step_of, n_steps) + MAX_NORM_FLOOR) / 8.0
+                p = args.norm
+                return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(tf.abs(c) ** p * self.loss_weight, axis=1),
+                                                                step_of, n_steps) + NORM_FLOOR ** p) / p
 
             builtin_changes = changes_from(solution + builtin_error)
             per_step = tf.add_n([log_norm(m) - log_norm(b) for m, b in
@@ -531,7 +537,8 @@ class _CardParts:
                               for s, g in zip(self.val_sources, self.val)],
                       "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
                                                                    "rounds", "pooled", "tangent_weight", "seed", "loss",
-                                                                   "sweeps", "omega", "max_steps_per_file", "max_val_steps")},
+                                                                   "sweeps", "omega", "norm", "max_steps_per_file",
+                                                                   "max_val_steps")},
                       "init": None if args.init is None else str(args.init),
                       "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                       "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),

@@ -115,6 +115,9 @@ def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
     assert "--omega" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "m.onnx"), "--loss", "solver-projected-sweeps", "--sweeps", "64"]) == 2
     assert "two or more" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a 16-norm underflows float32: not offered
+        main(base + ["--out", str(tmp_path / "m.onnx"), "--loss", "solver-projected-max", "--norm", "16"])
+    assert "--norm" in capsys.readouterr().err
 
 
 def test_oracle_targets_fit_the_correction_to_the_converged_solve(data, tmp_path, capsys):
@@ -294,3 +297,12 @@ def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins
     priced = json.loads((out / "summary.json").read_text())["picks"]["price:server:g-e1+server:g-e2"]
     assert priced["candidates"] == ["builtin", "server:g-e1", "server:g-e2"]
     assert priced["trajectory"]["value"] == 1.0 and all(r["value"] > 0 for r in priced["over_builtin"])
+
+
+def test_the_max_loss_takes_other_norms_and_the_card_says_which(data, tmp_path):
+    out = tmp_path / "g.onnx"
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
+                 "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1", "--sweeps", "0,4",
+                 "--loss", "solver-projected-max", "--norm", "2", "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["training"]["settings"]["norm"] == 2 and np.isfinite(card["validation"]["loss"])
