@@ -34,6 +34,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "scale"), "bench.scale", "simulations per second with 1 and 2 workers or Ray CPUs; same answers on each"),
     (("bench", "soak"), "bench.soak", "a long load on one server: nothing lost, memory flat (RSS over time)"),
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
+    (("bench", "surrogate"), "bench.surrogate", "does the training loss's score of a step follow the iterations a model saves there?"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
     (("bench", "walltime"), "bench.walltime", "whole step time with builtin and a served model, and the break-even, per world size"),
 ]
@@ -50,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (corrections, engine, generate, inference, iterations, load, scale, server, soak, transfer, walltime)"}
+    group_help = {("bench",): "benchmarks (corrections, engine, generate, inference, iterations, load, scale, server, soak, surrogate, transfer, walltime)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

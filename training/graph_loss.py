@@ -122,3 +122,21 @@ def projected_changes_after(lam, v_free, mu, ends, geometry, masses, inverse, *,
         done = k
         out.append(projected_sweep(lam, v_free, mu, ends, geometry, masses, inverse, omega=omega) - lam)
     return out
+
+
+NORM_FLOOR = 3e-5  # N s: a step's largest change counts as at least this, below the 1e-4 N s stopping rule
+
+
+def step_log_norms(change, step_of, n_steps, *, p: int = 8, weight=None):
+    """log of the p-norm over each step's points of `change` (P, 2) N s, (n_steps,): for
+    large p nearly the step's largest change, what the stopping rule compares with 1e-4 N s;
+    floored at NORM_FLOOR. weight (2,) scales the normal and tangent terms (default 1, 1).
+    step_of (P,) int32: each point's step. p above 8 underflows float32."""
+    import tensorflow as tf
+
+    terms = tf.abs(change) ** p
+    if weight is not None:
+        terms = terms * weight
+    return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(terms, axis=1), step_of, n_steps)
+                       + NORM_FLOOR ** p) / p
+

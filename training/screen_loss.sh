@@ -7,7 +7,7 @@
 # control. The whole per-state gain of that loss comes in its first epoch (docs/results.md, "On
 # Builtin's states"), which is why one epoch is enough to screen.
 #
-#   bash training/screen_loss.sh            (about 25 min on two cores)
+#   bash training/screen_loss.sh            (about 50 min on two cores)
 #
 # Needs the round-2 data (TRAIN_SEEDS=1-799 bash training/round2_data.sh) and
 # runs/graph-cache/graph-mse-1-799-e16.weights.npz (bash training/round2_graph.sh
@@ -33,6 +33,8 @@ SETTINGS=(
     "norm2|--norm 2"
     "norm4|--norm 4"
     "lr1e-3|--lr 1e-3"
+    "harm2|--harm-weight 2"
+    "harm4|--harm-weight 4"
 )
 [ -f "$INIT" ] || { echo "screen_loss.sh: $INIT is missing (see the header)" >&2; exit 2; }
 mkdir -p "$OUT"

@@ -48,7 +48,6 @@ TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracl
 CACHE_VERSION = 2  # GraphSet fields
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
-NORM_FLOOR = 3e-5  # N s: solver-projected-max's floor on a step's largest change, below the 1e-4 N s stopping rule
 NORMS = (2, 4, 8)  # --norm: higher ones underflow float32 (and their floor with them)
 DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
 
@@ -108,6 +107,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="solver-projected-max and -sweeps: the p of the p-norm over a step's points that "
                              "stands in for their largest change (default %(default)s; a higher p is closer to the "
                              "maximum the stopping rule reads and passes gradients to fewer points)")
+    parser.add_argument("--harm-weight", type=float, default=1.0, metavar="K",
+                        help="solver-projected-max: multiply a step's score by K where it is above 0 (the warm "
+                             "start worse than Box2D's by the loss), since such steps cost more iterations per unit "
+                             "of score than others save (deepcontact bench surrogate; default %(default)s)")
     parser.add_argument("--omega", type=float, default=0.5,
                         help="solver loss: damping of the Jacobi sweeps, stable below about 0.6 here (default %(default)s)")
     parser.add_argument("--tangent-weight", type=float, default=1.0,
@@ -137,6 +140,9 @@ def run(args: argparse.Namespace) -> int:
     missing = [str(p) for p in (*args.train, *args.val, *([args.init] if args.init else [])) if not p.exists()]
     if missing:
         print(f"train-graph: no such file: {', '.join(missing)}", file=sys.stderr)
+        return 2
+    if not args.harm_weight > 0:
+        print(f"train-graph: --harm-weight must be > 0, got {args.harm_weight}", file=sys.stderr)
         return 2
     if not 0 < args.omega < 1:
         print(f"train-graph: --omega must lie between 0 and 1, got {args.omega}", file=sys.stderr)
@@ -322,7 +328,7 @@ class BatchLoss:
     def _projected(self, points, ends, geometry, masses, inverse, step_of, error, builtin_error):
         """solver-projected and -max: projected sweeps of the whole problem from the served impulses."""
         tf, args = self.tf, self.args
-        from training.graph_loss import friction_bounds, projected_changes_after
+        from training.graph_loss import friction_bounds, projected_changes_after, step_log_norms
 
         raw = points * self.in_std + self.in_mean
         builtin = tf.gather(raw, self.builtin_columns, axis=1)
@@ -342,14 +348,17 @@ class BatchLoss:
             n_steps = tf.reduce_max(step_of) + 1
 
             def log_norm(c):
-                p = args.norm
-                return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(tf.abs(c) ** p * self.loss_weight, axis=1),
-                                                                step_of, n_steps) + NORM_FLOOR ** p) / p
+                return step_log_norms(c, step_of, n_steps, p=args.norm, weight=self.loss_weight)
 
             builtin_changes = changes_from(solution + builtin_error)
             per_step = tf.add_n([log_norm(m) - log_norm(b) for m, b in
                                  zip(changes, builtin_changes)]) / len(args.sweeps)
             if args.loss == "solver-projected-max":
+                # A step the warm start makes worse costs more iterations per unit of this score
+                # than a step it makes better saves (bench surrogate): --harm-weight K > 1 says so.
+                harm = args.harm_weight
+                if harm != 1.0:
+                    per_step = tf.where(per_step > 0, harm * per_step, per_step)
                 return per_step, tf.ones_like(per_step)
             # Sweeps saved ~ the log ratio times the sweeps the step needs per e-fold, which
             # Box2D's warm start shows between the first and last checkpoint: a slow step (the
@@ -537,7 +546,8 @@ class _CardParts:
                               for s, g in zip(self.val_sources, self.val)],
                       "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
                                                                    "rounds", "pooled", "tangent_weight", "seed", "loss",
-                                                                   "sweeps", "omega", "norm", "max_steps_per_file",
+                                                                   "sweeps", "omega", "norm", "harm_weight",
+                                                                   "max_steps_per_file",
                                                                    "max_val_steps")},
                       "init": None if args.init is None else str(args.init),
                       "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,

@@ -299,10 +299,14 @@ def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins
     assert priced["trajectory"]["value"] == 1.0 and all(r["value"] > 0 for r in priced["over_builtin"])
 
 
-def test_the_max_loss_takes_other_norms_and_the_card_says_which(data, tmp_path):
+def test_the_max_loss_takes_other_norms_and_harm_weights_and_the_card_says_which(data, tmp_path, capsys):
     out = tmp_path / "g.onnx"
-    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
-                 "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1", "--sweeps", "0,4",
-                 "--loss", "solver-projected-max", "--norm", "2", "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
+              "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1", "--sweeps", "0,4",
+              "--loss", "solver-projected-max", "--cache", str(tmp_path / "cache"), "--quiet"]
+    assert main(common + ["--norm", "2", "--harm-weight", "3"]) == 0
     card = json.loads(out.with_suffix(".json").read_text())
-    assert card["training"]["settings"]["norm"] == 2 and np.isfinite(card["validation"]["loss"])
+    settings = card["training"]["settings"]
+    assert settings["norm"] == 2 and settings["harm_weight"] == 3.0 and np.isfinite(card["validation"]["loss"])
+    assert main(common + ["--harm-weight", "0"]) == 2
+    assert "--harm-weight" in capsys.readouterr().err
