@@ -1,15 +1,24 @@
 """`deepcontact bench surrogate`: the loss's per-step score beside the iterations a model saves,
-on the steps of a recorded file, simulated again with the engine's trial solves."""
+on the steps of a recorded file, simulated again with the engine's trial solves.
+
+The commands that load TensorFlow (train-graph, the surrogate's scoring) run as their own
+processes: TensorFlow's threads in the test process break the tests that fork after them."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import h5py
 import numpy as np
 import pytest
 
 from deepcontact.cli import main
+
+
+def deepcontact(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "deepcontact", *args], capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -19,16 +28,18 @@ def recorded(tmp_path_factory):
     for name, seeds in (("train", "1-2"), ("val", "3")):
         assert main(["generate", "--steps", "20", "--seeds", seeds, "--out", str(d / f"{name}.h5"), "--quiet"]) == 0
     models = d / "models"
-    assert main(["train-graph", "--train", str(d / "train.h5"), "--val", str(d / "val.h5"), "--out",
-                 str(models / "g.onnx"), "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1",
-                 "--loss", "mse", "--cache", str(d / "cache"), "--quiet"]) == 0
+    trained = deepcontact("train-graph", "--train", str(d / "train.h5"), "--val", str(d / "val.h5"), "--out",
+                          str(models / "g.onnx"), "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds",
+                          "1", "--loss", "mse", "--cache", str(d / "cache"), "--quiet")
+    assert trained.returncode == 0, trained.stderr
     return d
 
 
 def test_every_recorded_step_gets_its_score_and_its_saving(recorded, tmp_path):
     out = tmp_path / "surrogate.json"
-    assert main(["bench", "surrogate", "--models", str(recorded / "models"), "--model", "g",
-                 "--data", str(recorded / "val.h5"), "--sweeps", "0,4", "--json", str(out)]) == 0
+    scored = deepcontact("bench", "surrogate", "--models", str(recorded / "models"), "--model", "g",
+                         "--data", str(recorded / "val.h5"), "--sweeps", "0,4", "--json", str(out))
+    assert scored.returncode == 0, scored.stderr
     report = json.loads(out.read_text())
     with h5py.File(recorded / "val.h5", "r") as f:
         with_contacts = int((f["steps"]["point_count"] > 0).sum())
