@@ -36,7 +36,7 @@
 #                              shipped); about 10 min
 #   graph-projected-sweeps-1-799  graph-projected-max-1-799's recipe with --loss
 #                              solver-projected-sweeps (slow steps weigh more), 2 epochs, each kept
-#                              under runs/epochs/; about 4 min
+#                              under runs/epochs/; about 6 min
 #   graph-projected-max-1-799-seed1, -seed2  graph-projected-max-1-799's recipe with --seed 1 (2):
 #                              other steps in another order, from the same weights (with -t1
 #                              cards): how far two draws of one recipe differ
@@ -75,7 +75,7 @@
 #                              (with a -t1 card): is the default's network too small?
 #   graph-projected-max-w32    its control: the same at the default's width
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
-#                              kept under runs/epochs/): more reach for the loss that gains per state
+#                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
 #                              training/round2_data.sh first), 10,000 steps of each file, 10
