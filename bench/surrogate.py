@@ -11,8 +11,8 @@ the command stops. Per step with contacts it then sets side by side:
 
 - saved: Builtin's iterations minus the model's (trial solves), and
 - score: what `train-graph --loss solver-projected-max` gives that step (the log of the
-  p-norm of the change a damped projected Jacobi sweep still makes after each of --sweeps,
-  from the served impulses, minus the same from Box2D's warm start, averaged over the
+  p-norm of the change a projected sweep still makes after each of --sweeps, from the
+  served impulses, the sweeps damped Jacobi's or, with --order gauss-seidel, the solver's own order, minus the same from Box2D's warm start, averaged over the
   checkpoints; below 0 when the loss says the warm start helps).
 
 A loss that stood in well for the solver would rank the steps as the savings do. Printed:
@@ -39,7 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True,
                         help="Builtin's steps recorded by `deepcontact generate` (its scene and seeds are simulated again)")
     parser.add_argument("--sweeps", default="16,64,256", help="the loss's sweep checkpoints (default %(default)s)")
-    parser.add_argument("--omega", type=float, default=0.5, help="the loss's damping (default %(default)s)")
+    parser.add_argument("--order", choices=("jacobi", "gauss-seidel"), default="jacobi",
+                        help="the order of the loss's sweeps, as train-graph --order (default %(default)s)")
+    parser.add_argument("--omega", type=float, default=None,
+                        help="the loss's damping (default 0.5 for jacobi, 1 for gauss-seidel, as train-graph)")
     parser.add_argument("--norm", type=int, choices=(2, 4, 8), default=8, help="the loss's p-norm (default %(default)s)")
     parser.add_argument("--workers", type=int, default=None, help="simulations at once (default: one process)")
     parser.add_argument("--json", metavar="FILE", help="write the per-decile table and correlations here")
@@ -49,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
     from deepcontact.modelcard import ModelCard, ModelCardError
     from training.grids import GridDataError
 
+    if args.omega is None:
+        args.omega = 1.0 if args.order == "gauss-seidel" else 0.5
     try:
         sweeps = tuple(sorted({int(k) for k in args.sweeps.split(",")}))
         card = ModelCard.load(args.models / f"{args.model}.json")
@@ -65,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     report = summarize(score, saved, builtin)
     print(f"{args.model} on the {len(saved)} steps of {args.data} (Builtin's trajectory): the loss's score "
-          f"(sweeps {','.join(map(str, sweeps))}, omega {args.omega:g}, {args.norm}-norm) against the iterations "
+          f"({args.order} sweeps {','.join(map(str, sweeps))}, omega {args.omega:g}, {args.norm}-norm) against the iterations "
           "its warm start saves there (trial solves)")
     print(f"Spearman {report['spearman']:.3f}, Pearson {report['pearson']:.3f} (a perfect stand-in: -1); "
           f"mean saved {report['mean_saved']:.1f} of {report['mean_builtin']:.1f} iterations a step")
@@ -76,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
               f"{r['mean_saved']:.1f} | {r['better']:.0%} | {r['worse']:.0%} |")
     if args.json:
         write_json_atomic(args.json, {"model": args.model, "data": str(args.data), "sweeps": sweeps,
-                                      "omega": args.omega, "norm": args.norm, **report})
+                                      "order": args.order, "omega": args.omega, "norm": args.norm, **report})
     return 0
 
 
@@ -134,13 +139,32 @@ def _scores(args, sweeps: tuple[int, ...]) -> np.ndarray:
     from deepcontact.kinematics import effective_masses
     from server.predictors import World, load_model
     from training.contact_graph import inverse_masses, point_geometry
-    from training.graph_loss import friction_bounds, projected_changes_after, step_log_norms
+    from training.graph_loss import (colour_points, friction_bounds, gauss_seidel_changes_after,
+                                     projected_changes_after, step_log_norms)
     from training.grids import iter_steps, open_dataset, select_steps
 
+    omega = args.omega
     predictor = load_model(args.models / f"{args.model}.json")
     with open_dataset(args.data) as ds:
         steps = ds.steps
     batch, scores = [], []
+
+    @tf.function(reduce_retracing=True)  # traced once: Gauss-Seidel's colour loops are slow eagerly
+    def score(served, builtin, solution, v_free, geometry, masses, ends, inverse, step_of, colour):
+        """(steps,): the mean over checkpoints of log |served's change| - log |builtin's|."""
+        mu = friction_bounds(solution, step_of)
+        n_steps = tf.reduce_max(step_of) + 1
+
+        def log_norms(start):
+            if args.order == "gauss-seidel":
+                changes = gauss_seidel_changes_after(start, v_free, mu, ends, geometry, masses, inverse, colour,
+                                                     sweeps=sweeps, omega=omega)
+            else:
+                changes = projected_changes_after(start, v_free, mu, ends, geometry, masses, inverse,
+                                                  sweeps=sweeps, omega=omega)
+            return [step_log_norms(c, step_of, n_steps, p=args.norm) for c in changes]
+
+        return tf.add_n([m - b for m, b in zip(log_norms(served), log_norms(builtin))]) / len(sweeps)
 
     def flush():
         step_of = np.repeat(np.arange(len(batch), dtype=np.int32), [len(b[0]) for b in batch])
@@ -148,14 +172,9 @@ def _scores(args, sweeps: tuple[int, ...]) -> np.ndarray:
             np.concatenate([b[k] for b in batch]) for k in range(8))
         offsets = np.cumsum([0] + [len(b[7]) for b in batch[:-1]])
         ends = ends + np.repeat(offsets, [len(b[0]) for b in batch])[:, None].astype(np.int32)
-        mu = friction_bounds(tf.constant(solution), step_of)
-
-        def log_norms(start):
-            changes = projected_changes_after(tf.constant(start), v_free, mu, ends, geometry, masses, inverse,
-                                              sweeps=sweeps, omega=args.omega)
-            return [step_log_norms(c, step_of, len(batch), p=args.norm) for c in changes]
-
-        scores.append(np.mean([(m - b).numpy() for m, b in zip(log_norms(served), log_norms(builtin))], axis=0))
+        colour = colour_points(ends, inverse) if args.order == "gauss-seidel" else np.zeros(len(ends), np.int32)
+        scores.append(score(served, builtin, solution, v_free, geometry, masses, ends, inverse, step_of,
+                            colour).numpy())
         batch.clear()
 
     for _, step in iter_steps(args.data, steps, select_steps(steps)):  # loop over steps, not points

@@ -31,24 +31,7 @@ def _cross(r, v):
 
 def apply_delassus(e, ends, geometry, inverse):
     """A e: the relative (normal, tangent) velocity, (P, 2) m/s, that impulses e cause at every point."""
-    import tensorflow as tf  # already imported by training; not import_tensorflow(), which autograph would trace
-
-    a, b = ends[:, 0], ends[:, 1]
-    n, t, ra, rb = geometry[:, 0:2], geometry[:, 2:4], geometry[:, 4:6], geometry[:, 6:8]
-    n_bodies = tf.shape(inverse)[0]
-    impulse = e[:, 0:1] * n + e[:, 1:2] * t  # on B; its opposite on A
-    force = tf.math.unsorted_segment_sum(impulse, b, n_bodies) - tf.math.unsorted_segment_sum(impulse, a, n_bodies)
-    torque = (tf.math.unsorted_segment_sum(_cross(rb, impulse), b, n_bodies)
-              - tf.math.unsorted_segment_sum(_cross(ra, impulse), a, n_bodies))
-    dv = force * inverse[:, 0:1]
-    dw = torque * inverse[:, 1]
-
-    def point_velocity(body, r):
-        w = tf.gather(dw, body)[:, None]
-        return tf.gather(dv, body) + w * tf.stack([-r[:, 1], r[:, 0]], axis=1)
-
-    rel = point_velocity(b, rb) - point_velocity(a, ra)
-    return tf.stack([tf.reduce_sum(rel * n, axis=1), tf.reduce_sum(rel * t, axis=1)], axis=1)
+    return _relative_velocities(*_body_velocities(e, ends, geometry, inverse), ends, geometry)
 
 
 def jacobi_error(e, ends, geometry, masses, inverse, *, sweeps: int, omega: float):
@@ -140,3 +123,128 @@ def step_log_norms(change, step_of, n_steps, *, p: int = 8, weight=None):
     return tf.math.log(tf.math.unsorted_segment_sum(tf.reduce_sum(terms, axis=1), step_of, n_steps)
                        + NORM_FLOOR ** p) / p
 
+
+
+# -- in the solver's order ------------------------------------------------------
+#
+# Box2D's solver is Gauss-Seidel: it updates one contact at a time and the next
+# one already sees the change. The sweeps above are Jacobi's (every point from the
+# same old impulses, damped to stay stable), whose slow modes fall at another
+# rate. A colouring makes Gauss-Seidel cheap to run in a graph: points of one
+# colour share no body that moves, so updating a whole colour at once is exactly
+# updating its points one after another. A sweep runs the colours in turn, each
+# seeing the velocities the earlier colours left; undamped (omega 1), as Box2D does.
+
+MAX_COLOURS = 16
+"""Colours a batch may need (piles of circles need about 6: a body touches a few others)."""
+
+
+def colour_points(ends, inverse, seed: int = 0):
+    """(P,) int32 colours, 0 .. at most MAX_COLOURS - 1, such that no two points of one
+    colour share a body that moves (inverse mass or inertia > 0; a static body
+    takes any number). ends (P, 2) int32 rows of inverse (B, 2).
+
+    Luby's rounds with a seeded random priority: each round, every uncoloured point
+    that outranks the others still free at both its moving bodies takes the colour;
+    a few rounds per colour, each a handful of array operations."""
+    import numpy as np
+
+    ends = np.asarray(ends)
+    n_points, n_bodies = len(ends), len(inverse)
+    moves = (np.asarray(inverse) > 0).any(axis=1)
+    priority = np.random.default_rng(seed).permutation(n_points)
+    colour = np.full(n_points, -1, np.int32)
+    left = np.ones(n_points, bool)
+    c = 0
+    while left.any():  # loop over colours
+        if c == MAX_COLOURS:
+            raise ValueError(f"the contact points need more than {MAX_COLOURS} colours (a body touching more "
+                             f"than about {MAX_COLOURS // 2} others)")
+        free = left.copy()
+        while free.any():  # Luby's rounds, a few per colour
+            idx = np.flatnonzero(free)
+            best = np.full(n_bodies, n_points, np.int64)
+            for k in (0, 1):  # the point's two bodies
+                np.minimum.at(best, ends[idx, k], priority[idx])
+            a, b = ends[idx, 0], ends[idx, 1]
+            wins = idx[((best[a] == priority[idx]) | ~moves[a]) & ((best[b] == priority[idx]) | ~moves[b])]
+            colour[wins], left[wins] = c, False
+            taken = np.zeros(n_bodies, bool)
+            taken[ends[wins].ravel()] = True
+            taken &= moves
+            free &= ~(taken[ends[:, 0]] | taken[ends[:, 1]])
+        c += 1
+    return colour
+
+
+def _body_velocities(lam, ends, geometry, inverse):
+    """(dv (B, 2) m/s, dw (B,) rad/s): what impulses lam (P, 2) N s do to every body."""
+    import tensorflow as tf  # already imported by training; not import_tensorflow(), which autograph would trace
+
+    a, b = ends[:, 0], ends[:, 1]
+    n, t, ra, rb = geometry[:, 0:2], geometry[:, 2:4], geometry[:, 4:6], geometry[:, 6:8]
+    n_bodies = tf.shape(inverse)[0]
+    impulse = lam[:, 0:1] * n + lam[:, 1:2] * t  # on B; its opposite on A
+    force = tf.math.unsorted_segment_sum(impulse, b, n_bodies) - tf.math.unsorted_segment_sum(impulse, a, n_bodies)
+    torque = (tf.math.unsorted_segment_sum(_cross(rb, impulse), b, n_bodies)
+              - tf.math.unsorted_segment_sum(_cross(ra, impulse), a, n_bodies))
+    return force * inverse[:, 0:1], torque * inverse[:, 1]
+
+
+def _relative_velocities(dv, dw, ends, geometry):
+    """(P, 2) m/s: the (normal, tangent) relative velocity at points from body velocities dv, dw."""
+    import tensorflow as tf
+
+    n, t, ra, rb = geometry[:, 0:2], geometry[:, 2:4], geometry[:, 4:6], geometry[:, 6:8]
+
+    def at(body, r):
+        w = tf.gather(dw, body)[:, None]
+        return tf.gather(dv, body) + w * tf.stack([-r[:, 1], r[:, 0]], axis=1)
+
+    rel = at(ends[:, 1], rb) - at(ends[:, 0], ra)
+    return tf.stack([tf.reduce_sum(rel * n, axis=1), tf.reduce_sum(rel * t, axis=1)], axis=1)
+
+
+def gauss_seidel_changes_after(lam, v_free, mu, ends, geometry, masses, inverse, colour, *, sweeps,
+                               omega: float = 1.0):
+    """As projected_changes_after, with the sweeps in the solver's order: each sweep updates
+    the colours (colour (P,) int32 from colour_points) in turn. Returns, after each k in the
+    ascending `sweeps`, the change (P, 2) N s that sweep k+1 would make."""
+    import tensorflow as tf
+
+    # One inert point per colour (no mass: a sweep leaves it at 0 and moves no body), since
+    # TensorFlow's graphs fail on an empty colour (SIGFPE, TF 2.x on CPU).
+    n_points = tf.shape(lam)[0]
+    colour = tf.concat([colour, tf.range(MAX_COLOURS, dtype=colour.dtype)], axis=0)
+
+    def parts(x):
+        x = tf.convert_to_tensor(x)
+        pad = tf.zeros(tf.concat([[MAX_COLOURS], tf.shape(x)[1:]], axis=0), x.dtype)
+        return tf.dynamic_partition(tf.concat([x, pad], axis=0), colour, MAX_COLOURS)
+
+    index = tf.dynamic_partition(tf.range(n_points + MAX_COLOURS), colour, MAX_COLOURS)
+    E, G, M, V, U = (parts(x) for x in (ends, geometry, masses, v_free, mu))
+
+    def sweep(lams, dv, dw):
+        out = []
+        for c in range(MAX_COLOURS):  # loop over colours, not points
+            step = lams[c] - omega * M[c] * (V[c] + _relative_velocities(dv, dw, E[c], G[c]))
+            normal = tf.nn.relu(step[:, 0])
+            bound = U[c] * normal
+            new = tf.stack([normal, tf.clip_by_value(step[:, 1], -bound, bound)], axis=1)
+            ddv, ddw = _body_velocities(new - lams[c], E[c], G[c], inverse)
+            dv, dw = dv + ddv, dw + ddw
+            out.append(new)
+        return out, dv, dw
+
+    lams = parts(lam)
+    dv, dw = _body_velocities(lam, ends, geometry, inverse)
+    out, done = [], 0
+    for k in sweeps:  # a few checkpoints
+        n = k - done
+        _, lams, dv, dw = tf.while_loop(lambda i, *_: i < n, lambda i, ls, v, w: (i + 1, *sweep(ls, v, w)),
+                                        (tf.constant(0), lams, dv, dw), maximum_iterations=n)
+        done = k
+        after, _, _ = sweep(lams, dv, dw)
+        out.append(tf.dynamic_stitch(index, [x - y for x, y in zip(after, lams)])[:n_points])
+    return out

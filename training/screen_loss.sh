@@ -35,6 +35,7 @@ SETTINGS=(
     "lr1e-3|--lr 1e-3"
     "harm2|--harm-weight 2"
     "harm4|--harm-weight 4"
+    "gauss-seidel|--order gauss-seidel"
 )
 [ -f "$INIT" ] || { echo "screen_loss.sh: $INIT is missing (see the header)" >&2; exit 2; }
 mkdir -p "$OUT"

@@ -49,6 +49,7 @@ CACHE_VERSION = 2  # GraphSet fields
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
 NORMS = (2, 4, 8)  # --norm: higher ones underflow float32 (and their floor with them)
+ORDERS = ("jacobi", "gauss-seidel")
 DEFAULTS = {"epochs": 40, "batch_size": 32, "lr": 2e-3, "patience": 6, "width": 32, "rounds": 3}
 
 
@@ -111,8 +112,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="solver-projected-max: multiply a step's score by K where it is above 0 (the warm "
                              "start worse than Box2D's by the loss), since such steps cost more iterations per unit "
                              "of score than others save (deepcontact bench surrogate; default %(default)s)")
-    parser.add_argument("--omega", type=float, default=0.5,
-                        help="solver loss: damping of the Jacobi sweeps, stable below about 0.6 here (default %(default)s)")
+    parser.add_argument("--order", choices=ORDERS, default="jacobi",
+                        help="solver-projected losses: the order of their sweeps. jacobi (default): every point "
+                             "from the same impulses, damped; gauss-seidel: the solver's own, point after point "
+                             "(run colour by colour: points that share no moving body at once), undamped")
+    parser.add_argument("--omega", type=float, default=None,
+                        help="solver loss: damping of the sweeps; Jacobi's are stable below about 0.6 here "
+                             "(default 0.5 for jacobi, 1 for gauss-seidel, as Box2D)")
     parser.add_argument("--tangent-weight", type=float, default=1.0,
                         help="weight of the tangent component in the loss (default %(default)s)")
     parser.add_argument("--max-steps-per-file", type=int, metavar="N", help="use at most N steps of each file")
@@ -144,8 +150,15 @@ def run(args: argparse.Namespace) -> int:
     if not args.harm_weight > 0:
         print(f"train-graph: --harm-weight must be > 0, got {args.harm_weight}", file=sys.stderr)
         return 2
-    if not 0 < args.omega < 1:
-        print(f"train-graph: --omega must lie between 0 and 1, got {args.omega}", file=sys.stderr)
+    if args.order == "gauss-seidel" and args.loss not in BatchLoss.PROJECTED_LOSSES:
+        print(f"train-graph: --order gauss-seidel orders the sweeps of the {', '.join(BatchLoss.PROJECTED_LOSSES)} "
+              f"losses, not --loss {args.loss}", file=sys.stderr)
+        return 2
+    if args.omega is None:
+        args.omega = 1.0 if args.order == "gauss-seidel" else 0.5
+    if not (0 < args.omega < 1 or (args.order == "gauss-seidel" and args.omega == 1)):
+        print(f"train-graph: --omega must lie between 0 and 1 (1 itself only for --order gauss-seidel), "
+              f"got {args.omega}", file=sys.stderr)
         return 2
     if min(args.epochs, args.batch_size, args.width, args.rounds, args.patience) < 1:
         print("train-graph: --epochs, --batch-size, --width, --rounds and --patience must be >= 1", file=sys.stderr)
@@ -231,20 +244,25 @@ class Scaling:
     def of(cls, spec: GridSpec) -> "Scaling":
         return cls(*spec.normalization_arrays(spec.inputs), *spec.normalization_arrays(spec.targets))
 
-    def batch(self, gs: GraphSet, steps) -> tuple:
+    def batch(self, gs: GraphSet, steps, *, colour: bool = False) -> tuple:
         """Steps of gs as one normalized batch: points (P, F), ends (P, 2), dynamic (B, 1),
         targets (P, T), geometry (P, 8), masses (P, 2), inverse (B, 2), step_of (P,) int32
-        (each point's step within the batch)."""
+        (each point's step within the batch), colour (P,) int32 (training.graph_loss.colour_points
+        with `colour`, for --order gauss-seidel; else 0)."""
+        from training.graph_loss import colour_points
+
         f, t, e, d = gs.batch(steps)
         counts = np.diff(gs.point_offsets)[np.asarray(steps)]
         step_of = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+        geometry, masses, inverse = gs.solver_batch(steps)
+        colours = colour_points(e, inverse) if colour else np.zeros(len(e), np.int32)
         return ((f - self.in_mean) / self.in_std, e, d, (t - self.out_mean) / self.out_std,
-                *gs.solver_batch(steps), step_of)
+                geometry, masses, inverse, step_of, colours)
 
 
 class BatchLoss:
     """A batch's loss for --loss: batch_loss(points, ends, dynamic, y, geometry, masses,
-    inverse, step_of) -> (losses, weights), the loss being sum(losses) / sum(weights);
+    inverse, step_of, colour) -> (losses, weights), the loss being sum(losses) / sum(weights);
     per point for mse, relative, solver and solver-projected, per step for solver-log
     and solver-projected-max.
 
@@ -268,14 +286,14 @@ class BatchLoss:
         # own warm start (no correction) leaves there on the training data, so each counts alike.
         self.scales = tf.constant(residual_scales, tf.float32)
 
-    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of):
+    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour):
         pred = self.net(points, ends, dynamic, step_of)
         if self.args.loss in self.POINT_LOSSES:
             return self._at_points(pred, y)
         error, builtin_error = self._errors(points, pred, y)
         solver = (ends, geometry, masses, inverse, step_of)
         if self.args.loss in self.PROJECTED_LOSSES:
-            return self._projected(points, *solver, error, builtin_error)
+            return self._projected(points, *solver, colour, error, builtin_error)
         return self._unconstrained(*solver, error, builtin_error)
 
     def _at_points(self, pred, y):
@@ -325,10 +343,12 @@ class BatchLoss:
             for m, b in zip(squares(error), squares(builtin_error))]) / len(args.sweeps)
         return per_step, tf.ones_like(per_step)
 
-    def _projected(self, points, ends, geometry, masses, inverse, step_of, error, builtin_error):
-        """solver-projected and -max: projected sweeps of the whole problem from the served impulses."""
+    def _projected(self, points, ends, geometry, masses, inverse, step_of, colour, error, builtin_error):
+        """solver-projected and -max: projected sweeps of the whole problem from the served impulses,
+        in Jacobi's order or, with --order gauss-seidel, in the solver's (colour by colour)."""
         tf, args = self.tf, self.args
-        from training.graph_loss import friction_bounds, projected_changes_after, step_log_norms
+        from training.graph_loss import (friction_bounds, gauss_seidel_changes_after, projected_changes_after,
+                                         step_log_norms)
 
         raw = points * self.in_std + self.in_mean
         builtin = tf.gather(raw, self.builtin_columns, axis=1)
@@ -336,6 +356,9 @@ class BatchLoss:
         v_free, mu = tf.gather(raw, self.velocity_columns, axis=1), friction_bounds(solution, step_of)
 
         def changes_from(start):
+            if getattr(args, "order", "jacobi") == "gauss-seidel":
+                return gauss_seidel_changes_after(start, v_free, mu, ends, geometry, masses, inverse, colour,
+                                                  sweeps=args.sweeps, omega=args.omega)
             return projected_changes_after(start, v_free, mu, ends, geometry, masses, inverse,
                                            sweeps=args.sweeps, omega=args.omega)
 
@@ -443,7 +466,8 @@ def _compiled_steps(net, batch_loss, lr: float):
     optimizer = tf.keras.optimizers.Adam(learning_rate=lr)
     spec_in = net.signature() + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
                                  tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
-                                 tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32)]
+                                 tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32),
+                                 tf.TensorSpec((None,), tf.int32)]
 
     @tf.function(input_signature=spec_in)
     def train_step(*batch):
@@ -467,12 +491,13 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     the net's current weights on `val`. on_epoch(epoch, fitted) is called after each
     epoch's validation, the net holding that epoch's weights."""
     optimizer, train_step, val_step = _compiled_steps(net, batch_loss, args.lr)
+    colour = getattr(args, "order", "jacobi") == "gauss-seidel"
 
     def validate() -> float:
         total, count = 0.0, 0.0
         for gs in val:
             for k in range(0, len(gs), 64):
-                loss_sum, weight_sum = val_step(*scaling.batch(gs, np.arange(k, min(k + 64, len(gs)))))
+                loss_sum, weight_sum = val_step(*scaling.batch(gs, np.arange(k, min(k + 64, len(gs))), colour=colour))
                 total += float(loss_sum)
                 count += float(weight_sum)
         return total / count
@@ -491,7 +516,7 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
             i, _ = batches[j]
             steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False)
             optimizer.learning_rate.assign(args.lr * 0.5 * (1 + np.cos(np.pi * done / total_steps)))
-            losses.append(float(train_step(*scaling.batch(train[i], steps))))
+            losses.append(float(train_step(*scaling.batch(train[i], steps, colour=colour))))
             if not np.isfinite(losses[-1]):
                 raise TrainingDiverged(f"the training loss became {losses[-1]} in epoch {epoch}; nothing was "
                                        f"written (a smaller --lr, or --omega below 0.6 for the solver losses)")
@@ -546,7 +571,7 @@ class _CardParts:
                               for s, g in zip(self.val_sources, self.val)],
                       "settings": {k: getattr(args, k) for k in ("epochs", "batch_size", "lr", "patience", "width",
                                                                    "rounds", "pooled", "tangent_weight", "seed", "loss",
-                                                                   "sweeps", "omega", "norm", "harm_weight",
+                                                                   "sweeps", "order", "omega", "norm", "harm_weight",
                                                                    "max_steps_per_file",
                                                                    "max_val_steps")},
                       "init": None if args.init is None else str(args.init),

@@ -81,13 +81,83 @@ def test_projected_sweeps_keep_the_limits_and_leave_the_recorded_solution_nearly
     assert float(tf.reduce_max(tf.abs(kept))) < 0.01 < float(tf.reduce_max(tf.abs(moved)))
 
 
+def test_a_colour_holds_no_two_points_on_one_moving_body():
+    from training.graph_loss import MAX_COLOURS, colour_points
+
+    # Bodies 0-3 move, body 4 is the ground (static): the points on the ground share it freely.
+    ends = np.array([[4, 0], [4, 1], [4, 2], [0, 1], [1, 2], [2, 3], [0, 3]], np.int32)
+    inverse = np.array([[1.0, 2.0]] * 4 + [[0.0, 0.0]], np.float32)
+    colour = colour_points(ends, inverse)
+    moving = inverse.any(axis=1)
+    for c in np.unique(colour):
+        bodies = ends[colour == c].ravel()
+        bodies = bodies[moving[bodies]]
+        assert len(bodies) == len(np.unique(bodies))
+    assert np.array_equal(colour, colour_points(ends, inverse))  # seeded: the same batch, the same colours
+    # A body touched by more points than there are colours cannot be coloured, and says so.
+    star = np.stack([np.zeros(MAX_COLOURS + 1, np.int32), np.arange(1, MAX_COLOURS + 2, dtype=np.int32)], axis=1)
+    with pytest.raises(ValueError, match="colours"):
+        colour_points(star, np.ones((MAX_COLOURS + 2, 2), np.float32))
+
+
+def test_gauss_seidel_sweeps_update_one_point_after_another(graphs):
+    """A colour updated at once equals its points updated one by one, each seeing the last."""
+    import tensorflow as tf
+
+    from training.graph_loss import colour_points, friction_bounds, gauss_seidel_changes_after
+
+    steps = np.arange(len(graphs))
+    features, targets, ends, _ = graphs.batch(steps)
+    geometry, masses, inverse = graphs.solver_batch(steps)
+    column = {n: j for j, n in enumerate(graphs.inputs)}
+    builtin = features[:, [column["builtin_normal"], column["builtin_tangent"]]].astype(np.float64)
+    v_free = features[:, [column["vn"], column["vt"]]]
+    step_of = np.repeat(steps.astype(np.int32), np.diff(graphs.point_offsets))
+    mu = friction_bounds(tf.constant(builtin + targets, tf.float32), step_of).numpy()
+    colour = colour_points(ends, inverse)
+
+    def point_by_point(lam, sweeps):  # the solver's loop, in colour order, in float64
+        lam = lam.copy()
+        v = np.zeros((len(inverse), 3))  # per body: vx, vy, w from the impulses so far
+        n, t, r = geometry[:, 0:2], geometry[:, 2:4], (geometry[:, 4:6], geometry[:, 6:8])
+
+        def push(p, d):
+            impulse = d[0] * n[p] + d[1] * t[p]
+            for end, sign in ((0, -1.0), (1, 1.0)):
+                body, rr = ends[p, end], r[end][p]
+                v[body, :2] += sign * impulse * inverse[body, 0]
+                v[body, 2] += sign * (rr[0] * impulse[1] - rr[1] * impulse[0]) * inverse[body, 1]
+
+        for p in range(len(lam)):
+            push(p, lam[p])
+        for _ in range(sweeps):
+            for p in np.argsort(colour, kind="stable"):
+                rel = np.zeros(2)
+                for end, sign in ((0, -1.0), (1, 1.0)):
+                    body, rr = ends[p, end], r[end][p]
+                    rel += sign * (v[body, :2] + v[body, 2] * np.array([-rr[1], rr[0]]))
+                step = lam[p] - masses[p] * (v_free[p] + [rel @ n[p], rel @ t[p]])
+                normal = max(step[0], 0.0)
+                new = np.array([normal, np.clip(step[1], -mu[p] * normal, mu[p] * normal)])
+                push(p, new - lam[p])
+                lam[p] = new
+        return lam
+
+    change = gauss_seidel_changes_after(tf.constant(builtin, tf.float32), v_free, mu, ends, geometry, masses,
+                                        inverse, colour, sweeps=(2,))[0].numpy()
+    expected = point_by_point(builtin, 3) - point_by_point(builtin, 2)
+    assert np.abs(expected).max() > 1e-3
+    np.testing.assert_allclose(change, expected, atol=1e-4 * np.abs(expected).max())
+
+
 @pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log", "solver-projected",
                                   "solver-projected-max", "solver-projected-sweeps"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
     out = tmp_path / "graph.onnx"
+    order = "gauss-seidel" if loss == "solver-projected-max" else "jacobi"  # the one loss offered in both orders
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
                  "--epochs", "2", "--batch-size", "4", "--width", "8", "--rounds", "2", "--loss", loss,
-                 "--sweeps", "0,4", "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
+                 "--sweeps", "0,4", "--order", order, "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
     card = json.loads(out.with_suffix(".json").read_text())
     assert card["kind"] == "graph" and card["combine"] == "residual" and card["input_name"] == "points"
     assert card["parity_max_abs_error"] < 1e-4
@@ -96,6 +166,8 @@ def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data,
     else:
         assert card["validation"]["loss"] <= card["validation"]["loss_no_correction"] * 1.5
     assert card["training"]["settings"]["loss"] == loss and card["training"]["epochs_run"] == 2
+    assert card["training"]["settings"]["order"] == order
+    assert card["training"]["settings"]["omega"] == (1.0 if order == "gauss-seidel" else 0.5)
     assert {"cpu", "vector", "cores"} <= set(card["training"]["machine"])  # what a rebuild is checked against
     assert set(card["gridspec"]["normalization"]) == set(GRAPH_INPUTS) | {"correction_normal", "correction_tangent"}
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
@@ -113,6 +185,10 @@ def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "m.onnx"), "--omega", "1.5"]) == 2
     assert "--omega" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "m.onnx"), "--omega", "1"]) == 2  # Jacobi's diverge undamped
+    assert "--omega" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "m.onnx"), "--loss", "mse", "--order", "gauss-seidel"]) == 2
+    assert "--order gauss-seidel" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "m.onnx"), "--loss", "solver-projected-sweeps", "--sweeps", "64"]) == 2
     assert "two or more" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a 16-norm underflows float32: not offered
