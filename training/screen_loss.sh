@@ -7,7 +7,7 @@
 # control. The whole per-state gain of that loss comes in its first epoch (docs/results.md, "On
 # Builtin's states"), which is why one epoch is enough to screen.
 #
-#   bash training/screen_loss.sh            (about 50 min on two cores)
+#   bash training/screen_loss.sh            (about 65 min on two cores)
 #
 # Needs the round-2 data (TRAIN_SEEDS=1-799 bash training/round2_data.sh) and
 # runs/graph-cache/graph-mse-1-799-e16.weights.npz (bash training/round2_graph.sh

@@ -46,6 +46,18 @@ def test_every_recorded_step_gets_its_score_and_its_saving(recorded, tmp_path):
     assert report["steps"] == with_contacts == sum(r["steps"] for r in report["deciles"])
     assert -1.0 <= report["spearman"] <= 1.0 and report["mean_builtin"] > 0
     assert all(r["low"] <= r["mean_score"] <= r["high"] for r in report["deciles"])
+    assert report["order"] == "jacobi" and report["omega"] == 0.5
+
+
+def test_the_score_can_follow_the_solvers_own_order(recorded, tmp_path):
+    out = tmp_path / "surrogate-gs.json"
+    scored = deepcontact("bench", "surrogate", "--models", str(recorded / "models"), "--model", "g",
+                         "--data", str(recorded / "val.h5"), "--sweeps", "0,4", "--order", "gauss-seidel",
+                         "--json", str(out))
+    assert scored.returncode == 0, scored.stderr
+    report = json.loads(out.read_text())
+    assert report["order"] == "gauss-seidel" and report["omega"] == 1.0  # undamped, as Box2D
+    assert report["steps"] == sum(r["steps"] for r in report["deciles"]) > 0
 
 
 def test_a_file_that_the_engine_does_not_repeat_is_refused(recorded, tmp_path, capsys):
