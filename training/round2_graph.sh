@@ -76,6 +76,10 @@
 #   graph-projected-max-w32    its control: the same at the default's width
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
 #                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
+#   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
+#                              with 6 rounds: -e16's 3 and 3 more that start as pass-throughs, so
+#                              the deeper network starts from the pre-trained one (epochs kept
+#                              under runs/epochs/, not shipped)
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
 #                              training/round2_data.sh first), 10,000 steps of each file, 10
@@ -247,6 +251,16 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-projected-max-r6 --loss solver-projected-max --rounds 6 --max-steps-per-file 3000 \
                 --epochs 3 --lr 1e-3 --checkpoints runs/epochs/graph-projected-max-r6 ;;
+        graph-projected-max-r6-grown)
+            # More reach after the MSE pre-training: -e16's three rounds, then three more that pass
+            # their input through at first (train_graph.initial_weights), trained as
+            # graph-projected-max-1-799 was; every epoch kept to be priced beside it
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            local OUT=runs/epochs
+            mkdir -p "$OUT"
+            variant graph-projected-max-r6-grown --loss solver-projected-max --rounds 6 --max-steps-per-file 3000 \
+                --epochs 2 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz \
+                --checkpoints runs/epochs/graph-projected-max-r6-grown ;;
         graph-projected-max-w64|graph-projected-max-w32)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --width "${1##*-w}" --max-steps-per-file 3000 \

@@ -81,7 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this many epochs without a better validation loss (default %(default)s)")
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
-                        help="message-passing rounds (default %(default)s)")
+                        help="message-passing rounds (default %(default)s); with --init from a network with "
+                             "fewer, the new rounds follow its last and start as pass-throughs")
     parser.add_argument("--pooled", action="store_true",
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
@@ -444,7 +445,16 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
 
     with np.load(path, allow_pickle=False) as f:
         weights = {k: f[k] for k in f.files}
-    expected = {k: v.shape for k, v in init_weights(config).items()}
+    fresh = init_weights(config)
+    expected = {k: v.shape for k, v in fresh.items()}
+    rounds = sum(1 for k in weights if k.endswith("_update1/kernel"))
+    if 0 < rounds < config.rounds and all(k in expected for k in weights):
+        # A network with fewer rounds: the new ones follow its last, their update's last layer at
+        # zero, so each passes its input through (the residual) and the network starts as exactly
+        # the one it grew from; their other layers start random, so gradients reach them.
+        for r in range(rounds, config.rounds):
+            for k in (k for k in fresh if k.startswith(f"round{r}_")):
+                weights[k] = np.zeros_like(fresh[k]) if k.startswith(f"round{r}_update1/") else fresh[k]
     if config.pooled:
         # A network without the summary: its update layers gain zero rows for it, so the
         # pooled network starts as exactly that network.

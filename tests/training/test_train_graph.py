@@ -257,6 +257,27 @@ def test_a_pooled_network_starts_as_the_plain_one_and_pools_each_step_alone(grap
     assert not np.allclose(together[:n3], ContactGraphNet(plain_config, plain)(x, e, d).numpy()[:n3], atol=1e-3)
 
 
+def test_a_network_grown_by_rounds_starts_as_the_one_it_grew_from(graphs, tmp_path):
+    from training.graph_model import ContactGraphNet, GraphConfig, init_weights
+    from training.train_graph import initial_weights
+
+    small_config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2)
+    deep_config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=4)
+    small = init_weights(small_config, seed=1)
+    small["decode1/kernel"] = np.random.default_rng(2).normal(size=small["decode1/kernel"].shape).astype(np.float32)
+    np.savez(tmp_path / "small.weights.npz", **small)
+    grown = initial_weights(tmp_path / "small.weights.npz", deep_config)
+    assert set(grown) == set(init_weights(deep_config))
+    assert not grown["round3_update1/kernel"].any() and grown["round3_to_a/kernel"].any()  # a pass-through that learns
+    x, _, e, d = graphs.batch([3, 5])
+    np.testing.assert_allclose(ContactGraphNet(deep_config, grown)(x, e, d).numpy(),
+                               ContactGraphNet(small_config, small)(x, e, d).numpy(), rtol=1e-6, atol=1e-6)
+    # Fewer rounds than the weights hold is another network.
+    np.savez(tmp_path / "deep.weights.npz", **grown)
+    with pytest.raises(ValueError, match="another network"):
+        initial_weights(tmp_path / "deep.weights.npz", small_config)
+
+
 def test_train_graph_pooled_from_a_plain_run_exports_a_model_onnx_runtime_runs_like_tensorflow(data, tmp_path):
     common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
               "--batch-size", "4", "--rounds", "1", "--width", "8", "--loss", "mse", "--cache",
