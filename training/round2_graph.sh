@@ -79,7 +79,8 @@
 #   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
 #                              with 6 rounds: -e16's 3 and 3 more that start as pass-throughs, so
 #                              the deeper network starts from the pre-trained one (epochs kept
-#                              under runs/epochs/, not shipped)
+#                              under runs/epochs/); from a fresh clone, `python -m
+#                              training.recover_weights` on -e16's card first; 266 s on two cores
 #   graph-oracle-mse           graph-mse on the correction to the step solved from zero to
 #                              convergence (--targets oracle; ORACLE=1 ORACLE_SEEDS=1-200 bash
 #                              training/round2_data.sh first), 10,000 steps of each file, 10
@@ -256,8 +257,6 @@ run() {
             # their input through at first (train_graph.initial_weights), trained as
             # graph-projected-max-1-799 was; every epoch kept to be priced beside it
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            local OUT=runs/epochs
-            mkdir -p "$OUT"
             variant graph-projected-max-r6-grown --loss solver-projected-max --rounds 6 --max-steps-per-file 3000 \
                 --epochs 2 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz \
                 --checkpoints runs/epochs/graph-projected-max-r6-grown ;;
