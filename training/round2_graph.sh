@@ -74,6 +74,12 @@
 #                              features per point), 3 epochs of 3,000 steps per 1-799 file
 #                              (with a -t1 card): is the default's network too small?
 #   graph-projected-max-w32    its control: the same at the default's width
+#   graph-mse-1-799-w64        graph-mse-1-799's recipe at twice the width (64 features per point,
+#                              83,906 parameters): 8 epochs, then graph-mse-1-799-w64-e16, 8 more
+#                              from its weights as -e16 is made; about 40 min each on two cores
+#   graph-projected-max-1-799-w64  graph-projected-max-1-799's recipe from -w64-e16's weights (with
+#                              a -t1 card; epochs kept under runs/epochs/): is the pre-trained
+#                              network too small?
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
 #                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
 #   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
@@ -123,6 +129,19 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799 --loss mse --epochs 8 --patience 3
             "$PY" -m training.card_variant "$OUT/graph-mse-1-799.json" --correction-threshold 0.3 ;;
+        graph-mse-1-799-w64)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-mse-1-799-w64 --loss mse --width 64 --epochs 8 --patience 3 ;;
+        graph-mse-1-799-w64-e16)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-mse-1-799-w64-e16 --loss mse --width 64 --epochs 8 --patience 3 --lr 1e-3 \
+                --init runs/graph-cache/graph-mse-1-799-w64.weights.npz ;;
+        graph-projected-max-1-799-w64)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-projected-max-1-799-w64 --loss solver-projected-max --width 64 --max-steps-per-file 3000 \
+                --epochs 2 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w64-e16.weights.npz \
+                --checkpoints runs/epochs/graph-projected-max-1-799-w64
+            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-w64.json" --correction-threshold 1.0 ;;
         graph-mse-1-799-e16)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-e16 --loss mse --epochs 8 --patience 3 --lr 1e-3 \
