@@ -277,7 +277,10 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     every step with contacts (the picked trajectory's): per candidate, its mean
     iterations there, that over builtin's with its bootstrap interval over seeds,
     and the share of steps where it was picked (builtin on ties), beat builtin
-    and lost to it. A model that fell back at a step is priced as builtin there
+    and lost to it. With two or more models, also `over_first`: each candidate's
+    iterations over the first model's on the same states, with the interval
+    paired by seed, so two models are compared directly rather than through
+    their two intervals to builtin (which share most of their noise). A model that fell back at a step is priced as builtin there
     (the table's fallbacks column counts such steps).
     With `builtin` (its own runs on the same seeds), also `trajectory`: builtin's
     mean on this trajectory over its mean on its own, paired by seed. A
@@ -294,6 +297,8 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     return {"candidates": candidates, "steps": len(a), "mean_iterations": a.mean(axis=0).tolist(),
             "over_builtin": [ratio_interval([s[:, i] for s in per_seed], [s[:, 0] for s in per_seed]).to_dict()
                              for i in range(width)],
+            "over_first": ([ratio_interval([s[:, i] for s in per_seed], [s[:, 1] for s in per_seed]).to_dict()
+                            for i in range(width)] if width > 2 else None),
             "picked": [float((best == i).mean()) for i in range(width)],
             "better_than_builtin": (a < a[:, :1]).mean(axis=0).tolist(),
             "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist(),
@@ -308,12 +313,14 @@ def pick_table(picks: dict) -> str:
         whose = {"shadow:": "the first candidate's", "mean:": "the mean's", "price:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",
-                  "| candidate | mean iterations | / builtin | picked | better than builtin | worse |",
-                  "|---|---|---|---|---|---|"]
+                  "| candidate | mean iterations | / builtin | / first model | picked | better than builtin | worse |",
+                  "|---|---|---|---|---|---|---|"]
         for i, c in enumerate(p["candidates"]):
             r = Ratio(**p["over_builtin"][i])
             ratio = "1" if i == 0 else r.text() + (" ✓" if r.below_one() else "")
-            lines.append(f"| {c} | {p['mean_iterations'][i]:.1f} | {ratio} | {p['picked'][i]:.0%} | "
+            first = p.get("over_first")
+            paired = "–" if not first or i == 0 else "1" if i == 1 else Ratio(**first[i]).text()
+            lines.append(f"| {c} | {p['mean_iterations'][i]:.1f} | {ratio} | {paired} | {p['picked'][i]:.0%} | "
                          f"{p['better_than_builtin'][i]:.0%} | {p['worse_than_builtin'][i]:.0%} |")
         if p.get("trajectory"):
             lines += ["", f"Builtin on this trajectory / builtin on its own: {Ratio(**p['trajectory']).text()} "

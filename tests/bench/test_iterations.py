@@ -27,6 +27,9 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
     pick = written["picks"]["pick:server:tiny+server:zero"]  # the trial solves: every candidate on the same states
     assert pick["candidates"] == ["builtin", "server:tiny", "server:zero"] and pick["over_builtin"][0]["value"] == 1.0
     assert abs(sum(pick["picked"]) - 1.0) < 1e-9
+    # two models: each is also priced against the first on the same states
+    assert pick["over_first"][1]["value"] == 1.0 and pick["over_first"][2]["value"] > 0
+    assert written["picks"]["price:server:tiny"]["over_first"] is None  # one model: nothing to pair
     assert pick["steps"] == summary["pick:server:tiny+server:zero"]["steps_with_contacts"]
     assert pick["trajectory"]["seeds"] == 1 and pick["trajectory"]["value"] > 0  # builtin here against on its own
     priced = written["picks"]["price:server:tiny"]  # served builtin: Builtin's own trajectory
