@@ -80,6 +80,9 @@
 #   graph-projected-max-1-799-w64  graph-projected-max-1-799's recipe from -w64-e16's weights (with
 #                              a -t1 card; epochs kept under runs/epochs/): is the pre-trained
 #                              network too small?
+#   graph-mse-1-799-w128, graph-mse-1-799-w128-e16, graph-projected-max-1-799-w128
+#                              the same three stages at four times the width (128 features per
+#                              point, 331,650 parameters): does capacity keep paying?
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
 #                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
 #   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
@@ -129,19 +132,21 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799 --loss mse --epochs 8 --patience 3
             "$PY" -m training.card_variant "$OUT/graph-mse-1-799.json" --correction-threshold 0.3 ;;
-        graph-mse-1-799-w64)
+        graph-mse-1-799-w64|graph-mse-1-799-w128)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            variant graph-mse-1-799-w64 --loss mse --width 64 --epochs 8 --patience 3 ;;
-        graph-mse-1-799-w64-e16)
+            variant "$1" --loss mse --width "${1##*-w}" --epochs 8 --patience 3 ;;
+        graph-mse-1-799-w64-e16|graph-mse-1-799-w128-e16)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            variant graph-mse-1-799-w64-e16 --loss mse --width 64 --epochs 8 --patience 3 --lr 1e-3 \
-                --init runs/graph-cache/graph-mse-1-799-w64.weights.npz ;;
-        graph-projected-max-1-799-w64)
+            local base=${1%-e16}
+            variant "$1" --loss mse --width "${base##*-w}" --epochs 8 --patience 3 --lr 1e-3 \
+                --init "runs/graph-cache/$base.weights.npz" ;;
+        graph-projected-max-1-799-w64|graph-projected-max-1-799-w128)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            variant graph-projected-max-1-799-w64 --loss solver-projected-max --width 64 --max-steps-per-file 3000 \
-                --epochs 2 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w64-e16.weights.npz \
-                --checkpoints runs/epochs/graph-projected-max-1-799-w64
-            "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-w64.json" --correction-threshold 1.0 ;;
+            local width=${1##*-w}
+            variant "$1" --loss solver-projected-max --width "$width" --max-steps-per-file 3000 \
+                --epochs 2 --lr 5e-4 --init "runs/graph-cache/graph-mse-1-799-w$width-e16.weights.npz" \
+                --checkpoints "runs/epochs/$1"
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-mse-1-799-e16)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-e16 --loss mse --epochs 8 --patience 3 --lr 1e-3 \
