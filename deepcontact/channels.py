@@ -51,13 +51,13 @@ class Step:
     """
 
     __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "_velocities", "_after_builtin", "_masses",
-                 "_frame")
+                 "_frame", "_last_correction")
 
     def __init__(self, bodies: np.ndarray | None, contacts: np.ndarray | None, previous: np.ndarray | None = None,
                  physics: Physics = Physics(), oracle: np.ndarray | None = None):
         self.bodies, self.contacts, self.previous = bodies, contacts, previous
         self.physics, self.oracle = physics, oracle
-        self._velocities = self._after_builtin = self._masses = self._frame = None
+        self._velocities = self._after_builtin = self._masses = self._frame = self._last_correction = None
 
     def velocities(self) -> np.ndarray:
         """(P, 2) m/s: relative (normal, tangent) velocity after gravity."""
@@ -90,6 +90,25 @@ class Step:
         """(P, 2) N s: one Jacobi step from the builtin warm start, -mass x velocity after it:
         the change each point would make alone to stop its relative motion."""
         return -self.masses() * self.velocities_after_builtin()
+
+    def last_correction(self) -> np.ndarray:
+        """(P, 2) N s: what the solver added to Box2D's warm start at the same point
+        (matched by key) on the previous step, 0 where the point is new or there is no
+        previous step. Box2D's warm start is last step's final impulse, so this is
+        builtin minus last step's builtin: it needs no solved impulses and is the same
+        on recorded data and on a server that keeps a stream's last request."""
+        if self._last_correction is None:
+            c, p = self.contacts, self.previous
+            out = np.zeros((len(c), 2))
+            if p is not None and len(p) and len(c):
+                order = np.argsort(p["key"], kind="stable")
+                keys = p["key"][order]
+                j = np.searchsorted(keys, c["key"]).clip(max=len(keys) - 1)
+                found = keys[j] == c["key"]
+                before = p["builtin"][order[j[found]]].astype(np.float64)
+                out[found] = c["builtin"][found].astype(np.float64) - before
+            self._last_correction = out
+        return self._last_correction
 
     def oracle_impulses(self) -> np.ndarray:
         if self.oracle is None:
@@ -180,6 +199,7 @@ NEEDS = {
     "physics": "the time step and gravity (World.dt, World.gravity_x/y)",
     "point_separation": "the points' separation (StepRequest.point_separation)",
     "builtin": "Box2D's builtin warm start (StepRequest.builtin)",
+    "point_keys": "the points' keys, equal on every step for the same point (StepRequest.point_keys)",
 }
 _VELOCITY = ("point_bodies", "physics")
 
@@ -229,6 +249,11 @@ _DEFINITIONS = (
     Channel("jacobi_tangent", "contacts", _derived("jacobi", 1), "N s",
             "one Jacobi step from the builtin warm start: -tangent_mass x vt_builtin",
             needs=_VELOCITY + ("body_inertia", "builtin")),
+    Channel("last_correction_normal", "contacts", _derived("last_correction", 0), "N s",
+            "what the solver added to the warm start at this point last step (builtin minus last step's "
+            "builtin), normal; 0 at new points", needs=("builtin", "point_keys")),
+    Channel("last_correction_tangent", "contacts", _derived("last_correction", 1), "N s",
+            "the same, tangent", needs=("builtin", "point_keys")),
     Channel("warm_start_normal", "contacts", _field("warm_start", 0), "N s", "warm start used, normal"),
     Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),
     Channel("impulse_normal", "contacts", _field("impulse", 0), "N s", "final solver impulse, normal"),

@@ -56,7 +56,7 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
     bodies: (B,) BODY_DTYPE in creation order, as the engine exports them
         (static bodies are left out: walls travel in World).
     points: (P,) CONTACT_DTYPE in export order; their bodies travel as rows of
-        the dynamic bodies (-1 for static), with the separation.
+        the dynamic bodies (-1 for static), with the separation and the keys.
     builtin, impulses: optional (P, 2) float (normal, tangent), N s.
     """
     moving = bodies["type"] != 0
@@ -79,7 +79,8 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
                          point_count=len(points), points=p.tobytes(),
                          point_bodies=rows.astype(I32).tobytes(),
                          point_separation=np.ascontiguousarray(points["separation"], F32).tobytes(),
-                         body_inertia=np.ascontiguousarray(dyn["inertia"], F32).tobytes())
+                         body_inertia=np.ascontiguousarray(dyn["inertia"], F32).tobytes(),
+                         point_keys=np.ascontiguousarray(points["key"], "<u8").tobytes())
     if world is not None:
         msg.world.CopyFrom(world)
     if builtin is not None:
@@ -108,7 +109,7 @@ def _array(msg, field: str, rows: int, cols: int, *, optional: bool = False,
         return None
     expected = rows * cols * dtype.itemsize
     if len(raw) != expected:
-        kind = "float32" if dtype == F32 else "int32"
+        kind = {F32: "float32", I32: "int32"}.get(dtype, str(dtype))
         raise WireError(field, f"{len(raw)} bytes, expected {rows} x {cols} {kind} = {expected}")
     a = np.frombuffer(raw, dtype).reshape(rows, cols)
     if check:
@@ -196,8 +197,8 @@ def decode_step(msg: pb.StepRequest, *, max_bodies: int, max_points: int) -> tup
     bodies: (B + 1,) BODY_DTYPE, a static stand-in for every wall at row 0,
         then the request's bodies (all dynamic), inertia filled when sent.
     points: (P,) CONTACT_DTYPE with point, normal, builtin and impulse filled
-        (zero when absent), and, when sent, separation and body_a/body_b as
-        rows of `bodies` (0: static).
+        (zero when absent), and, when sent, separation, key and body_a/body_b
+        as rows of `bodies` (0: static).
 
     WireError names the bad field."""
     if msg.body_count > max_bodies:
@@ -212,6 +213,7 @@ def decode_step(msg: pb.StepRequest, *, max_bodies: int, max_points: int) -> tup
     impulses = _array(msg, "impulses", n_points, 2, optional=True, check=False)
     separation = _array(msg, "point_separation", n_points, 1, optional=True, check=False)
     rows = _array(msg, "point_bodies", n_points, 2, optional=True, check=False, dtype=I32)
+    keys = _array(msg, "point_keys", n_points, 1, optional=True, check=False, dtype=np.dtype("<u8"))
     if rows is not None and n_points and (rows.min() < -1 or rows.max() >= n_bodies):
         raise WireError("point_bodies", f"names rows outside -1..{n_bodies - 1}")
 
@@ -240,6 +242,8 @@ def decode_step(msg: pb.StepRequest, *, max_bodies: int, max_points: int) -> tup
                 _check_finite(a, field)
     if rows is not None:
         ints[:, _BODY_AB_WORDS] = rows + 1  # after the check: these words are integers
+    if keys is not None:
+        points["key"] = keys[:, 0]
     return bodies, points
 
 

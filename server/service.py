@@ -118,16 +118,17 @@ class WarmStartService(pb_grpc.WarmStartServicer):
 
     def Stream(self, request_iterator, context):
         # A stream is one simulation: its world, and its last step's points for temporal channels.
-        world = previous = None
+        world, steps = None, _StreamSteps()
         for request in request_iterator:
             try:
                 if request.HasField("world"):
-                    world, previous = self._world(request.world), None
+                    world, steps = self._world(request.world), _StreamSteps()
                     self._warm_up(request.model, world)
                 elif world is None:
                     raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                                   "world: required on the first message of a stream")
-                reply, previous = self._step(request, world, previous)
+                reply, points = self._step(request, world, steps.before(request.step))
+                steps.record(request.step, points)
                 yield reply
             except _Reject as r:
                 reject(context, r.code, r.message, rpc=_STREAM)
@@ -161,7 +162,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         """What the predictor needs that this request does not carry (keys of channels.NEEDS)."""
         sent = {"point_bodies": request.point_bodies, "body_inertia": request.body_inertia,
                 "point_separation": request.point_separation, "builtin": request.builtin,
-                "physics": world.physics.dt > 0}
+                "point_keys": request.point_keys, "physics": world.physics.dt > 0}
         return [need for need in predictor.requires if not sent[need]]
 
     def _step(self, request: pb.StepRequest, world: World, previous=None):
@@ -208,6 +209,30 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         timings.total_us = _us(total)
         metrics.observe_step(predictor.name, t1 - t0, stages, total)
         return reply, points
+
+
+class _StreamSteps:
+    """A stream's last step's points, the `previous` of temporal channels.
+
+    A step's previous step is the last one sent with another index: a client that asks
+    several models about one state (bench iterations' price:, shadow:, pick:) sends one
+    request per model with the same step, and each must see the step before, not the
+    request before. A step without points is not sent, so the step before a gap is the
+    last one that had points."""
+
+    __slots__ = ("step", "points", "_before")
+
+    def __init__(self):
+        self.step, self.points, self._before = None, None, None
+
+    def before(self, step: int):
+        """(P,) CONTACT_DTYPE of the step before `step`, or None."""
+        return self._before if step == self.step else self.points
+
+    def record(self, step: int, points) -> None:
+        if step != self.step:
+            self._before, self.step = self.points, step
+        self.points = points
 
 
 def _us(seconds: float) -> int:

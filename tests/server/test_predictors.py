@@ -117,6 +117,8 @@ def reference_decode(msg):
     if msg.point_bodies:
         rows = np.frombuffer(msg.point_bodies, np.int32).reshape(-1, 2) + 1
         points["body_a"], points["body_b"] = rows[:, 0], rows[:, 1]
+    if msg.point_keys:
+        points["key"] = np.frombuffer(msg.point_keys, np.uint64)
     return bodies, points
 
 

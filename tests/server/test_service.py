@@ -205,6 +205,13 @@ def test_a_model_reading_contact_velocities_and_the_last_step_is_served_what_tra
             y = ort.InferenceSession(str(tmp_path / "kinematic.onnx")).run(None, {"grids": spec.normalize(grid)[None]})
             expected, _ = g2p(spec.denormalize(y[0][0], "targets"), steps[1][1]["point"], spec)
             np.testing.assert_allclose(np.stack(wire.decode_impulses(replies[1]), 1), expected, rtol=1e-4, atol=1e-6)
+            # A client pricing several models on one state sends one request per model for the
+            # same step: each still sees the step before, not the request before.
+            interleaved = [request(world if k == 0 else None, b, p, model, step=k, builtin=p["builtin"])
+                           for k, (b, p) in enumerate(steps[:2]) for model in ("zero", "kinematic")]
+            again = list(stub.Stream(iter(interleaved)))
+            np.testing.assert_array_equal(np.stack(wire.decode_impulses(again[3]), 1),
+                                          np.stack(wire.decode_impulses(replies[1]), 1))
             # A client that sends neither the points' bodies nor the physics is told what is missing.
             old = request(world, *steps[0], "kinematic", builtin=steps[0][1]["builtin"])
             old.ClearField("point_bodies")
