@@ -83,6 +83,17 @@
 #   graph-mse-1-799-w128, graph-mse-1-799-w128-e16, graph-projected-max-1-799-w128
 #                              the same three stages at four times the width (128 features per
 #                              point, 331,650 parameters): does capacity keep paying?
+#   graph-projected-max-1-799-last  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
+#                              reading also what the solver added at each point last step
+#                              (--extra-inputs last_correction_normal,last_correction_tangent; their
+#                              first-layer weights start at 0): the reversal of last step's
+#                              correction, which a fixed rule (lastchange@A) cannot use (with a -t1 card)
+#   graph-mse-1-799-last, graph-mse-1-799-e20  4 more epochs of the squared error from -e16's weights on
+#                              20,000 steps of each 1-799 file at half -e16's peak rate, with (-last) and without
+#                              (-e20, the control) the two last_correction inputs: does the fit use them
+#                              when it has room to learn them? (-t0.3 cards)
+#   graph-projected-max-1-799-last2, graph-projected-max-1-799-e20  graph-projected-max-1-799's recipe
+#                              from each of those two (with -t1 cards)
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
 #                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
 #   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
@@ -146,6 +157,28 @@ run() {
             variant "$1" --loss solver-projected-max --width "$width" --max-steps-per-file 3000 \
                 --epochs 2 --lr 5e-4 --init "runs/graph-cache/graph-mse-1-799-w$width-e16.weights.npz" \
                 --checkpoints "runs/epochs/$1"
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-last)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --extra-inputs last_correction_normal,last_correction_tangent \
+                --init runs/graph-cache/graph-mse-1-799-e16.weights.npz --checkpoints "runs/epochs/$1"
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-mse-1-799-last|graph-mse-1-799-e20)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            local extra=()
+            [ "$1" = graph-mse-1-799-last ] && extra=(--extra-inputs last_correction_normal,last_correction_tangent)
+            variant "$1" --loss mse --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 "${extra[@]}" \
+                --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
+        graph-projected-max-1-799-last2|graph-projected-max-1-799-e20)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            local from=graph-mse-1-799-e20 extra=()
+            if [ "$1" = graph-projected-max-1-799-last2 ]; then
+                from=graph-mse-1-799-last extra=(--extra-inputs last_correction_normal,last_correction_tangent)
+            fi
+            variant "$1" --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 --lr 5e-4 "${extra[@]}" \
+                --init "runs/graph-cache/$from.weights.npz"
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-mse-1-799-e16)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")

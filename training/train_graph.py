@@ -36,6 +36,7 @@ from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard
 from training import machine
+from deepcontact.channels import CHANNELS
 from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, GraphSet, build_graph_set
 from training.grids import GridDataError
 
@@ -83,6 +84,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s); with --init from a network with "
                              "fewer, the new rounds follow its last and start as pass-throughs")
+    parser.add_argument("--extra-inputs", default="", metavar="NAMES",
+                        help="contact-point channels read after the standard ones, comma-separated (e.g. "
+                             "last_correction_normal,last_correction_tangent; deepcontact/channels.py defines them); "
+                             "with --init from a network without them, their first-layer weights start at 0")
     parser.add_argument("--pooled", action="store_true",
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
@@ -175,12 +180,21 @@ def run(args: argparse.Namespace) -> int:
         print("train-graph: --loss solver-projected-sweeps measures Box2D's pace between two --sweeps counts; "
               f"give two or more, got {args.sweeps}", file=sys.stderr)
         return 2
+    extra = tuple(n for n in str(args.extra_inputs).split(",") if n)
+    bad = [n for n in extra if n not in CHANNELS or CHANNELS[n].source != "contacts" or n in GRAPH_INPUTS]
+    if bad or len(set(extra)) != len(extra):
+        print(f"train-graph: --extra-inputs takes contact-point channels not already read ({', '.join(GRAPH_INPUTS)}), "
+              f"each once; got {args.extra_inputs!r}", file=sys.stderr)
+        return 2
+    args.inputs = GRAPH_INPUTS + extra
     command = "deepcontact train-graph " + " ".join(shlex.quote(a) for a in sys.argv[2:])
     t0 = time.perf_counter()
     targets = TARGETS[getattr(args, "targets", "final")]
     try:
-        train = [_cached(p, args.max_steps_per_file, args.seed, args.cache, args.quiet, targets) for p in args.train]
-        val = [_cached(p, args.max_val_steps, args.seed, args.cache, args.quiet, targets) for p in args.val]
+        train = [_cached(p, args.max_steps_per_file, args.seed, args.cache, args.quiet, targets, args.inputs)
+                 for p in args.train]
+        val = [_cached(p, args.max_val_steps, args.seed, args.cache, args.quiet, targets, args.inputs)
+               for p in args.val]
     except (GridDataError, ValueError) as exc:  # ValueError: --targets oracle on a file without the oracle
         print(f"train-graph: {exc}", file=sys.stderr)
         return 2
@@ -201,17 +215,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _cached(path: Path, max_steps: int | None, seed: int, cache: Path, quiet: bool,
-            targets: tuple[str, ...] = GRAPH_TARGETS) -> GraphSet:
+            targets: tuple[str, ...] = GRAPH_TARGETS, inputs: tuple[str, ...] = GRAPH_INPUTS) -> GraphSet:
     """The file's contact graphs, read once and kept as .npz under `cache`."""
     st = path.stat()
     key = json.dumps([CACHE_VERSION, str(path.resolve()), st.st_size, int(st.st_mtime), max_steps, seed,
-                      GRAPH_INPUTS, targets])
+                      inputs, targets])
     target = cache / f"{path.stem}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
     if target.exists():
         return GraphSet.load(target)
     bar = None if quiet else _bar(None, f"graphs {path.name}")
     try:
-        gs = build_graph_set(path, GRAPH_INPUTS, targets, max_steps=max_steps, seed=seed, progress=bar)
+        gs = build_graph_set(path, inputs, targets, max_steps=max_steps, seed=seed, progress=bar)
     finally:
         if bar is not None:
             bar.close()
@@ -455,6 +469,12 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
         for r in range(rounds, config.rounds):
             for k in (k for k in fresh if k.startswith(f"round{r}_")):
                 weights[k] = np.zeros_like(fresh[k]) if k.startswith(f"round{r}_update1/") else fresh[k]
+    k = "encode0/kernel"
+    if k in weights and weights[k].shape[0] < config.in_channels and weights[k].shape[1:] == expected[k][1:]:
+        # A network that read fewer inputs (--extra-inputs): the new ones get zero rows in the
+        # first layer, so the network starts as exactly the one it grew from.
+        v = weights[k]
+        weights[k] = np.concatenate([v, np.zeros((config.in_channels - v.shape[0], v.shape[1]), v.dtype)])
     if config.pooled:
         # A network without the summary: its update layers gain zero rows for it, so the
         # pooled network starts as exactly that network.
@@ -583,7 +603,8 @@ class _CardParts:
                                                                    "rounds", "pooled", "tangent_weight", "seed", "loss",
                                                                    "sweeps", "order", "omega", "norm", "harm_weight",
                                                                    "max_steps_per_file",
-                                                                   "max_val_steps")},
+                                                                   "max_val_steps")}
+                                  | ({"extra_inputs": args.extra_inputs} if getattr(args, "extra_inputs", "") else {}),
                       "init": None if args.init is None else str(args.init),
                       "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                       "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),

@@ -78,3 +78,20 @@ def test_what_requests_must_carry_follows_from_the_channels():
     assert needs(("vn",)) == ("physics", "point_bodies")
     assert needs(("vn_builtin", "separation")) == ("body_inertia", "builtin", "physics", "point_bodies",
                                                    "point_separation")
+
+
+def test_last_correction_is_builtin_minus_last_steps_builtin_at_the_same_key():
+    bodies, contacts = two_bodies_on_the_floor()
+    contacts["key"] = [7, 9]
+    assert not channel_values(["last_correction_normal"], Step(bodies, contacts)).any()  # no previous step
+    previous = np.zeros(3, CONTACT_DTYPE)
+    previous["key"] = [9, 5, 7]  # any order; key 5 has let go
+    previous["builtin"] = [[0.0, 0.0], [1.0, 1.0], [0.090, 0.004]]
+    got = channel_values(["last_correction_normal", "last_correction_tangent"], Step(bodies, contacts, previous))
+    # Key 7: this step's builtin (last step's final impulse) minus where last step started.
+    # Key 9 was there with no impulse and still has none.
+    np.testing.assert_allclose(got, [[0.008, -0.004], [0.0, 0.0]], atol=1e-7)
+    contacts["key"][1] = 11  # a point that was not there last step reads 0
+    got = channel_values(["last_correction_normal"], Step(bodies, contacts, previous))
+    np.testing.assert_allclose(got[:, 0], [0.008, 0.0], atol=1e-7)
+    assert needs(("last_correction_normal",)) == ("builtin", "point_keys")

@@ -407,3 +407,76 @@ def test_the_max_loss_takes_other_norms_and_harm_weights_and_the_card_says_which
     assert settings["norm"] == 2 and settings["harm_weight"] == 3.0 and np.isfinite(card["validation"]["loss"])
     assert main(common + ["--harm-weight", "0"]) == 2
     assert "--harm-weight" in capsys.readouterr().err
+
+
+def test_a_network_given_more_inputs_starts_as_the_one_it_grew_from(graphs, tmp_path):
+    from training.graph_model import ContactGraphNet, GraphConfig, init_weights
+    from training.train_graph import initial_weights
+
+    small_config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2)
+    wide_config = GraphConfig(in_channels=len(GRAPH_INPUTS) + 2, width=8, rounds=2)
+    small = init_weights(small_config, seed=1)
+    small["decode1/kernel"] = np.random.default_rng(2).normal(size=small["decode1/kernel"].shape).astype(np.float32)
+    np.savez(tmp_path / "small.weights.npz", **small)
+    grown = initial_weights(tmp_path / "small.weights.npz", wide_config)
+    assert not grown["encode0/kernel"][-2:].any()  # the new inputs' rows start at 0
+    x, _, e, d = graphs.batch([3, 5])
+    extra = np.random.default_rng(3).normal(size=(len(x), 2)).astype(np.float32)
+    np.testing.assert_allclose(ContactGraphNet(wide_config, grown)(np.hstack([x, extra]), e, d).numpy(),
+                               ContactGraphNet(small_config, small)(x, e, d).numpy(), rtol=1e-6, atol=1e-6)
+
+
+def test_a_model_reading_last_steps_correction_is_served_what_training_saw(data, tmp_path, thesis_steps, capsys):
+    import grpc
+
+    from deepcontact import wire
+    from deepcontact.channels import Step, channel_values
+    from deepcontact.gridspec import GridSpec
+    from deepcontact.kinematics import BODY_DYNAMIC, Physics
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.serve import Server
+
+    extra = "last_correction_normal,last_correction_tangent"
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--rounds", "1", "--width", "8", "--loss", "mse", "--cache",
+              str(tmp_path / "cache"), "--quiet"]
+    models = tmp_path / "models"
+    assert main(common + ["--out", str(models / "last.onnx"), "--extra-inputs", extra]) == 0
+    card = json.loads((models / "last.json").read_text())
+    assert card["gridspec"]["inputs"][-2:] == extra.split(",")
+    assert card["training"]["settings"]["extra_inputs"] == extra
+    # A channel of the bodies, or one read already, is refused with the list of what it reads.
+    for bad in ("mass", "vn", "nope"):
+        assert main(common + ["--out", str(tmp_path / "bad.onnx"), "--extra-inputs", bad]) == 2
+        assert "--extra-inputs" in capsys.readouterr().err
+
+    world, steps = thesis_steps
+    srv = Server(models=models).start()
+    try:
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            requests = [wire.encode_step(k, "last", b, p, world=world if k == 0 else None, builtin=p["builtin"])
+                        for k, (b, p) in enumerate(steps[:2])]
+            replies = list(stub.Stream(iter(requests)))
+            # The second step is served with the first one's points, matched by key.
+            decoded = [wire.decode_step(r, max_bodies=10**4, max_points=10**5) for r in requests]
+            (bodies, points), (_, first) = decoded[1], decoded[0]
+            spec = GridSpec.from_dict(card["gridspec"])
+            mean, std = spec.normalization_arrays(spec.inputs)
+            x = (channel_values(spec.inputs, Step(bodies, points, first, Physics.thesis())) - mean) / std
+            assert np.abs(x[:, -2:]).max() > 0  # the points carried their keys
+            ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32)
+            dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
+            session = ort.InferenceSession(str(models / "last.onnx"), providers=["CPUExecutionProvider"])
+            y = session.run(None, {"points": x.astype(np.float32), "ends": ends, "dynamic": dynamic})[0]
+            mo, so = spec.normalization_arrays(spec.targets)
+            np.testing.assert_allclose(np.stack(wire.decode_impulses(replies[1]), 1), y * so + mo + points["builtin"],
+                                       rtol=1e-4, atol=1e-5)
+            # A client that does not send the keys is told so.
+            old = wire.encode_step(0, "last", *steps[0], world=world, builtin=steps[0][1]["builtin"])
+            old.ClearField("point_keys")
+            with pytest.raises(grpc.RpcError) as err:
+                stub.Predict(old)
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "keys" in err.value.details()
+    finally:
+        srv.stop()
