@@ -29,6 +29,12 @@ models that err differently cancel each other's errors (an ensemble), before
 anyone builds a server that runs several. With `--agree K`, that mean only where
 the models agree (their spread below K times its size, as `python -m
 training.ensemble --agree K` serves it), Box2D's warm start elsewhere.
+
+`--where lost-contact` keeps only the points one of whose dynamic bodies lost a
+contact point since the previous step (a key there that is gone here), and
+`--where kept-contacts` the others: the load such a point carried moves to the
+body's other points, and the model's inputs show the points of this step only.
+Whether the corrections the model misses are there is what the split asks.
 """
 
 from __future__ import annotations
@@ -40,6 +46,12 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact.io import write_json_atomic
+from deepcontact.kinematics import BODY_DYNAMIC
+
+#: The point subsets `--where` selects (module docstring).
+WHERE = ("all", "lost-contact", "kept-contacts")
+_WHERE_TEXT = {"lost-contact": "on a body that lost a contact point since the previous step",
+               "kept-contacts": "on bodies that kept all their contact points"}
 
 #: Upper edges of the groups of the solver's correction size (N s); the last group is open.
 BANDS = (0.01, 0.1, 0.3, 1.0)
@@ -59,6 +71,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--agree", type=float, metavar="K",
                         help="with several models: serve their mean only where their standard deviation is below "
                              "K times its size (python -m training.ensemble --agree), Box2D's warm start elsewhere")
+    parser.add_argument("--where", choices=WHERE, default="all",
+                        help="only the points on a body that lost a contact point since the previous step "
+                             "(lost-contact), only the others (kept-contacts), or all (default)")
     parser.add_argument("--json", metavar="FILE", help="write the table here as JSON")
 
 
@@ -93,14 +108,29 @@ def band_table(served: np.ndarray, solver: np.ndarray, new: np.ndarray) -> list[
     return rows
 
 
+def lost_contact(step) -> np.ndarray:
+    """(P,) bool: this step's points one of whose dynamic bodies had a point on the
+    previous step whose key this step lacks (all False without a previous step).
+
+    step: a deepcontact.channels.Step with bodies, contacts and previous."""
+    c, p = step.contacts, step.previous
+    if p is None or not len(p) or not len(c):
+        return np.zeros(len(c), bool)
+    gone = p[~np.isin(p["key"], c["key"])]
+    lost = np.zeros(len(step.bodies), bool)
+    lost[gone["body_a"]] = lost[gone["body_b"]] = True
+    lost &= step.bodies["type"] == BODY_DYNAMIC
+    return lost[c["body_a"]] | lost[c["body_b"]]
+
+
 def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x, dtype=np.float64)))) if len(x) else float("nan")
 
 
 def replay(predictors, path: Path, max_steps: int, reference: str = "final",
-           agree: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(served, solver, new): the served and the solver's normal correction and the new-point
-    flag at every point of up to max_steps recorded steps, (P,) each. With several
+           agree: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(served, solver, new, lost): the served and the solver's normal correction, the new-point
+    flag and `lost_contact` at every point of up to max_steps recorded steps, (P,) each. With several
     predictors, what is served is the mean of their warm starts (where they agree, with
     `agree`). reference "oracle" takes the solver's correction from the file's converged
     solve (ValueError when it has none)."""
@@ -110,7 +140,7 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final",
 
     with open_dataset(path) as ds:
         steps = ds.steps
-    served, solver, new = [], [], []
+    served, solver, new, lost = [], [], [], []
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # loop over steps, not points
         c = step.contacts
         world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
@@ -121,7 +151,8 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final",
         solved = step.oracle[:, 0] if reference == "oracle" else c["impulse"][:, 0]
         solver.append(solved - c["builtin"][:, 0])
         new.append(~c["builtin"].any(axis=1))
-    return np.concatenate(served), np.concatenate(solver), np.concatenate(new)
+        lost.append(lost_contact(step))
+    return tuple(np.concatenate(a) for a in (served, solver, new, lost))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -143,16 +174,21 @@ def run(args: argparse.Namespace) -> int:
     try:
         predictors = [RecordedSolve() if name == "recorded" else load_model(args.models / f"{name}.json")
                       for name in names]
-        served, solver, new = replay(predictors, args.data, args.max_steps, args.reference, args.agree)
+        served, solver, new, lost = replay(predictors, args.data, args.max_steps, args.reference, args.agree)
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
         print(f"deepcontact bench corrections: {exc}", file=sys.stderr)
         return 2
+    total = len(served)
+    if args.where != "all":
+        keep = lost if args.where == "lost-contact" else ~lost
+        served, solver, new = served[keep], solver[keep], new[keep]
     rows = band_table(served, solver, new)
     label = args.model if len(names) == 1 else f"the mean of {', '.join(names)}"
     if args.agree is not None:
         label += f" where they agree (K {args.agree:g})"
     against = "the converged solve's" if args.reference == "oracle" else "the solver's"
-    print(f"{label} on {args.data} ({len(served)} points): the served correction against {against} "
+    where = "" if args.where == "all" else f", {len(served)} of them {_WHERE_TEXT[args.where]}"
+    print(f"{label} on {args.data} ({total} points{where}): the served correction against {against} "
           "(normal, N s)")
     print("| points | n | RMS solver's correction | RMS error served | served share | sign agrees | within half |")
     print("|---|---|---|---|---|---|---|")
@@ -162,5 +198,5 @@ def run(args: argparse.Namespace) -> int:
               f"{r['served_share']:.2f} | {sign} | {half} |")
     if args.json:
         write_json_atomic(args.json, {"model": args.model, "data": str(args.data), "reference": args.reference,
-                                      "agree": args.agree, "rows": rows})
+                                      "agree": args.agree, "where": args.where, "points": total, "rows": rows})
     return 0

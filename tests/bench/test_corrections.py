@@ -7,8 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from bench.corrections import band_table
+from bench.corrections import band_table, lost_contact
+from deepcontact.channels import Step
 from deepcontact.cli import main
+from deepcontact.kinematics import BODY_DYNAMIC
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 
 
 def test_band_table_groups_persisting_points_by_the_solvers_correction():
@@ -27,6 +30,25 @@ def test_band_table_groups_persisting_points_by_the_solvers_correction():
     # -1.0 served for -2.0: right sign, off by half; within half of it counts.
     assert rows["persisting, |c| in (1, inf]"]["within_half"] == 1.0
     assert small["within_half"] == 0.0 and mid["within_half"] is None
+
+
+def _points(*rows):
+    """Contact records from (key, body_a, body_b)."""
+    points = np.zeros(len(rows), CONTACT_DTYPE)
+    for i, (key, a, b) in enumerate(rows):
+        points[i]["key"], points[i]["body_a"], points[i]["body_b"] = key, a, b
+    return points
+
+
+def test_lost_contact_marks_the_points_of_bodies_that_lost_one_since_the_last_step():
+    bodies = np.zeros(5, BODY_DTYPE)
+    bodies["type"] = [0, BODY_DYNAMIC, BODY_DYNAMIC, BODY_DYNAMIC, BODY_DYNAMIC]  # body 0: the ground
+    previous = _points((10, 0, 1), (11, 1, 2), (12, 0, 3), (13, 3, 4))
+    # Point 11 (bodies 1-2) and point 12 (ground-3) are gone; 10 and 13 persist, 14 is new.
+    step = Step(bodies, _points((10, 0, 1), (13, 3, 4), (14, 0, 4)), previous)
+    assert lost_contact(step).tolist() == [True, True, False]  # body 1; body 3; the ground absorbs, 4 lost none
+    assert not lost_contact(Step(bodies, step.contacts, None)).any()  # no previous step: nothing lost
+    assert not lost_contact(Step(bodies, previous, previous)).any()  # the same points: nothing lost
 
 
 def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_path, model_dir, capsys):
@@ -54,6 +76,18 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--agree", "0.2",
                  "--data", str(data)]) == 2
     assert "at least two models" in capsys.readouterr().err
+    # --where splits the persisting and new points between bodies that lost a contact and the rest.
+    split = {}
+    for where in ("lost-contact", "kept-contacts"):
+        out = tmp_path / f"{where}.json"
+        assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
+                     "--max-steps", "20", "--where", where, "--json", str(out)]) == 0
+        table = json.loads(out.read_text())
+        assert table["where"] == where
+        split[where] = {r["group"]: r["points"] for r in table["rows"]}
+    every = {r["group"]: r["points"] for r in rows}
+    assert all(split["lost-contact"][g] + split["kept-contacts"][g] == every[g] for g in every)
+    assert "since the previous step" in capsys.readouterr().out
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "nope", "--data", str(data)]) == 2
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny",
                  "--data", str(tmp_path / "none.h5")]) == 2
