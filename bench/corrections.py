@@ -35,6 +35,9 @@ contact point since the previous step (a key there that is gone here), and
 `--where kept-contacts` the others: the load such a point carried moves to the
 body's other points, and the model's inputs show the points of this step only.
 Whether the corrections the model misses are there is what the split asks.
+`--where settled` keeps the points whose dynamic bodies both move slower than
+0.01 m/s (deepcontact.kinematics.points_at_rest: a pile at rest, where the velocities a model reads are near 0),
+and `--where moving` the others.
 """
 
 from __future__ import annotations
@@ -46,12 +49,13 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact.io import write_json_atomic
-from deepcontact.kinematics import BODY_DYNAMIC
+from deepcontact.kinematics import BODY_DYNAMIC, REST_SPEED, points_at_rest
 
 #: The point subsets `--where` selects (module docstring).
-WHERE = ("all", "lost-contact", "kept-contacts")
+WHERE = ("all", "lost-contact", "kept-contacts", "settled", "moving")
 _WHERE_TEXT = {"lost-contact": "on a body that lost a contact point since the previous step",
-               "kept-contacts": "on bodies that kept all their contact points"}
+               "kept-contacts": "on bodies that kept all their contact points",
+               "settled": "on bodies at rest", "moving": "on a moving body"}
 
 #: Upper edges of the groups of the solver's correction size (N s); the last group is open.
 BANDS = (0.01, 0.1, 0.3, 1.0)
@@ -73,7 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "K times its size (python -m training.ensemble --agree), Box2D's warm start elsewhere")
     parser.add_argument("--where", choices=WHERE, default="all",
                         help="only the points on a body that lost a contact point since the previous step "
-                             "(lost-contact), only the others (kept-contacts), or all (default)")
+                             f"(lost-contact) or the others (kept-contacts); only those whose bodies move slower "
+                             f"than {REST_SPEED:g} m/s (settled) or the others (moving); or all (default)")
     parser.add_argument("--json", metavar="FILE", help="write the table here as JSON")
 
 
@@ -128,9 +133,10 @@ def _rms(x: np.ndarray) -> float:
 
 
 def replay(predictors, path: Path, max_steps: int, reference: str = "final",
-           agree: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(served, solver, new, lost): the served and the solver's normal correction, the new-point
-    flag and `lost_contact` at every point of up to max_steps recorded steps, (P,) each. With several
+           agree: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """(served, solver, new, where): the served and the solver's normal correction and the new-point
+    flag at every point of up to max_steps recorded steps, (P,) each, and per `--where` choice
+    but "all" the (P,) mask of its points. With several
     predictors, what is served is the mean of their warm starts (where they agree, with
     `agree`). reference "oracle" takes the solver's correction from the file's converged
     solve (ValueError when it has none)."""
@@ -140,7 +146,7 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final",
 
     with open_dataset(path) as ds:
         steps = ds.steps
-    served, solver, new, lost = [], [], [], []
+    served, solver, new, lost, at_rest = [], [], [], [], []
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # loop over steps, not points
         c = step.contacts
         world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
@@ -152,7 +158,10 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final",
         solver.append(solved - c["builtin"][:, 0])
         new.append(~c["builtin"].any(axis=1))
         lost.append(lost_contact(step))
-    return tuple(np.concatenate(a) for a in (served, solver, new, lost))
+        at_rest.append(points_at_rest(step.bodies, c))
+    lost, at_rest = np.concatenate(lost), np.concatenate(at_rest)
+    where = {"lost-contact": lost, "kept-contacts": ~lost, "settled": at_rest, "moving": ~at_rest}
+    return np.concatenate(served), np.concatenate(solver), np.concatenate(new), where
 
 
 def run(args: argparse.Namespace) -> int:
@@ -174,21 +183,21 @@ def run(args: argparse.Namespace) -> int:
     try:
         predictors = [RecordedSolve() if name == "recorded" else load_model(args.models / f"{name}.json")
                       for name in names]
-        served, solver, new, lost = replay(predictors, args.data, args.max_steps, args.reference, args.agree)
+        served, solver, new, where = replay(predictors, args.data, args.max_steps, args.reference, args.agree)
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
         print(f"deepcontact bench corrections: {exc}", file=sys.stderr)
         return 2
     total = len(served)
     if args.where != "all":
-        keep = lost if args.where == "lost-contact" else ~lost
+        keep = where[args.where]
         served, solver, new = served[keep], solver[keep], new[keep]
     rows = band_table(served, solver, new)
     label = args.model if len(names) == 1 else f"the mean of {', '.join(names)}"
     if args.agree is not None:
         label += f" where they agree (K {args.agree:g})"
     against = "the converged solve's" if args.reference == "oracle" else "the solver's"
-    where = "" if args.where == "all" else f", {len(served)} of them {_WHERE_TEXT[args.where]}"
-    print(f"{label} on {args.data} ({total} points{where}): the served correction against {against} "
+    subset = "" if args.where == "all" else f", {len(served)} of them {_WHERE_TEXT[args.where]}"
+    print(f"{label} on {args.data} ({total} points{subset}): the served correction against {against} "
           "(normal, N s)")
     print("| points | n | RMS solver's correction | RMS error served | served share | sign agrees | within half |")
     print("|---|---|---|---|---|---|---|")

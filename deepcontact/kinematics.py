@@ -161,3 +161,16 @@ def effective_masses(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame
         inverse = inv_m[f.a] + inv_m[f.b] + inv_i[f.a] * _cross(f.ra, d) ** 2 + inv_i[f.b] * _cross(f.rb, d) ** 2
         out[:, k] = _inverse(inverse, inverse > 0)
     return out
+
+
+#: Below this speed (m/s) a body counts as at rest (points_at_rest): about what gravity adds
+#: in a step of 1 ms, far below a falling body's and far above a settled pile's drift.
+REST_SPEED = 0.01
+
+
+def points_at_rest(bodies: np.ndarray, points: np.ndarray, speed: float = REST_SPEED) -> np.ndarray:
+    """(P,) bool: the points whose dynamic bodies both move slower than `speed` (m/s,
+    linear velocity as recorded). A point on a settled pile: its bodies' velocities, and
+    what a model reads from them, are near 0 there."""
+    moving = (np.hypot(*bodies["velocity"].T) >= speed) & (bodies["type"] == BODY_DYNAMIC)
+    return ~(moving[points["body_a"]] | moving[points["body_b"]])

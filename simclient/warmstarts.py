@@ -43,6 +43,9 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:some@F       the oracle at a random share F of the points (seeded), builtin
                         elsewhere: what a warm start exact where it is served, and served
                         only at some points, is worth
+    oracle:settled      the oracle at points whose bodies both move slower than 0.01 m/s
+                        (a pile at rest, deepcontact.kinematics.points_at_rest), builtin elsewhere
+    oracle:moving       the oracle at the other points, builtin at those
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -66,10 +69,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from deepcontact.kinematics import points_at_rest
+
 LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K",
          "jitter@S")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
-           "relnoisy@R", "previous", "some@F")
+           "relnoisy@R", "previous", "some@F", "settled", "moving")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -201,6 +206,9 @@ class OracleMix(Provider):
             if v == "relnoisy":
                 noise *= np.abs(exact - builtin)
             warm = np.where((correction <= NOISY_SMALL)[:, None], exact + noise, builtin)
+        elif v in ("settled", "moving"):
+            at_rest = points_at_rest(bodies, points)
+            warm = np.where((at_rest if v == "settled" else ~at_rest)[:, None], exact, builtin)
         elif v == "some":
             served = self._rng.random(len(points)) < self.value
             warm = np.where(served[:, None], exact, builtin)

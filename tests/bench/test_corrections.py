@@ -78,7 +78,7 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
     assert "at least two models" in capsys.readouterr().err
     # --where splits the persisting and new points between bodies that lost a contact and the rest.
     split = {}
-    for where in ("lost-contact", "kept-contacts"):
+    for where in ("lost-contact", "kept-contacts", "settled", "moving"):
         out = tmp_path / f"{where}.json"
         assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
                      "--max-steps", "20", "--where", where, "--json", str(out)]) == 0
@@ -86,7 +86,8 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
         assert table["where"] == where
         split[where] = {r["group"]: r["points"] for r in table["rows"]}
     every = {r["group"]: r["points"] for r in rows}
-    assert all(split["lost-contact"][g] + split["kept-contacts"][g] == every[g] for g in every)
+    for part, rest in (("lost-contact", "kept-contacts"), ("settled", "moving")):
+        assert all(split[part][g] + split[rest][g] == every[g] for g in every)
     assert "since the previous step" in capsys.readouterr().out
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "nope", "--data", str(data)]) == 2
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny",

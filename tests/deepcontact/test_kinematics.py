@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deepcontact.kinematics import Physics, contact_velocities
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_velocities, points_at_rest
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 from simclient.scene import SceneSpec, settled_world
 
 
@@ -54,3 +55,13 @@ def test_effective_mass_is_the_impulse_that_stops_one_point_alone():
         change = contact_velocities(bodies, points, unit) - before
         assert change[7, k] == pytest.approx(1.0, abs=1e-6)
     assert effective_masses(bodies, points[:0]).shape == (0, 2)
+
+
+def test_points_at_rest_are_those_whose_dynamic_bodies_move_slower_than_the_threshold():
+    bodies = np.zeros(4, BODY_DTYPE)
+    bodies["type"] = [0, BODY_DYNAMIC, BODY_DYNAMIC, BODY_DYNAMIC]
+    bodies["velocity"] = [[5.0, 0.0], [0.0, 0.001], [0.3, 0.0], [0.0, -0.002]]  # a static body's is never read
+    points = np.zeros(4, CONTACT_DTYPE)
+    points["body_a"], points["body_b"] = [0, 1, 1, 0], [1, 2, 3, 3]
+    assert points_at_rest(bodies, points).tolist() == [True, False, True, True]
+    assert points_at_rest(bodies, points, speed=0.5).all()
