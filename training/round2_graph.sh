@@ -94,6 +94,12 @@
 #                              when it has room to learn them? (-t0.3 cards)
 #   graph-projected-max-1-799-last2, graph-projected-max-1-799-e20  graph-projected-max-1-799's recipe
 #                              from each of those two (with -t1 cards)
+#   graph-projected-max-1-799-asinh, graph-mse-1-799-asinh, graph-projected-max-1-799-asinh2  the
+#                              three runs above (-last, -last from -e16 with MSE, -last2), reading
+#                              instead the velocities and Jacobi steps after Box2D's warm start on a
+#                              signed log scale (the *_asinh channels): in a settled pile they are
+#                              1e-4 to 1e-3 of their standard deviation, where the band that pays is worst
+#                              fitted; controls as above (graph-projected-max-1-799, -e20)
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
 #                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
 #   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
@@ -115,6 +121,8 @@ TRAIN_SEEDS=${TRAIN_SEEDS:-1-300}
 DATA=(--train data/thesis-train-$TRAIN_SEEDS.h5 --train data/family-train-$TRAIN_SEEDS.h5
       --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5 --max-val-steps 500 --seed 0 --quiet)
 OUT=models
+
+ASINH=vn_builtin_asinh,vt_builtin_asinh,jacobi_normal_asinh,jacobi_tangent_asinh
 
 variant() {  # NAME TRAIN-GRAPH-ARGS...
     local name=$1; shift
@@ -164,18 +172,27 @@ run() {
                 --extra-inputs last_correction_normal,last_correction_tangent \
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz --checkpoints "runs/epochs/$1"
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
-        graph-mse-1-799-last|graph-mse-1-799-e20)
+        graph-projected-max-1-799-asinh)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --extra-inputs "$ASINH" \
+                --init runs/graph-cache/graph-mse-1-799-e16.weights.npz --checkpoints "runs/epochs/$1"
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-mse-1-799-last|graph-mse-1-799-e20|graph-mse-1-799-asinh)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             local extra=()
             [ "$1" = graph-mse-1-799-last ] && extra=(--extra-inputs last_correction_normal,last_correction_tangent)
+            [ "$1" = graph-mse-1-799-asinh ] && extra=(--extra-inputs "$ASINH")
             variant "$1" --loss mse --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 "${extra[@]}" \
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
-        graph-projected-max-1-799-last2|graph-projected-max-1-799-e20)
+        graph-projected-max-1-799-last2|graph-projected-max-1-799-e20|graph-projected-max-1-799-asinh2)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             local from=graph-mse-1-799-e20 extra=()
             if [ "$1" = graph-projected-max-1-799-last2 ]; then
                 from=graph-mse-1-799-last extra=(--extra-inputs last_correction_normal,last_correction_tangent)
+            elif [ "$1" = graph-projected-max-1-799-asinh2 ]; then
+                from=graph-mse-1-799-asinh extra=(--extra-inputs "$ASINH")
             fi
             variant "$1" --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 --lr 5e-4 "${extra[@]}" \
                 --init "runs/graph-cache/$from.weights.npz"

@@ -95,3 +95,16 @@ def test_last_correction_is_builtin_minus_last_steps_builtin_at_the_same_key():
     got = channel_values(["last_correction_normal"], Step(bodies, contacts, previous))
     np.testing.assert_allclose(got[:, 0], [0.008, 0.0], atol=1e-7)
     assert needs(("last_correction_normal",)) == ("builtin", "point_keys")
+
+
+def test_asinh_channels_resolve_velocities_near_the_solvers_tolerance():
+    bodies, contacts = two_bodies_on_the_floor()
+    bodies["velocity"][1:] = 0.0
+    contacts["builtin"][0, 0] = 0.098 + 2e-4  # the first disc pushed up at 2e-4 m/s: nearly at rest
+    step = Step(bodies, contacts, physics=Physics(0.01, (0.0, -9.8)))
+    fine = channel_values(["vn_builtin", "vn_builtin_asinh", "jacobi_normal", "jacobi_normal_asinh"], step)
+    np.testing.assert_allclose(fine[:, 1], np.arcsinh(fine[:, 0] / 1e-4), rtol=1e-6)
+    np.testing.assert_allclose(fine[:, 3], np.arcsinh(fine[:, 2] / 1e-4), rtol=1e-6)
+    # 2e-4 m/s and 0.098 m/s are 2e-3 apart linearly and under a factor of 4 apart on this scale;
+    # the sign stays (the disc at rest is pushed apart, the new one falls in).
+    assert fine[0, 1] == pytest.approx(np.arcsinh(2.0), rel=1e-3) and fine[1, 1] < -np.arcsinh(900.0)
