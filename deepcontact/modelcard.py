@@ -29,6 +29,11 @@ contact point, given Box2D's builtin warm start sent in the request:
                   (builtin exactly zero), builtin where it persists
     "persisting"  "residual" where the point persists, builtin (zero) where
                   it is new: the value of a warm start lies at persisting points
+    "moving"      "residual" where one of the point's bodies moves at 0.01 m/s
+                  or faster, builtin where both are at rest
+                  (deepcontact.kinematics.points_at_rest): there a pile's load
+                  has many arrangements the solver accepts, and a model's guess
+                  is mostly wrong
 Several cards may name the same ONNX file, e.g. one model served two ways.
 
 An alias card serves another card's model under a second name, so that users
@@ -53,7 +58,7 @@ from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
 
 CARD_VERSION = 1
-COMBINE = ("replace", "residual", "new-points", "persisting")
+COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
 ALIAS_KEYS = frozenset({"name", "alias_of", "why"})
 
 
@@ -70,9 +75,9 @@ class ModelCard:
     fixed_grid: bool
     input_name: str = "grids"
     output_name: str = "impulses"
-    combine: str = "replace"  # "replace", "residual", "new-points" or "persisting" (see above)
-    correction_scale: float = 1.0  # "residual", "persisting": builtin + correction_scale x the model's correction
-    correction_threshold: float = 0.0  # "residual", "persisting": drop corrections whose normal part is at most this (N s)
+    combine: str = "replace"  # "replace", "residual", "new-points", "persisting" or "moving" (see above)
+    correction_scale: float = 1.0  # "residual", "persisting", "moving": builtin + correction_scale x the model's correction
+    correction_threshold: float = 0.0  # "residual", "persisting", "moving": drop corrections whose normal part is at most this (N s)
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...

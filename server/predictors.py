@@ -33,7 +33,7 @@ import numpy as np
 from deepcontact.channels import Step, channel_values, needs
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
-from deepcontact.kinematics import BODY_DYNAMIC, Physics
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, points_at_rest
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.transfer import plan
 
@@ -190,8 +190,7 @@ class ModelPredictor(Predictor):
                              f"{card.output_name!r}, the model has {inputs} and {outputs}")
         self._specs = _DomainSpecs(card.gridspec, card.fixed_grid, card.name, normalization=True,
                                    max_nodes=max_grid_nodes)
-        combined = ("builtin",) if card.combine in ("residual", "new-points", "persisting") else ()
-        self.requires = tuple(sorted(set(needs(card.gridspec.inputs) + combined)))
+        self.requires = tuple(sorted(set(needs(card.gridspec.inputs) + _combine_needs(card.combine))))
         self.infer = self.run_session
         self._warm_shapes: set[tuple[int, ...]] = set()
         self._warm_lock = threading.Lock()
@@ -243,7 +242,7 @@ class ModelPredictor(Predictor):
         out = norm.targets(y)  # == spec.denormalize(y[0], "targets")
         impulses, _ = contacts.g2p(out)  # == g2p(out, points["point"], spec, outside="drop")
         impulses = combine(self.card.combine, impulses, points["builtin"], self.card.correction_scale,
-                           self.card.correction_threshold)
+                           self.card.correction_threshold, _rest(self.card.combine, bodies, points))
         t3 = time.perf_counter()
         return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
 
@@ -268,8 +267,7 @@ class GraphPredictor(Predictor):
         self.inputs = spec.inputs
         self.in_mean, self.in_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.inputs))
         self.out_mean, self.out_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.targets))
-        combined = ("builtin",) if card.combine in ("residual", "new-points", "persisting") else ()
-        self.requires = tuple(sorted(set(needs(spec.inputs) + combined + ("point_bodies",))))
+        self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",))))
         self.infer = self.run_session
         self.run_session(np.zeros((1, len(self.inputs)), np.float32), np.zeros((1, 2), np.int32),
                          np.zeros((1, 1), np.float32))  # the first run plans memory: not on a served step
@@ -292,21 +290,38 @@ class GraphPredictor(Predictor):
         t2 = time.perf_counter()
         out = y * self.out_std + self.out_mean
         impulses = combine(self.card.combine, out, points["builtin"], self.card.correction_scale,
-                           self.card.correction_threshold)
+                           self.card.correction_threshold, _rest(self.card.combine, bodies, points))
         t3 = time.perf_counter()
         # The wire names the stages around inference p2g and g2p; here they are the
         # point features and the output's denormalization and combination.
         return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
 
 
+def _combine_needs(how: str) -> tuple[str, ...]:
+    """What a request must carry for this combine (channels.NEEDS keys)."""
+    if how == "moving":
+        return ("builtin", "point_bodies")
+    return ("builtin",) if how in ("residual", "new-points", "persisting") else ()
+
+
+def _rest(how: str, bodies: np.ndarray, points: np.ndarray) -> np.ndarray | None:
+    return points_at_rest(bodies, points) if how == "moving" else None
+
+
 def combine(how: str, predicted: np.ndarray, builtin: np.ndarray, scale: float = 1.0,
-            threshold: float = 0.0) -> np.ndarray:
+            threshold: float = 0.0, rest: np.ndarray | None = None) -> np.ndarray:
     """The warm start served, (P, 2) N s, from the model's output and the
     request's builtin warm start (both (P, 2)); see deepcontact.modelcard.
     A residual model's correction is dropped where its normal part is at most
-    `threshold` N s, and multiplied by `scale` elsewhere."""
+    `threshold` N s, and multiplied by `scale` elsewhere. rest: (P,) bool, the
+    points on bodies at rest, for "moving" (deepcontact.kinematics.points_at_rest)."""
     if how == "persisting":  # the correction at points Box2D already warm-starts only
         predicted = predicted * builtin.any(axis=1)[:, None]
+        how = "residual"
+    elif how == "moving":  # the correction on moving bodies only
+        if rest is None:
+            raise ValueError('combine "moving" needs the points at rest')
+        predicted = predicted * ~rest[:, None]
         how = "residual"
     if how == "residual":
         if threshold > 0.0:

@@ -168,6 +168,12 @@ def test_combine_serves_model_builtin_or_both():
     np.testing.assert_array_equal(combine("new-points", predicted, builtin), np.array([[0.5, 0.0], [2.0, 0.2], [0.0, -0.1]], np.float32))
     # "persisting": the correction where Box2D already warm-starts the point, nothing at new ones.
     np.testing.assert_allclose(combine("persisting", predicted, builtin), np.array([[1.5, 0.1], [0.0, 0.0], [3.0, 0.2]], np.float32))
+    # "moving": the correction on moving bodies only, builtin on a pile at rest.
+    rest = np.array([False, True, False])
+    np.testing.assert_allclose(combine("moving", predicted, builtin, rest=rest),
+                               np.array([[1.5, 0.1], [0.0, 0.0], [3.0, 0.2]], np.float32))
+    with pytest.raises(ValueError, match="at rest"):
+        combine("moving", predicted, builtin)
     # A card's correction_scale shrinks a residual model's correction.
     np.testing.assert_allclose(combine("residual", predicted, builtin, 0.5), builtin + 0.5 * predicted)
     # Its correction_threshold drops the corrections whose normal part is at most that.

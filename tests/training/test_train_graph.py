@@ -351,6 +351,38 @@ def test_a_served_graph_model_is_the_model_on_the_engines_own_records(graph_mode
         np.testing.assert_allclose(np.stack(wire.decode_impulses(reply), axis=1), expected, atol=2e-4, rtol=1e-4)
 
 
+def test_a_moving_card_serves_builtin_on_a_pile_at_rest_and_the_model_elsewhere(graph_models, thesis_steps,
+                                                                                tmp_path):
+    import shutil
+
+    import grpc
+
+    from deepcontact import wire
+    from deepcontact.kinematics import points_at_rest
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.serve import Server
+    from training.card_variant import card_variant
+
+    folder = tmp_path / "models"
+    shutil.copytree(graph_models, folder)
+    card_variant(folder / "graph.json", combine="moving")
+    world, steps = thesis_steps
+    server = Server(models=folder).start()
+    try:
+        with grpc.insecure_channel(server.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            served = {name: [np.stack(wire.decode_impulses(stub.Predict(
+                wire.encode_step(k, name, bodies, points, world=world, builtin=points["builtin"]))), axis=1)
+                for k, (bodies, points) in enumerate(steps)] for name in ("graph", "graph-moving")}
+    finally:
+        server.stop()
+    rest = [points_at_rest(bodies, points) for bodies, points in steps]
+    assert 0 < sum(r.sum() for r in rest) < sum(len(r) for r in rest)  # a settled pile, some of it still moving
+    for (bodies, points), at_rest, plain, moving in zip(steps, rest, served["graph"], served["graph-moving"]):
+        np.testing.assert_array_equal(moving[at_rest], points["builtin"][at_rest])
+        np.testing.assert_array_equal(moving[~at_rest], plain[~at_rest])
+
+
 def test_a_graph_model_refuses_requests_without_the_points_bodies(graph_models, thesis_steps):
     import grpc
 
