@@ -100,6 +100,11 @@
 #                              signed log scale (the *_asinh channels): in a settled pile they are
 #                              1e-4 to 1e-3 of their standard deviation, where the band that pays is worst
 #                              fitted; controls as above (graph-projected-max-1-799, -e20)
+#   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
+#                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
+#                              `python -m training.recover_weights` on its card first): does the
+#                              wider pre-trained network keep its lead through the long sweeps?
+#                              (with -t1 cards; about half an hour each on two cores)
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
 #                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
 #   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
@@ -281,6 +286,18 @@ run() {
                   --init runs/graph-cache/graph-projected-max-1-799-long.weights.npz )
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --correction-threshold 1.0
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --combine persisting ;;
+        graph-projected-max-1-799-w64-long|graph-projected-max-1-799-w64-long-e2)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            # the default's two long stages, step for step, at width 64
+            local from=graph-projected-max-1-799-w64 lr=2.5e-4 seed=0
+            if [ "$1" = graph-projected-max-1-799-w64-long-e2 ]; then
+                from=graph-projected-max-1-799-w64-long lr=1.25e-4 seed=1
+            fi
+            ( ulimit -s 524288   # as for graph-projected-max-1-799-long
+              variant "$1" --loss solver-projected-max --width 64 --sweeps 256,1024 \
+                  --max-steps-per-file 3000 --epochs 1 --lr "$lr" --seed "$seed" \
+                  --init "runs/graph-cache/$from.weights.npz" )
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-long-e3)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             ( ulimit -s 524288   # as for graph-projected-max-1-799-long
