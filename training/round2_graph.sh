@@ -104,7 +104,8 @@
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
 #                              wider pre-trained network keep its lead through the long sweeps?
-#                              (with -t1 cards; about half an hour each on two cores)
+#                              (with -t1 cards; about half an hour each on two cores, alone:
+#                              each peaks at 18 GB resident)
 #   graph-projected-max-r6     graph-projected-max-w32 with 6 message-passing rounds (3 epochs
 #                              kept under runs/epochs/; about 6 min): more reach for the loss that gains per state
 #   graph-projected-max-r6-grown  graph-projected-max-1-799's recipe (2 epochs from -e16's weights)
