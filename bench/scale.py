@@ -6,8 +6,14 @@ Runs the commands a user runs, as child processes, one configuration after
 the other within each repeat (so a busy machine slows all of them alike):
 
     generate          --workers 1 (this process), --workers 2, --ray --workers 1, --ray --workers 2
-    bench iterations  --workers 1, --workers 2, --ray --workers 2, against one
-                      `deepcontact serve` started here (its start-up is not timed)
+    bench iterations  --workers 1, --workers 2, --ray --workers 2, against
+                      `deepcontact serve` started here (its start-up is not timed;
+                      --replicas K starts K of them, the streams spread over them
+                      by the client's round_robin)
+
+Any other count is a configuration too (`--configs workers=1,workers=4,workers=16`
+on a machine with more cores): `workers=N` is `--workers N`, `ray=N` is
+`--ray --workers N`.
 
 `--ray` starts a local Ray for each run, and its start-up is in the time, as
 a user waits for it. Per configuration: the median wall time, simulations per
@@ -35,13 +41,19 @@ from pathlib import Path
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
 
-CONFIGS = {  # name -> the flags it adds; the first of each command with one worker is the base
-    "workers=1": ["--workers", "1"],
-    "workers=2": ["--workers", "2"],
-    "ray=1": ["--ray", "--workers", "1"],
-    "ray=2": ["--ray", "--workers", "2"],
-}
-COMMANDS = {"generate": ("workers=1", "workers=2", "ray=1", "ray=2"), "iterations": ("workers=1", "workers=2", "ray=2")}
+# The configurations measured unless --configs names others.
+DEFAULT_CONFIGS = {"generate": ("workers=1", "workers=2", "ray=1", "ray=2"),
+                   "iterations": ("workers=1", "workers=2", "ray=2")}
+COMMANDS = tuple(DEFAULT_CONFIGS)
+
+
+def config_flags(config: str) -> list[str]:
+    """The command-line flags of a configuration: "workers=N" -> --workers N, "ray=N" -> --ray --workers N.
+    Raises ValueError for anything else."""
+    backend, _, count = config.partition("=")
+    if backend not in ("workers", "ray") or not count.isdigit() or int(count) < 1:
+        raise ValueError(f"unknown configuration {config!r} (workers=N or ray=N, N >= 1)")
+    return (["--ray"] if backend == "ray" else []) + ["--workers", str(int(count))]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,30 +65,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, help="steps per simulation (default: the thesis world's 250)")
     parser.add_argument("--repeats", type=int, default=3, help="runs of every configuration (default 3)")
     parser.add_argument("--commands", default="generate,iterations", help="which to measure (default generate,iterations)")
-    parser.add_argument("--configs", default=",".join(CONFIGS),
-                        help=f"which configurations, of {', '.join(CONFIGS)} (default all that apply)")
+    parser.add_argument("--configs",
+                        help="which configurations: workers=N (a process pool of N) or ray=N (a local Ray with N "
+                             "CPUs), comma-separated (default workers=1,workers=2,ray=1,ray=2 for generate and "
+                             "workers=1,workers=2,ray=2 for iterations)")
+    parser.add_argument("--replicas", type=int, default=1,
+                        help="bench iterations: deepcontact serve processes, the streams spread over them (default 1)")
     parser.add_argument("--json", metavar="FILE", help="write the results here as JSON")
 
 
 def run(args: argparse.Namespace) -> int:
     commands = [c.strip() for c in args.commands.split(",") if c.strip()]
-    configs = [c.strip() for c in args.configs.split(",") if c.strip()]
+    configs = [c.strip() for c in args.configs.split(",") if c.strip()] if args.configs else None
     try:
         seed_ranges.parse_seeds(args.seeds)
         seed_ranges.parse_seeds(args.iteration_seeds)
-        unknown = sorted(set(commands) - set(COMMANDS)) + sorted(set(configs) - set(CONFIGS))
+        unknown = sorted(set(commands) - set(COMMANDS))
         if unknown:
-            raise ValueError(f"unknown {', '.join(unknown)} (commands: {', '.join(COMMANDS)}; "
-                             f"configurations: {', '.join(CONFIGS)})")
+            raise ValueError(f"unknown {', '.join(unknown)} (commands: {', '.join(COMMANDS)})")
+        for config in configs or ():
+            config_flags(config)
         if args.repeats < 1:
             raise ValueError("--repeats must be >= 1")
+        if args.replicas < 1:
+            raise ValueError("--replicas must be >= 1")
     except ValueError as exc:
         print(f"deepcontact bench scale: {exc}", file=sys.stderr)
         return 2
     results = {}
     with tempfile.TemporaryDirectory(prefix="deepcontact-scale-") as tmp:
         for command in commands:
-            chosen = [c for c in COMMANDS[command] if c in configs]
+            chosen = configs or list(DEFAULT_CONFIGS[command])
             try:
                 results[command] = _speedups(_measure(command, chosen, args, Path(tmp)))
             except RuntimeError as exc:
@@ -95,11 +114,15 @@ def _measure(command: str, configs: list[str], args, tmp: Path) -> dict:
     """{config: {"seconds": [wall s per repeat], "load": [1-minute load average after each],
     "simulations": n, "same_answers": bool}}."""
     steps = ["--steps", str(args.steps)] if args.steps else []
-    server = None
+    servers = []
     if command == "iterations" and "server:" in args.warm_starts:
         from server.process import ServerProcess
 
-        server = ServerProcess(args.models).start()
+        for _ in range(args.replicas):
+            servers.append(ServerProcess(args.models).start())
+    # One address, or a list the client's round_robin spreads its streams over.
+    target = (servers[0].address if len(servers) == 1
+              else "ipv4:" + ",".join(s.address for s in servers) if servers else None)
     try:
         if command == "generate":
             n = len(seed_ranges.parse_seeds(args.seeds))
@@ -108,14 +131,14 @@ def _measure(command: str, configs: list[str], args, tmp: Path) -> dict:
             n = len(seed_ranges.parse_seeds(args.iteration_seeds)) * len(args.warm_starts.split(","))
             # A long deadline: a step that misses it falls back to builtin and changes the answers.
             base = ["bench", "iterations", "--seeds", args.iteration_seeds, "--warm-starts", args.warm_starts,
-                    "--deadline-ms", "1000", "--quiet", *steps] + (["--server", server.address] if server else [])
+                    "--deadline-ms", "1000", "--quiet", *steps] + (["--server", target] if target else [])
         rows = {c: {"seconds": [], "load": [], "simulations": n, "same_answers": True} for c in configs}
         reference = None
         for r in range(args.repeats):
             for config in configs:
                 run_dir = tmp / f"{command}-{config}-{r}"
                 out = run_dir / "train.h5" if command == "generate" else run_dir
-                argv = [*base, "--out", str(out), *CONFIGS[config]]
+                argv = [*base, "--out", str(out), *config_flags(config)]
                 t0 = time.perf_counter()
                 done = subprocess.run([sys.executable, "-m", "deepcontact", *argv], capture_output=True, text=True)
                 rows[config]["seconds"].append(time.perf_counter() - t0)
@@ -130,7 +153,7 @@ def _measure(command: str, configs: list[str], args, tmp: Path) -> dict:
                 elif not _same(command, reference, answers):
                     rows[config]["same_answers"] = False
     finally:
-        if server is not None:
+        for server in servers:
             server.stop()
     return rows
 
@@ -154,13 +177,14 @@ def _same(command: str, a, b) -> bool:
 
 
 def _speedups(rows: dict) -> dict:
-    """Adds median_s, and for two workers the speed-up over one: over one worker of the same
-    backend (ray=1 for ray=2), or over one process when that was not measured."""
+    """Adds median_s, and for more than one worker the speed-up over one: over one worker of the
+    same backend (ray=1 for ray=N), or over one process when that was not measured."""
     for config, row in rows.items():
         row["median_s"] = statistics.median(row["seconds"])
+        backend, _, count = config.partition("=")
         one = None
-        if config.endswith("=2"):
-            same_backend = config.replace("=2", "=1")
+        if int(count) > 1:
+            same_backend = f"{backend}=1"
             row["against"] = same_backend if same_backend in rows else "workers=1"
             one = rows.get(row["against"])
         if one is None:

@@ -5,7 +5,9 @@
 # sha256), applies box2d/deepcontact.patch, regenerates the SWIG wrapper and
 # compiles. No upstream source is kept in this repository.
 #
-# usage: box2d/build.sh OUTDIR        (PYTHON=path/to/python, default .venv/bin/python)
+# usage: box2d/build.sh OUTDIR        (PYTHON=path/to/python, default .venv/bin/python;
+#                                      SDIST=path/to/box2d-py-2.3.8.tar.gz: build from that file,
+#                                      on a machine without the registry; its sha256 is checked too)
 set -euo pipefail
 
 VERSION=2.3.8
@@ -20,10 +22,14 @@ bindir=$(dirname "$python")
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 
-echo "box2d: fetching box2d-py==$VERSION sdist"
-"$python" -m pip download --quiet --no-deps --no-binary :all: --no-build-isolation \
-    "box2d-py==$VERSION" -d "$work/sdist"
-sdist=$(ls "$work"/sdist/box2d-py-"$VERSION".tar.gz)
+if [ -n "${SDIST:-}" ]; then
+    sdist=$SDIST
+else
+    echo "box2d: fetching box2d-py==$VERSION sdist"
+    "$python" -m pip download --quiet --no-deps --no-binary :all: --no-build-isolation \
+        "box2d-py==$VERSION" -d "$work/sdist"
+    sdist=$(ls "$work"/sdist/box2d-py-"$VERSION".tar.gz)
+fi
 echo "$SHA256  $sdist" | sha256sum --check --quiet - \
     || { echo "box2d: sha256 of $sdist does not match the pinned $SHA256" >&2; exit 1; }
 

@@ -31,7 +31,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "inference"), "bench.inference", "ONNX Runtime levers on a grid model's inference: session options, int8, cropped grids"),
     (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
     (("bench", "load"), "bench.load", "latency and throughput with many simulations streaming at once"),
-    (("bench", "scale"), "bench.scale", "simulations per second with 1 and 2 workers or Ray CPUs; same answers on each"),
+    (("bench", "scale"), "bench.scale", "simulations per second per added worker or Ray CPU; same answers on each"),
     (("bench", "soak"), "bench.soak", "a long load on one server: nothing lost, memory flat (RSS over time)"),
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
     (("bench", "surrogate"), "bench.surrogate", "does the training loss's score of a step follow the iterations a model saves there?"),

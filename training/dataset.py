@@ -49,6 +49,15 @@ STEP_DTYPE = np.dtype(
 
 _CHUNK_ROWS = {"steps": 4096, "bodies": 16384, "points": 16384, "trace": 65536}
 
+# How the writer compresses (h5py filters; any reader reads all three). One process writes a
+# whole file, so its compression is the ceiling on simulations per second however many workers
+# simulate: `deepcontact bench generate` times each (docs/scale.md). gzip is the smallest.
+COMPRESSIONS = {
+    "gzip": {"compression": "gzip", "compression_opts": 4, "shuffle": True},
+    "lzf": {"compression": "lzf", "shuffle": True},
+    "none": {},
+}
+
 
 class DatasetError(ValueError):
     """A data file that is missing, empty or not of this schema."""
@@ -63,8 +72,11 @@ class Writer:
     """
 
     def __init__(self, path: str | os.PathLike, *, scene: dict, seeds: list[int], command: str,
-                 oracle: bool = False):
+                 oracle: bool = False, compression: str = "gzip"):
+        if compression not in COMPRESSIONS:
+            raise ValueError(f"unknown compression {compression!r} (one of {', '.join(COMPRESSIONS)})")
         self.path = Path(path)
+        self.compression = compression
         self.tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part")
         self._meta = {"scene": scene, "seeds": seeds, "command": command}
         self.oracle = oracle
@@ -83,10 +95,10 @@ class Writer:
         for name, dtype in (("steps", STEP_DTYPE), ("bodies", BODY_DTYPE), ("points", CONTACT_DTYPE),
                             ("trace", np.dtype("<f4"))):
             f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(_CHUNK_ROWS[name],),
-                             compression="gzip", compression_opts=4, shuffle=True)
+                             **COMPRESSIONS[self.compression])
         if self.oracle:
             f.create_dataset("oracle", shape=(0, 2), maxshape=(None, 2), dtype="<f4",
-                             chunks=(_CHUNK_ROWS["points"], 2), compression="gzip", compression_opts=4, shuffle=True)
+                             chunks=(_CHUNK_ROWS["points"], 2), **COMPRESSIONS[self.compression])
         self._file = f
         return self
 

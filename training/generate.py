@@ -27,7 +27,7 @@ from deepcontact import dispatch
 from simclient import seeds as seed_ranges
 from simclient.engine import BODY_DTYPE, CONTACT_DTYPE
 from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_from_dict, spec_to_dict
-from training.dataset import STEP_DTYPE, Writer
+from training.dataset import COMPRESSIONS, STEP_DTYPE, Writer
 
 
 def record_simulation(spec: SceneSpec, seed: int, record: bool = True, oracle: bool = False) -> dict[str, np.ndarray]:
@@ -100,6 +100,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     parser.add_argument("--allow-bench-seeds", action="store_true",
                         help="allow benchmark (900-999), reserved (>= 10000) and unassigned seeds in this file")
+    parser.add_argument("--compression", choices=tuple(COMPRESSIONS), default="gzip",
+                        help="how the file is compressed (default gzip, the smallest). This one process writes "
+                             "every simulation, so on many cores its compression is the ceiling: lzf writes about "
+                             "twice as fast for about 16 %% more disk, none about 16 times as fast for 2.4 times "
+                             "the disk (deepcontact bench generate; docs/scale.md)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -127,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     points = steps = 0
     try:
-        with Writer(args.out, scene=spec_to_dict(spec), seeds=seeds, command=command, oracle=args.oracle) as writer, \
+        with Writer(args.out, scene=spec_to_dict(spec), seeds=seeds, command=command, oracle=args.oracle,
+                    compression=args.compression) as writer, \
                 dispatch.Dispatcher(workers=workers, ray=args.ray) as dispatcher:
             # Results come in seed order: the file does not depend on which task finished first.
             for arrays in dispatcher.map(simulate_seed, tasks, progress=None if args.quiet else "generate"):

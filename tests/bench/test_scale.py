@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from bench.scale import config_flags
 from deepcontact.cli import main
 
 
@@ -18,6 +19,21 @@ def test_bench_scale_times_each_configuration_and_compares_the_answers(tmp_path,
     assert capsys.readouterr().out.strip().endswith("every run gave the same answers as the first")
 
 
+def test_any_worker_count_is_a_configuration():
+    assert config_flags("workers=16") == ["--workers", "16"]
+    assert config_flags("ray=4") == ["--ray", "--workers", "4"]
+
+
 def test_unknown_configurations_are_refused(capsys):
-    assert main(["bench", "scale", "--configs", "workers=3"]) == 2
-    assert "workers=3" in capsys.readouterr().err
+    assert main(["bench", "scale", "--configs", "workers=0"]) == 2
+    assert "workers=0" in capsys.readouterr().err
+    assert main(["bench", "scale", "--configs", "threads=2"]) == 2
+    assert "threads=2" in capsys.readouterr().err
+
+
+def test_iterations_spread_over_server_replicas(tmp_path):
+    out = tmp_path / "scale.json"
+    assert main(["bench", "scale", "--commands", "iterations", "--configs", "workers=2", "--iteration-seeds", "901-902",
+                 "--warm-starts", "builtin,server:default", "--replicas", "2", "--steps", "10", "--repeats", "1",
+                 "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["results"]["iterations"]["workers=2"]["same_answers"]

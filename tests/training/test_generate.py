@@ -44,6 +44,21 @@ def test_contents_do_not_depend_on_the_number_of_processes(tmp_path):
     assert differences(one, two) == []  # all but the wall-clock solve_ms, bit for bit
 
 
+def test_a_faster_compression_writes_the_same_simulations(tmp_path):
+    gzip, lzf, none = tmp_path / "gzip.h5", tmp_path / "lzf.h5", tmp_path / "none.h5"
+    assert generate(gzip, "--workers", "1") == 0
+    assert generate(lzf, "--workers", "1", "--compression", "lzf") == 0
+    assert generate(none, "--workers", "1", "--compression", "none") == 0
+    assert differences(gzip, lzf) == [] and differences(gzip, none) == []
+    with h5py.File(lzf) as f, h5py.File(none) as g:
+        assert f["points"].compression == "lzf" and g["points"].compression is None
+
+
+def test_an_unknown_compression_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="zstd"):
+        Writer(tmp_path / "x.h5", scene={}, seeds=[1], command="test", compression="zstd")
+
+
 def test_a_local_ray_writes_what_the_process_pool_writes(tmp_path, capsys):
     pool, ray = tmp_path / "pool.h5", tmp_path / "ray.h5"
     assert generate(pool, "--workers", "2") == 0
