@@ -38,6 +38,12 @@ Whether the corrections the model misses are there is what the split asks.
 `--where settled` keeps the points whose dynamic bodies both move slower than
 0.01 m/s (deepcontact.kinematics.points_at_rest: a pile at rest, where the velocities a model reads are near 0),
 and `--where moving` the others.
+
+`--part body-space` compares only the part of each correction (served and the
+solver's, both directions) that moves the bodies, and `--part self-stress` only
+the rest, which moves none (deepcontact.kinematics.body_space_part): the oracles
+say the self-stress holds most of a warm start's value and the other part most
+of its size (docs/results.md, "Load the bodies' motion does not fix").
 """
 
 from __future__ import annotations
@@ -49,13 +55,16 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact.io import write_json_atomic
-from deepcontact.kinematics import BODY_DYNAMIC, REST_SPEED, points_at_rest
+from deepcontact.kinematics import BODY_DYNAMIC, REST_SPEED, body_space_part, points_at_rest
 
 #: The point subsets `--where` selects (module docstring).
 WHERE = ("all", "lost-contact", "kept-contacts", "settled", "moving")
 _WHERE_TEXT = {"lost-contact": "on a body that lost a contact point since the previous step",
                "kept-contacts": "on bodies that kept all their contact points",
                "settled": "on bodies at rest", "moving": "on a moving body"}
+
+#: What `--part` keeps of each correction (module docstring).
+PARTS = ("whole", "body-space", "self-stress")
 
 #: Upper edges of the groups of the solver's correction size (N s); the last group is open.
 BANDS = (0.01, 0.1, 0.3, 1.0)
@@ -79,6 +88,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="only the points on a body that lost a contact point since the previous step "
                              f"(lost-contact) or the others (kept-contacts); only those whose bodies move slower "
                              f"than {REST_SPEED:g} m/s (settled) or the others (moving); or all (default)")
+    parser.add_argument("--part", choices=PARTS, default="whole",
+                        help="compare only the part of each correction that moves the bodies (body-space) or the "
+                             "self-stress that moves none (self-stress), or the whole correction (default)")
     parser.add_argument("--json", metavar="FILE", help="write the table here as JSON")
 
 
@@ -132,14 +144,24 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x, dtype=np.float64)))) if len(x) else float("nan")
 
 
-def replay(predictors, path: Path, max_steps: int, reference: str = "final",
-           agree: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+def _part(bodies: np.ndarray, points: np.ndarray, correction: np.ndarray, part: str) -> np.ndarray:
+    """The `part` of (P, 2) corrections (N s), normal component: (P,)."""
+    if part == "whole":
+        return correction[:, 0]
+    moves = body_space_part(bodies, points, correction)
+    return (moves if part == "body-space" else correction - moves)[:, 0]
+
+
+def replay(predictors, path: Path, max_steps: int, reference: str = "final", agree: float | None = None,
+           part: str = "whole") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """(served, solver, new, where): the served and the solver's normal correction and the new-point
     flag at every point of up to max_steps recorded steps, (P,) each, and per `--where` choice
     but "all" the (P,) mask of its points. With several
     predictors, what is served is the mean of their warm starts (where they agree, with
     `agree`). reference "oracle" takes the solver's correction from the file's converged
-    solve (ValueError when it has none)."""
+    solve (ValueError when it has none). part: "whole", or the part of both corrections
+    that moves the bodies ("body-space") or the self-stress ("self-stress"); with a part,
+    agree must be None (the agreement is a normal-only rule)."""
     from server.predictors import World
     from training.ensemble import agreed_mean
     from training.grids import iter_steps, open_dataset, select_steps
@@ -150,12 +172,16 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final",
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # loop over steps, not points
         c = step.contacts
         world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
-        warm = np.stack([p.predict(step.bodies, c, world, 0, step.previous)[0][:, 0] for p in predictors])
-        served.append(agreed_mean(warm - c["builtin"][:, 0], agree))
+        builtin = c["builtin"].astype(np.float64)
+        warm = np.stack([p.predict(step.bodies, c, world, 0, step.previous)[0] for p in predictors])  # (M, P, 2)
         if reference == "oracle" and step.oracle is None:
             raise ValueError(f"{path} has no oracle impulses: record it with `deepcontact generate --oracle`")
-        solved = step.oracle[:, 0] if reference == "oracle" else c["impulse"][:, 0]
-        solver.append(solved - c["builtin"][:, 0])
+        solved = (step.oracle if reference == "oracle" else c["impulse"]).astype(np.float64)
+        if part == "whole":
+            served.append(agreed_mean(warm[..., 0] - builtin[:, 0], agree))
+        else:
+            served.append(_part(step.bodies, c, warm.mean(axis=0) - builtin, part))
+        solver.append(_part(step.bodies, c, solved - builtin, part))
         new.append(~c["builtin"].any(axis=1))
         lost.append(lost_contact(step))
         at_rest.append(points_at_rest(step.bodies, c))
@@ -176,6 +202,9 @@ def run(args: argparse.Namespace) -> int:
     if not names:
         print("deepcontact bench corrections: --model names no model", file=sys.stderr)
         return 2
+    if args.agree is not None and args.part != "whole":
+        print("deepcontact bench corrections: --agree compares whole corrections; leave out --part", file=sys.stderr)
+        return 2
     if args.agree is not None and (len(names) < 2 or not args.agree > 0):
         print("deepcontact bench corrections: --agree K needs K > 0 and at least two models (--model A,B)",
               file=sys.stderr)
@@ -183,7 +212,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         predictors = [RecordedSolve() if name == "recorded" else load_model(args.models / f"{name}.json")
                       for name in names]
-        served, solver, new, where = replay(predictors, args.data, args.max_steps, args.reference, args.agree)
+        served, solver, new, where = replay(predictors, args.data, args.max_steps, args.reference, args.agree,
+                                            args.part)
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
         print(f"deepcontact bench corrections: {exc}", file=sys.stderr)
         return 2
@@ -197,6 +227,8 @@ def run(args: argparse.Namespace) -> int:
         label += f" where they agree (K {args.agree:g})"
     against = "the converged solve's" if args.reference == "oracle" else "the solver's"
     subset = "" if args.where == "all" else f", {len(served)} of them {_WHERE_TEXT[args.where]}"
+    if args.part != "whole":
+        label += f", {args.part} part of each correction"
     print(f"{label} on {args.data} ({total} points{subset}): the served correction against {against} "
           "(normal, N s)")
     print("| points | n | RMS solver's correction | RMS error served | served share | sign agrees | within half |")
@@ -205,7 +237,11 @@ def run(args: argparse.Namespace) -> int:
         sign, half = ("–" if r[k] is None else f"{r[k]:.2f}" for k in ("sign_agreement", "within_half"))
         print(f"| {r['group']} | {r['points']} | {r['rms_correction']:.3g} | {r['rms_error']:.3g} | "
               f"{r['served_share']:.2f} | {sign} | {half} |")
+    explained = 1.0 - float(np.sum((served - solver) ** 2) / max(float(np.sum(solver ** 2)), 1e-30))
+    print(f"\nExplained: {explained:.3f} of the solver's squared correction (1 - error^2 / correction^2, "
+          f"{_rms(solver):.3g} N s RMS over {len(solver)} points)")
     if args.json:
         write_json_atomic(args.json, {"model": args.model, "data": str(args.data), "reference": args.reference,
-                                      "agree": args.agree, "where": args.where, "points": total, "rows": rows})
+                                      "agree": args.agree, "where": args.where, "part": args.part, "points": total,
+                                      "explained": explained, "rows": rows})
     return 0

@@ -56,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated (default {DEFAULT_WARM_STARTS}); shadow:W1+W2+... serves W1 and "
                              "prices builtin and W2... on its very states (the engine's trial solves), pick:W1+W2+... "
                              "keeps the cheapest each step, price:W1+W2+... serves builtin and prices W1, W2... on its "
-                             "states (the same in every run: checkpoints and models compared apart); all print a same-state table; "
+                             "states (the same in every run: checkpoints and models compared apart), split:W serves W and prices "
+                             "the part of its correction that moves the bodies and the self-stress apart; all print a same-state table; "
                              "server:* stands for every model the server serves, e.g. price:server:* "
                              "(all names: simclient/warmstarts.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
@@ -144,7 +145,7 @@ STAR = "server:*"
 def expand_served(names: list[str], target: str) -> list[str]:
     """`server:*` as every model the server at `target` serves (not its built-in providers such
     as zero or grid-identity), in natural order (NAME-e2 before NAME-e10): a top-level entry
-    becomes one entry per model, one inside pick:/shadow:/mean:/price: one candidate per model.
+    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split: one candidate per model.
     Raises ConnectionError when the server is away, ValueError when it serves no model."""
     import re
 
@@ -174,7 +175,7 @@ def expand_served(names: list[str], target: str) -> list[str]:
 
 
 def _candidates(name: str) -> list[str]:
-    """The warm starts a warm-start name stands for: a pick:/shadow:/mean:/price:'s candidates, else itself."""
+    """The warm starts a warm-start name stands for: a pick:/shadow:/mean:/price:/split:'s candidates, else itself."""
     head, _, rest = name.partition(":")
     return rest.split("+") if head in Pick.MODES else [name]
 
@@ -286,7 +287,7 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     mean on this trajectory over its mean on its own, paired by seed. A
     closed-loop ratio is the candidate's same-state ratio times that.
     """
-    if not name.startswith(("pick:", "shadow:", "mean:", "price:")) or not any(r.get("trials") for r in results):
+    if not name.startswith(Pick.PREFIXES) or not any(r.get("trials") for r in results):
         return None
     candidates = make_provider(name).labels
     width = len(candidates)
@@ -310,7 +311,8 @@ def pick_table(picks: dict) -> str:
     """The trial solves of each `pick:`, `shadow:`, `mean:` and `price:` warm start as markdown ('' without one)."""
     lines = []
     for name, p in picks.items():
-        whose = {"shadow:": "the first candidate's", "mean:": "the mean's", "price:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
+        whose = {"shadow:": "the first candidate's", "split:": "the first candidate's", "mean:": "the mean's",
+                 "price:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",
                   "| candidate | mean iterations | / builtin | / first model | picked | better than builtin | worse |",

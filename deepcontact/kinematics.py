@@ -163,6 +163,50 @@ def effective_masses(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame
     return out
 
 
+def contact_jacobian(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame | None = None):
+    """J^T as a dense (3 D, 2 P) float64 matrix: what point impulses do to the bodies.
+
+    Column 2 i is point i's normal direction and 2 i + 1 its tangent; rows are
+    the D dynamic bodies' (x, y, angular) generalized impulses (N s, N s,
+    N m s) in the order of `np.flatnonzero(frame.dynamic)`. A (P, 2) impulse
+    array `c` reaches the bodies as `J^T @ c.ravel()`. Dense on purpose: it is
+    for probes and small worlds (a few hundred points), not the serving path.
+    bodies, points, frame: as in contact_velocities.
+    """
+    f = contact_frame(bodies, points) if frame is None else frame
+    row = np.full(len(f.dynamic), -1)
+    row[f.dynamic] = np.arange(int(f.dynamic.sum()))
+    jt = np.zeros((3 * int(f.dynamic.sum()), 2 * len(points)))
+    cols = np.arange(len(points))
+    for k, d in enumerate((f.n, f.t)):  # two directions, not a loop over points
+        for body, r, sign in ((f.b, f.rb, 1.0), (f.a, f.ra, -1.0)):
+            on = row[body] >= 0
+            base, col = 3 * row[body[on]], 2 * cols[on] + k
+            jt[base, col] += sign * d[on, 0]
+            jt[base + 1, col] += sign * d[on, 1]
+            jt[base + 2, col] += sign * _cross(r[on], d[on])
+    return jt
+
+
+def body_space_part(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray,
+                    frame: ContactFrame | None = None) -> np.ndarray:
+    """The least-norm point impulses that move the bodies as `impulses` do, (P, 2) N s.
+
+    impulses: (P, 2) (normal, tangent) N s. The result r has J^T r = J^T impulses
+    (the same net impulse and torque on every dynamic body, so the same velocities
+    after it is applied) and is orthogonal to every self-stress, the impulses with
+    J^T s = 0 that move no body. impulses - r is the self-stress part: in a pile
+    held at more points than its bodies have freedoms it is not fixed by the
+    bodies' motion at all.
+    """
+    if len(points) == 0:
+        return np.zeros((0, 2))
+    jt = contact_jacobian(bodies, points, frame)
+    c = np.asarray(impulses, np.float64).ravel()
+    y, *_ = np.linalg.lstsq(jt.T, c, rcond=None)  # min |J y - c|: J y is c's part in range(J)
+    return (jt.T @ y).reshape(-1, 2)
+
+
 #: Below this speed (m/s) a body counts as at rest (points_at_rest): about what gravity adds
 #: in a step of 1 ms, far below a falling body's and far above a settled pile's drift.
 REST_SPEED = 0.01

@@ -163,14 +163,21 @@ class Engine:
         """
         self.world.SetWarmStart(normal, tangent)
 
-    def oracle(self, max_iterations: int = 20000, threshold: float = 1e-6) -> np.ndarray:
-        """This step's velocity problem solved from zero; the world is unchanged.
+    def oracle(self, max_iterations: int = 20000, threshold: float = 1e-6, start=None) -> np.ndarray:
+        """This step's velocity problem solved to convergence; the world is unchanged.
 
+        start: None solves from zero (the thesis's Copy); a (normal, tangent)
+        pair of (n,) float32 impulses (N s, export order) solves from there
+        instead and sets it as the step's warm start, as `trial` does. A pile
+        held at more points than its bodies have freedoms has many solutions:
+        each start converges to its own.
         Returns (n, 2) float32: (normal, tangent) impulse per contact point
         (N s), NaN for points outside every awake island.
         """
         out = np.empty((self.world.contactPointCount, 2), dtype=np.float32)
-        self.world.SolveOracle(out, self.config.dt, int(max_iterations), float(threshold))
+        if start is not None:
+            self.world.SetWarmStart(*start)
+        self.world.SolveOracle(out, self.config.dt, int(max_iterations), float(threshold), start is not None)
         return out
 
     def trial(self, normal: np.ndarray, tangent: np.ndarray) -> int:

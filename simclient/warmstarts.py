@@ -46,6 +46,14 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:settled      the oracle at points whose bodies both move slower than 0.01 m/s
                         (a pile at rest, deepcontact.kinematics.points_at_rest), builtin elsewhere
     oracle:moving       the oracle at the other points, builtin at those
+    oracle:body-space   builtin + the part of the oracle's correction that moves the bodies
+                        (the least-norm impulses with the same net impulse and torque on
+                        every body, deepcontact.kinematics.body_space_part); normal >= 0
+    oracle:self-stress  builtin + the rest of the correction: a self-stress, impulses
+                        that move no body (a pile held at more points than it has freedoms)
+    oracle:near         the step solved to convergence from Box2D's warm start instead of
+                        from zero: of the pile's many solutions, the one builtin leads to
+    oracle:near-body-space, oracle:near-self-stress  the two parts of that correction
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -63,6 +71,11 @@ Oracle over warm starts:
                  W1, W2, ... beside it: every model priced on one set of states, the same
                  in every run, so two models (or two checkpoints) measured apart are
                  compared step by step, with no trajectory between them
+    split:W      serves W, as W alone would, and trial-solves builtin, W, and the two
+                 parts of W's correction (W - builtin) each alone on Box2D's warm start:
+                 the part that moves the bodies and the self-stress that moves none
+                 (oracle:body-space, oracle:self-stress): which part of a model's
+                 correction pays
 """
 
 from __future__ import annotations
@@ -74,7 +87,8 @@ from deepcontact.kinematics import points_at_rest
 LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K",
          "jitter@S")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
-           "relnoisy@R", "previous", "some@F", "settled", "moving")
+           "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
+           "near-body-space", "near-self-stress")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -179,12 +193,19 @@ class OracleMix(Provider):
     def warm_start(self, engine, bodies, points, step):
         if len(points) == 0:
             return None  # nothing to warm-start
-        exact = np.nan_to_num(engine.oracle()).astype(np.float64)  # NaN: outside every awake island
         builtin = points["builtin"].astype(np.float64)
+        if self.kind.startswith("near"):
+            start = tuple(np.ascontiguousarray(builtin[:, k], np.float32) for k in (0, 1))
+            exact = engine.oracle(start=start).astype(np.float64)
+            exact = np.where(np.isnan(exact), builtin, exact)  # NaN: outside every awake island
+        else:
+            exact = np.nan_to_num(engine.oracle()).astype(np.float64)
         new = ~builtin.any(axis=1)
         correction = np.abs(exact[:, 0] - builtin[:, 0])
-        v = self.kind
-        if v == "persisting":
+        v = self.kind.removeprefix("near-")
+        if v in ("near", "copy"):
+            warm = exact
+        elif v == "persisting":
             warm = np.where(new[:, None], 0.0, exact)
         elif v == "new":
             warm = np.where(new[:, None], exact, builtin)
@@ -209,6 +230,12 @@ class OracleMix(Provider):
         elif v in ("settled", "moving"):
             at_rest = points_at_rest(bodies, points)
             warm = np.where((at_rest if v == "settled" else ~at_rest)[:, None], exact, builtin)
+        elif v in ("body-space", "self-stress"):
+            from deepcontact.kinematics import body_space_part
+
+            moves = body_space_part(bodies, points, exact - builtin)
+            warm = builtin + (moves if v == "body-space" else exact - builtin - moves)
+            warm[:, 0] = np.maximum(warm[:, 0], 0.0)
         elif v == "some":
             served = self._rng.random(len(points)) < self.value
             warm = np.where(served[:, None], exact, builtin)
@@ -412,7 +439,8 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price")
+    MODES = ("pick", "shadow", "mean", "price", "split")
+    PREFIXES = tuple(f"{m}:" for m in MODES)
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
         if mode not in self.MODES:
@@ -421,7 +449,10 @@ class Pick(Provider):
         # pick: serve the cheapest; shadow: serve the first, price the others beside it;
         # mean: serve the candidates' mean, price it and each of them on the same state;
         # price: serve builtin, price the candidates on its states (the same states for every
-        # model and every run: a paired, trajectory-free comparison of any two models)
+        # model and every run: a paired, trajectory-free comparison of any two models);
+        # split: serve the one candidate, price it and the two parts of its correction
+        if mode == "split" and len(candidates) != 1:
+            raise ValueError(f"split: takes one warm start, e.g. split:server:default, got {len(candidates)}")
         self.mode = mode
         for i, c in enumerate(candidates):
             if isinstance(c, Jitter):
@@ -438,7 +469,9 @@ class Pick(Provider):
     @property
     def labels(self) -> list[str]:
         """What each entry of a trials row priced: builtin, the candidates (and their mean)."""
-        return ["builtin", *(c.name for c in self.candidates)] + (["mean"] if self.mode == "mean" else [])
+        extra = {"mean": ["mean"], "split": [f"{self.candidates[0].name} body-space",
+                                             f"{self.candidates[0].name} self-stress"]}.get(self.mode, [])
+        return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
     def model(self) -> str:
@@ -461,9 +494,19 @@ class Pick(Provider):
             normal = np.mean([w[0] for w in candidates[1:]], axis=0, dtype=np.float64)
             tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
             candidates.append(_as_warm_start(np.stack([normal, tangent], axis=1)))
+        if self.mode == "split":
+            from deepcontact.kinematics import body_space_part
+
+            start = np.stack(candidates[0], axis=1).astype(np.float64)
+            correction = np.stack(candidates[1], axis=1).astype(np.float64) - start
+            moves = body_space_part(engine.bodies(), points, correction)
+            for part in (moves, correction - moves):
+                warm = start + part
+                warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+                candidates.append(_as_warm_start(warm))
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
-        if self.mode == "shadow":
+        if self.mode in ("shadow", "split"):
             return candidates[1]
         if self.mode == "price":
             return builtin  # the trials left the last candidate's as the step's warm start
@@ -474,10 +517,10 @@ class Pick(Provider):
 
 def make_provider(name: str) -> Provider:
     """ValueError for an unknown name."""
-    for prefix in ("pick:", "shadow:", "mean:", "price:"):
+    for prefix in Pick.PREFIXES:
         if name.startswith(prefix):
             names = [n for n in name[len(prefix):].split("+") if n]
-            if not names or any(n.startswith(("pick:", "shadow:", "mean:", "price:")) for n in names):
+            if not names or any(n.startswith(Pick.PREFIXES) for n in names):
                 raise ValueError(f"{prefix} takes warm starts joined by +, e.g. {prefix}server:default+server:pressure, "
                                  f"got {name!r}")
             if any(n in ("none", "builtin") for n in names):

@@ -121,3 +121,23 @@ def test_bench_corrections_can_score_against_the_converged_solve(tmp_path, model
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(plain),
                  "--reference", "oracle"]) == 2
     assert "--oracle" in capsys.readouterr().err
+
+
+def test_bench_corrections_splits_each_correction_into_the_part_that_moves_the_bodies_and_the_self_stress(
+        tmp_path, model_dir, capsys):
+    data = tmp_path / "rec.h5"
+    assert main(["generate", "--steps", "200", "--seeds", "1", "--out", str(data), "--quiet"]) == 0
+    tables = {}
+    for part in ("whole", "body-space", "self-stress"):
+        out = tmp_path / f"{part}.json"
+        assert main(["bench", "corrections", "--models", str(model_dir), "--model", "recorded", "--data", str(data),
+                     "--max-steps", "20", "--part", part, "--json", str(out)]) == 0
+        tables[part] = json.loads(out.read_text())
+        assert tables[part]["part"] == part
+        assert tables[part]["explained"] == 1.0  # the recorded solve's end, exact in every part
+    rms = {part: {r["group"]: r["rms_correction"] for r in t["rows"]}["persisting, all"] for part, t in tables.items()}
+    assert 0.0 < rms["self-stress"] < rms["whole"]  # a pile has a self-stress, a share of the correction
+    assert "self-stress part of each correction" in capsys.readouterr().out
+    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "recorded,recorded", "--agree", "0.2",
+                 "--part", "self-stress", "--data", str(data)]) == 2
+    assert "leave out --part" in capsys.readouterr().err

@@ -65,3 +65,29 @@ def test_points_at_rest_are_those_whose_dynamic_bodies_move_slower_than_the_thre
     points["body_a"], points["body_b"] = [0, 1, 1, 0], [1, 2, 3, 3]
     assert points_at_rest(bodies, points).tolist() == [True, False, True, True]
     assert points_at_rest(bodies, points, speed=0.5).all()
+
+
+def test_the_body_space_part_moves_the_bodies_as_the_whole_does_and_the_rest_moves_none():
+    # A settled pile is held at more points than its bodies have freedoms, so the
+    # step's solution splits into a part the bodies' motion fixes and a self-stress
+    # that moves nothing: two warm starts that differ by a self-stress leave the
+    # same velocities.
+    from deepcontact.kinematics import body_space_part, contact_jacobian
+
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    engine.collide()
+    bodies, points, exact = engine.bodies(), engine.contacts(), engine.oracle().astype(np.float64)
+    jt = contact_jacobian(bodies, points)
+    n_dynamic = int((bodies["type"] == BODY_DYNAMIC).sum())
+    assert jt.shape == (3 * n_dynamic, 2 * len(points))
+    assert 2 * len(points) > 3 * n_dynamic  # more unknowns than freedoms: self-stresses exist
+
+    part = body_space_part(bodies, points, exact)
+    stress = exact - part
+    physics = Physics.thesis()
+    assert np.allclose(contact_velocities(bodies, points, part, physics),
+                       contact_velocities(bodies, points, exact, physics), atol=1e-9)
+    assert np.allclose(jt @ stress.ravel(), 0.0, atol=1e-9)
+    assert np.abs(stress).max() > 1e-3  # the pile's solution does carry a self-stress
+    assert abs(float((part * stress).sum())) < 1e-9 * float((exact * exact).sum())  # orthogonal parts
+    assert body_space_part(bodies, points[:0], exact[:0]).shape == (0, 2)

@@ -213,3 +213,26 @@ def test_the_oracle_pays_at_resting_contacts_as_well_as_at_moving_ones():
     spec = SceneSpec.thesis()
     its = {name: mean_iterations(name, spec) for name in ("builtin", "oracle:settled", "oracle:moving")}
     assert its["oracle:settled"] < 0.8 * its["builtin"] and its["oracle:moving"] < 0.8 * its["builtin"]
+
+
+def test_the_solutions_self_stress_pays_and_the_part_that_moves_the_bodies_little():
+    # Of the correction from Box2D's warm start to the solution its own solve converges
+    # to, the self-stress (impulses that move no body) saves far more iterations than the
+    # part that moves the bodies, though the latter is most of the correction's size.
+    spec = dataclasses.replace(SceneSpec.thesis(), steps=250)
+    its = {name: mean_iterations(name, spec) for name in ("builtin", "oracle:near", "oracle:near-body-space",
+                                                        "oracle:near-self-stress")}
+    assert its["oracle:near"] <= 2.0  # a solution already: about one sweep
+    assert its["oracle:near-self-stress"] < 0.85 * its["builtin"]
+    assert its["oracle:near-self-stress"] < its["oracle:near-body-space"]
+
+
+def test_split_serves_its_warm_start_and_prices_the_two_parts_of_its_correction():
+    provider = make_provider("split:oracle:near")
+    assert provider.labels == ["builtin", "oracle:near", "oracle:near body-space", "oracle:near self-stress"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    assert [t[1] for t in served["trials"]] == its  # serves the warm start itself
+    assert all(t[1] <= 2 for t in served["trials"])
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("split:oracle:near+oracle:half")
