@@ -107,6 +107,62 @@ def projected_changes_after(lam, v_free, mu, ends, geometry, masses, inverse, *,
     return out
 
 
+def self_stress_part(e, ends, geometry, inverse, *, iterations: int = 40):
+    """The self-stress part of impulses e (P, 2) N s: e minus its least-norm part that moves
+    the bodies as e does, the TensorFlow twin of deepcontact.kinematics.body_space_part.
+
+    Solves (J^T J) y = J^T e for the bodies' y (B, 3) by `iterations` conjugate-gradient
+    steps, preconditioned by the diagonal of J^T J, over the whole batch (its steps are
+    independent blocks of one system), and returns e - J y, which moves no dynamic body
+    (J^T of it is 0 to the steps' accuracy). Linear in e, so a loss can weigh the two
+    parts of an error apart. inverse (B, 2) only says which bodies are dynamic (> 0):
+    the split does not depend on the masses.
+    """
+    import tensorflow as tf
+
+    dynamic = tf.cast(inverse > 0, e.dtype)
+    a, b = ends[:, 0], ends[:, 1]
+    n, t, ra, rb = geometry[:, 0:2], geometry[:, 2:4], geometry[:, 4:6], geometry[:, 6:8]
+    n_bodies = tf.shape(inverse)[0]
+
+    def jt(lam):  # J^T: impulses at points to (force (B, 2), torque (B,)) on dynamic bodies
+        return _body_velocities(lam, ends, geometry, dynamic)
+
+    def j(y):  # J: the bodies' (v, w) to relative (normal, tangent) at points
+        return _relative_velocities(y[0], y[1], ends, geometry)
+
+    def per_body(x_a, x_b):
+        return tf.math.unsorted_segment_sum(x_a, a, n_bodies) + tf.math.unsorted_segment_sum(x_b, b, n_bodies)
+
+    # diag(J^T J): n and t are orthonormal, so each point adds 1 to either translation and
+    # (r x n)^2 + (r x t)^2 = |r|^2 to the rotation of each of its bodies.
+    ones = tf.ones_like(n)
+    diag_v = per_body(ones, ones) * dynamic[:, 0:1]
+    diag_w = per_body(tf.reduce_sum(ra * ra, axis=1), tf.reduce_sum(rb * rb, axis=1)) * dynamic[:, 1]
+    inv_v = tf.where(diag_v > 0, 1.0 / tf.maximum(diag_v, 1e-12), 0.0)
+    inv_w = tf.where(diag_w > 0, 1.0 / tf.maximum(diag_w, 1e-12), 0.0)
+
+    def dot(u, v):
+        return tf.reduce_sum(u[0] * v[0]) + tf.reduce_sum(u[1] * v[1])
+
+    r = jt(e)
+    y = (tf.zeros_like(r[0]), tf.zeros_like(r[1]))
+    z = (r[0] * inv_v, r[1] * inv_w)
+    d, rz = z, dot(r, z)
+    floor = 1e-10 * rz  # converged to float32's round-off: further steps would only divide noise by noise
+    for _ in range(iterations):  # conjugate-gradient steps, not points
+        ad = jt(j(d))
+        going = tf.logical_and(rz > floor, dot(d, ad) > 0)
+        alpha = tf.where(going, rz / tf.maximum(dot(d, ad), 1e-30), 0.0)
+        y = (y[0] + alpha * d[0], y[1] + alpha * d[1])
+        r = (r[0] - alpha * ad[0], r[1] - alpha * ad[1])
+        z = (r[0] * inv_v, r[1] * inv_w)
+        rz_next = dot(r, z)
+        beta = tf.where(going, rz_next / tf.maximum(rz, 1e-30), 0.0)
+        d, rz = (z[0] + beta * d[0], z[1] + beta * d[1]), tf.where(going, rz_next, rz)
+    return e - j(y)
+
+
 NORM_FLOOR = 3e-5  # N s: a step's largest change counts as at least this, below the 1e-4 N s stopping rule
 
 

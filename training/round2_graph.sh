@@ -100,6 +100,14 @@
 #                              signed log scale (the *_asinh channels): in a settled pile they are
 #                              1e-4 to 1e-3 of their standard deviation, where the band that pays is worst
 #                              fitted; controls as above (graph-projected-max-1-799, -e20)
+#   graph-mse-1-799-selfstress, graph-projected-max-1-799-selfstress  graph-mse-1-799-e20 and
+#                              graph-projected-max-1-799-e20's runs with the squared error's self-stress
+#                              (the part that moves no body) weighted 8 times (--loss mse-self-stress):
+#                              that part holds most of a warm start's value and an eighth of its
+#                              square (docs/results.md, "Load the bodies' motion does not fix");
+#                              controls -e20 (with -t0.3 and -t1 cards)
+#   graph-mse-1-799-selfstress64  graph-mse-1-799-selfstress with the self-stress weighted 64 times:
+#                              can the network fit that part better when made to?
 #   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
@@ -202,6 +210,17 @@ run() {
             fi
             variant "$1" --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 --lr 5e-4 "${extra[@]}" \
                 --init "runs/graph-cache/$from.weights.npz"
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-mse-1-799-selfstress|graph-mse-1-799-selfstress64)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            local weight=8; [ "$1" = graph-mse-1-799-selfstress64 ] && weight=64
+            variant "$1" --loss mse-self-stress --self-stress-weight $weight --max-steps-per-file 20000 --epochs 4 \
+                --patience 3 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
+        graph-projected-max-1-799-selfstress)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-selfstress.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-mse-1-799-e16)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")

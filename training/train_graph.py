@@ -91,12 +91,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pooled", action="store_true",
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
-    parser.add_argument("--loss", choices=("mse", "relative", "solver", "solver-log", "solver-projected",
-                                           "solver-projected-max", "solver-projected-sweeps"),
+    parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "solver", "solver-log",
+                                           "solver-projected", "solver-projected-max", "solver-projected-sweeps"),
                         default="solver",
                         help="mse: squared error of the correction at every point; relative: each point's error "
                              "over its own correction's size (+ 0.05 N s), so small corrections count as much as "
-                             "large ones; solver (default): the residual "
+                             "large ones; mse-self-stress: mse with the error's self-stress (the part that moves no "
+                             "body, training.graph_loss.self_stress_part) weighted by --self-stress-weight, since that "
+                             "part holds most of a warm start's value and little of its size; solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
                              "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
                              "solver-log: per step, the log of that residual over Box2D's warm start's; "
@@ -108,6 +110,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "log ratio times the sweeps per e-fold Box2D's warm start needs in that step "
                              "(between the first and last --sweeps), an estimate of the sweeps saved, so that "
                              "slow steps, which make the mean, count for more")
+    parser.add_argument("--self-stress-weight", type=float, default=8.0, metavar="W",
+                        help="mse-self-stress: weight of the error's self-stress against its part that moves the "
+                             "bodies (default %(default)s: the self-stress is about an eighth of the correction's "
+                             "square, docs/results.md)")
+    parser.add_argument("--self-stress-iterations", type=int, default=80, metavar="K",
+                        help="mse-self-stress: conjugate-gradient steps of the split (default %(default)s, which "
+                             "leave about 2 %% of its size on validation batches; each costs about a Jacobi sweep)")
     parser.add_argument("--sweeps", default="16,64,256",
                         help="solver loss: sweep counts at which the residual is measured (default %(default)s)")
     parser.add_argument("--norm", type=int, choices=NORMS, default=8,
@@ -155,6 +164,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if not args.harm_weight > 0:
         print(f"train-graph: --harm-weight must be > 0, got {args.harm_weight}", file=sys.stderr)
+        return 2
+    if not args.self_stress_weight >= 0 or args.self_stress_iterations < 1:
+        print(f"train-graph: --self-stress-weight must be >= 0 and --self-stress-iterations >= 1, got "
+              f"{args.self_stress_weight} and {args.self_stress_iterations}", file=sys.stderr)
         return 2
     if args.order == "gauss-seidel" and args.loss not in BatchLoss.PROJECTED_LOSSES:
         print(f"train-graph: --order gauss-seidel orders the sweeps of the {', '.join(BatchLoss.PROJECTED_LOSSES)} "
@@ -305,6 +318,8 @@ class BatchLoss:
         pred = self.net(points, ends, dynamic, step_of)
         if self.args.loss in self.POINT_LOSSES:
             return self._at_points(pred, y)
+        if self.args.loss == "mse-self-stress":
+            return self._split(pred, y, ends, geometry, inverse)
         error, builtin_error = self._errors(points, pred, y)
         solver = (ends, geometry, masses, inverse, step_of)
         if self.args.loss in self.PROJECTED_LOSSES:
@@ -322,6 +337,20 @@ class BatchLoss:
             target = y * self.out_std + self.out_mean
             per_point = tf.reduce_sum(tf.square((pred - y) * self.out_std / (tf.abs(target) + RELATIVE_FLOOR))
                                       * self.loss_weight, axis=1)
+        return per_point, tf.ones_like(per_point)
+
+    def _split(self, pred, y, ends, geometry, inverse):
+        """mse-self-stress: each point's squared error, normalized units, its self-stress part
+        (in N s, where the split is defined) weighted by --self-stress-weight."""
+        tf = self.tf
+        from training.graph_loss import self_stress_part
+
+        error = (pred - y) * self.out_std
+        stress = self_stress_part(error, ends, geometry, inverse, iterations=self.args.self_stress_iterations)
+        moving = (error - stress) / self.out_std
+        stress = stress / self.out_std
+        per_point = tf.reduce_sum((tf.square(moving) + self.args.self_stress_weight * tf.square(stress))
+                                  * self.loss_weight, axis=1)
         return per_point, tf.ones_like(per_point)
 
     def _errors(self, points, pred, y):
@@ -604,7 +633,10 @@ class _CardParts:
                                                                    "sweeps", "order", "omega", "norm", "harm_weight",
                                                                    "max_steps_per_file",
                                                                    "max_val_steps")}
-                                  | ({"extra_inputs": args.extra_inputs} if getattr(args, "extra_inputs", "") else {}),
+                                  | ({"extra_inputs": args.extra_inputs} if getattr(args, "extra_inputs", "") else {})
+                                  | ({"self_stress_weight": args.self_stress_weight,
+                                      "self_stress_iterations": args.self_stress_iterations}
+                                     if args.loss == "mse-self-stress" else {}),
                       "init": None if args.init is None else str(args.init),
                       "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                       "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),

@@ -81,6 +81,34 @@ def test_projected_sweeps_keep_the_limits_and_leave_the_recorded_solution_nearly
     assert float(tf.reduce_max(tf.abs(kept))) < 0.01 < float(tf.reduce_max(tf.abs(moved)))
 
 
+def test_the_self_stress_part_of_an_error_moves_no_body_and_leaves_a_body_motion_out(graphs):
+    # The loss's split (TensorFlow, conjugate gradients) agrees with the engine-side one
+    # (deepcontact.kinematics): a self-stress moves no body, and the impulses of a pure
+    # body motion have none.
+    import tensorflow as tf
+
+    from training.graph_loss import _body_velocities, _relative_velocities, self_stress_part
+
+    steps = np.arange(len(graphs))
+    _, targets, ends, _ = graphs.batch(steps)
+    geometry, masses, inverse = graphs.solver_batch(steps)
+    dynamic = (inverse > 0).astype(np.float32)
+
+    def moves(lam):  # |J^T lam|
+        force, torque = _body_velocities(tf.constant(lam, tf.float32), ends, geometry, dynamic)
+        return float(np.sqrt(np.sum(force.numpy() ** 2) + np.sum(torque.numpy() ** 2)))
+
+    stress = self_stress_part(tf.constant(targets), ends, geometry, inverse, iterations=160).numpy()
+    assert 0.0 < np.linalg.norm(stress) < np.linalg.norm(targets)
+    assert moves(stress) < 0.02 * moves(targets)
+    rng = np.random.default_rng(0)
+    body = _relative_velocities(tf.constant(rng.normal(size=(len(inverse), 2)).astype(np.float32) * dynamic),
+                                tf.constant(rng.normal(size=len(inverse)).astype(np.float32) * dynamic[:, 1]),
+                                ends, geometry).numpy()  # J y: impulses that are all body motion
+    left = self_stress_part(tf.constant(body), ends, geometry, inverse, iterations=160).numpy()
+    assert np.linalg.norm(left) < 0.02 * np.linalg.norm(body)
+
+
 def test_a_colour_holds_no_two_points_on_one_moving_body():
     from training.graph_loss import MAX_COLOURS, colour_points
 
@@ -150,14 +178,15 @@ def test_gauss_seidel_sweeps_update_one_point_after_another(graphs):
     np.testing.assert_allclose(change, expected, atol=1e-4 * np.abs(expected).max())
 
 
-@pytest.mark.parametrize("loss", ["mse", "relative", "solver", "solver-log", "solver-projected",
+@pytest.mark.parametrize("loss", ["mse", "relative", "mse-self-stress", "solver", "solver-log", "solver-projected",
                                   "solver-projected-max", "solver-projected-sweeps"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
     out = tmp_path / "graph.onnx"
     order = "gauss-seidel" if loss == "solver-projected-max" else "jacobi"  # the one loss offered in both orders
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
                  "--epochs", "2", "--batch-size", "4", "--width", "8", "--rounds", "2", "--loss", loss,
-                 "--sweeps", "0,4", "--order", order, "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
+                 "--sweeps", "0,4", "--order", order, "--self-stress-iterations", "8",
+                 "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
     card = json.loads(out.with_suffix(".json").read_text())
     assert card["kind"] == "graph" and card["combine"] == "residual" and card["input_name"] == "points"
     assert card["parity_max_abs_error"] < 1e-4
@@ -167,6 +196,7 @@ def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data,
         assert card["validation"]["loss"] <= card["validation"]["loss_no_correction"] * 1.5
     assert card["training"]["settings"]["loss"] == loss and card["training"]["epochs_run"] == 2
     assert card["training"]["settings"]["order"] == order
+    assert ("self_stress_weight" in card["training"]["settings"]) == (loss == "mse-self-stress")
     assert card["training"]["settings"]["omega"] == (1.0 if order == "gauss-seidel" else 0.5)
     assert {"cpu", "vector", "cores"} <= set(card["training"]["machine"])  # what a rebuild is checked against
     assert set(card["gridspec"]["normalization"]) == set(GRAPH_INPUTS) | {"correction_normal", "correction_tangent"}
