@@ -54,6 +54,10 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:near         the step solved to convergence from Box2D's warm start instead of
                         from zero: of the pile's many solutions, the one builtin leads to
     oracle:near-body-space, oracle:near-self-stress  the two parts of that correction
+    oracle:near-release Box2D's warm start with no impulse at the points that solution lets go
+                        (normal 0 there, more than 1e-6 N s in Box2D's): the contacts that open
+    oracle:near-switch  that solution at the points whose normal impulse switches on or off
+                        between Box2D's warm start and it, Box2D's elsewhere
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -88,7 +92,7 @@ LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange
          "jitter@S")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
-           "near-body-space", "near-self-stress")
+           "near-body-space", "near-self-stress", "near-release", "near-switch")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -96,6 +100,8 @@ _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "noisy": "a noise level in N s, e.g. oracle:noisy@0.05",
                       "relnoisy": "a noise level relative to the correction, e.g. oracle:relnoisy@0.5",
                       "some": "a share of the points, 0 < F <= 1, e.g. oracle:some@0.5"}
+#: oracle:near-release and -switch: a normal impulse above this (N s) presses; at or below, the contact is open.
+SWITCH_IMPULSE = 1e-6
 #: oracle:noisy and oracle:relnoisy perturb the corrections of oracle:small at this size (N s).
 NOISY_SMALL = 1.0
 
@@ -230,6 +236,12 @@ class OracleMix(Provider):
         elif v in ("settled", "moving"):
             at_rest = points_at_rest(bodies, points)
             warm = np.where((at_rest if v == "settled" else ~at_rest)[:, None], exact, builtin)
+        elif v in ("release", "switch"):
+            pressing, will_press = builtin[:, 0] > SWITCH_IMPULSE, exact[:, 0] > SWITCH_IMPULSE
+            if v == "release":
+                warm = np.where((pressing & ~will_press)[:, None], 0.0, builtin)
+            else:
+                warm = np.where((pressing != will_press)[:, None], exact, builtin)
         elif v in ("body-space", "self-stress"):
             from deepcontact.kinematics import body_space_part
 

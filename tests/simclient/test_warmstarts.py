@@ -236,3 +236,19 @@ def test_split_serves_its_warm_start_and_prices_the_two_parts_of_its_correction(
     assert all(t[1] <= 2 for t in served["trials"])
     with pytest.raises(ValueError, match="one warm start"):
         make_provider("split:oracle:near+oracle:half")
+
+
+def test_near_release_and_switch_touch_only_the_contacts_that_open_or_close():
+    class Solved:  # an engine whose step converges, from Box2D's warm start, to `near`
+        near = np.array([[0.0, 0.0], [2.0, 0.1], [0.5, 0.0], [1.5, 0.2]], np.float32)
+
+        def oracle(self, start=None):
+            assert start is not None  # the near oracles solve from Box2D's warm start
+            return self.near
+
+    points = np.zeros(4, dtype=[("builtin", "<f4", (2,))])
+    points["builtin"] = [[1.0, 0.1], [0.0, 0.0], [0.4, 0.0], [1.0, 0.1]]  # 0 opens, 1 closes, 2 and 3 stay
+    release = np.stack(make_provider("oracle:near-release").warm_start(Solved(), None, points, 0), axis=1)
+    switch = np.stack(make_provider("oracle:near-switch").warm_start(Solved(), None, points, 0), axis=1)
+    np.testing.assert_allclose(release, [[0.0, 0.0], [0.0, 0.0], [0.4, 0.0], [1.0, 0.1]])
+    np.testing.assert_allclose(switch, [[0.0, 0.0], [2.0, 0.1], [0.4, 0.0], [1.0, 0.1]])
