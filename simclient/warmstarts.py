@@ -54,6 +54,8 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:near         the step solved to convergence from Box2D's warm start instead of
                         from zero: of the pile's many solutions, the one builtin leads to
     oracle:near-body-space, oracle:near-self-stress  the two parts of that correction
+    oracle:near-previous  oracle:previous with the previous step's solve itself run to
+                        convergence, from where it started, instead of the step solved from zero
     oracle:near-release Box2D's warm start with no impulse at the points that solution lets go
                         (normal 0 there, more than 1e-6 N s in Box2D's): the contacts that open
     oracle:near-switch  that solution at the points whose normal impulse switches on or off
@@ -92,7 +94,7 @@ LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange
          "jitter@S")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
-           "near-body-space", "near-self-stress", "near-release", "near-switch")
+           "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -376,11 +378,13 @@ class LinearSolve(Provider):
 class PreviousOracle(Provider):
     """The previous step's oracle at persisting points (matched by key), builtin at
     new ones: does Box2D's warm start lose by carrying a solve that stopped at the
-    threshold rather than the converged one?"""
+    threshold rather than the converged one? With `near`, the previous step's solve
+    itself run to convergence (from the warm start this provider served there) rather
+    than the step solved from zero, which converges to another of the pile's solutions."""
 
-    name = "oracle:previous"
-
-    def __init__(self):
+    def __init__(self, near: bool = False):
+        self.near = near
+        self.name = "oracle:near-previous" if near else "oracle:previous"
         self._keys = np.zeros(0, np.uint64)  # sorted keys of the previous step's points ...
         self._exact = np.zeros((0, 2))  # ... and their oracle impulses, N s
         self._now = None  # this step's (keys, oracle), kept until observe()
@@ -390,13 +394,19 @@ class PreviousOracle(Provider):
             self._now = None
             return None
         builtin = points["builtin"].astype(np.float64)
-        self._now = (points["key"], np.nan_to_num(engine.oracle()).astype(np.float64))
         warm = builtin.copy()
         if len(self._keys):
             idx = np.searchsorted(self._keys, points["key"]).clip(max=len(self._keys) - 1)
             persisting = (self._keys[idx] == points["key"]) & builtin.any(axis=1)
             warm[persisting] = self._exact[idx[persisting]]
-        return _as_warm_start(warm)
+        served = _as_warm_start(warm)
+        if self.near:
+            converged = engine.oracle(start=served).astype(np.float64)
+            converged = np.where(np.isnan(converged), warm, converged)  # NaN: outside every awake island
+        else:
+            converged = np.nan_to_num(engine.oracle()).astype(np.float64)
+        self._now = (points["key"], converged)
+        return served
 
     def observe(self, points_after_solve):
         keys, exact = self._now if self._now is not None else (np.zeros(0, np.uint64), np.zeros((0, 2)))
@@ -543,8 +553,8 @@ def make_provider(name: str) -> Provider:
         if not model:
             raise ValueError("server: needs a model name, e.g. server:pressure")
         return Remote(model)
-    if name == "oracle:previous":
-        return PreviousOracle()
+    if name in ("oracle:previous", "oracle:near-previous"):
+        return PreviousOracle(near=name == "oracle:near-previous")
     if name.startswith("oracle:"):
         return OracleMix(name.split(":", 1)[1])
     for prefix, parse, make, what in (

@@ -186,11 +186,13 @@ def test_probe_warm_starts_check_their_parameter():
             make_provider(name)
 
 
-def test_the_previous_steps_oracle_is_served_at_persisting_points_only():
+@pytest.mark.parametrize("name", ["oracle:previous", "oracle:near-previous"])
+def test_the_previous_steps_oracle_is_served_at_persisting_points_only(name):
     from simclient.scene import build_world
 
     engine = build_world(SHORT, 901)
-    provider = make_provider("oracle:previous")
+    provider = make_provider(name)
+    assert provider.name == name
     provider.prepare(engine)
     served = []
     for _ in range(80):
