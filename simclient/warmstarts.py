@@ -60,6 +60,9 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
                         (normal 0 there, more than 1e-6 N s in Box2D's): the contacts that open
     oracle:near-switch  that solution at the points whose normal impulse switches on or off
                         between Box2D's warm start and it, Box2D's elsewhere
+    oracle:near-cone    that solution at the points whose friction is at its cone (at least
+                        0.99 of its limit) in Box2D's warm start or in the solution, Box2D's elsewhere
+    oracle:near-inside  that solution at the other points (friction inside the cone at both ends)
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -94,7 +97,8 @@ LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange
          "jitter@S")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
-           "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch")
+           "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch", "near-cone",
+           "near-inside")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -104,6 +108,8 @@ _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "some": "a share of the points, 0 < F <= 1, e.g. oracle:some@0.5"}
 #: oracle:near-release and -switch: a normal impulse above this (N s) presses; at or below, the contact is open.
 SWITCH_IMPULSE = 1e-6
+#: oracle:near-cone and -inside, solve-active@K: friction at this share of its limit or more slides.
+CONE_SHARE = 0.99
 #: oracle:noisy and oracle:relnoisy perturb the corrections of oracle:small at this size (N s).
 NOISY_SMALL = 1.0
 
@@ -197,6 +203,11 @@ class OracleMix(Provider):
         elif variant not in ORACLES:
             raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
         self._rng = np.random.default_rng(0)  # a fresh provider per world: the same noise every run
+        self._friction = np.zeros(0)  # per body, creation order
+
+    def prepare(self, engine) -> None:
+        super().prepare(engine)
+        self._friction = body_friction(engine)
 
     def warm_start(self, engine, bodies, points, step):
         if len(points) == 0:
@@ -244,6 +255,10 @@ class OracleMix(Provider):
                 warm = np.where((pressing & ~will_press)[:, None], 0.0, builtin)
             else:
                 warm = np.where((pressing != will_press)[:, None], exact, builtin)
+        elif v in ("cone", "inside"):
+            mu = point_friction(self._friction, points)
+            cone = at_friction_cone(builtin, mu) | at_friction_cone(exact, mu)
+            warm = np.where((cone if v == "cone" else ~cone)[:, None], exact, builtin)
         elif v in ("body-space", "self-stress"):
             from deepcontact.kinematics import body_space_part
 
@@ -264,6 +279,22 @@ class OracleMix(Provider):
             pl = plan(points["point"], spec, outside="drop")
             warm = builtin + pl.g2p(pl.p2g(exact - builtin)[0])[0]
         return _as_warm_start(warm)
+
+
+def body_friction(engine) -> np.ndarray:
+    """(B,) each body's friction coefficient; pybox2d lists the bodies in creation order, the records' body index."""
+    return np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in engine.world.bodies])
+
+
+def point_friction(friction: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(P,) the friction coefficient at each point: Box2D mixes two fixtures' as sqrt(f_A f_B)."""
+    return np.sqrt(friction[points["body_a"]] * friction[points["body_b"]])
+
+
+def at_friction_cone(impulses: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """(P,) bool: the point presses (normal > SWITCH_IMPULSE) and its tangent impulse is at
+    CONE_SHARE of mu times the normal one or more. impulses: (P, 2) N s."""
+    return (impulses[:, 0] > SWITCH_IMPULSE) & (np.abs(impulses[:, 1]) >= CONE_SHARE * mu * impulses[:, 0])
 
 
 def _as_warm_start(warm: np.ndarray):
@@ -328,7 +359,7 @@ class LinearSolve(Provider):
     def prepare(self, engine) -> None:
         super().prepare(engine)
         # pybox2d lists the bodies in creation order, the records' body index.
-        self._friction = np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in engine.world.bodies])
+        self._friction = body_friction(engine)
 
     def warm_start(self, engine, bodies, points, step):
         from deepcontact.kinematics import Physics, contact_frame, contact_velocities
@@ -345,9 +376,9 @@ class LinearSolve(Provider):
         free = np.ones_like(builtin)  # (P, 2): 1 where the unknown takes part
         if self.active:
             new = ~builtin.any(axis=1)
-            limit = np.sqrt(self._friction[points["body_a"]] * self._friction[points["body_b"]]) * builtin[:, 0]
+            limit = point_friction(self._friction, points) * builtin[:, 0]
             free[:, 0] = (builtin[:, 0] > 0) | new
-            free[:, 1] = (free[:, 0] > 0) & ((np.abs(builtin[:, 1]) < 0.99 * limit) | new)
+            free[:, 1] = (free[:, 0] > 0) & ((np.abs(builtin[:, 1]) < CONE_SHARE * limit) | new)
 
         def delassus(x):  # A x on the free unknowns: the relative velocities impulses x alone cause, (P, 2) m/s
             return contact_velocities(still, points, warm=x * free, frame=frame) * free
@@ -369,8 +400,7 @@ class LinearSolve(Provider):
             rr = rr_next
         warm = builtin + correction
         warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-        # Box2D mixes two fixtures' friction as sqrt(f_A f_B).
-        limit = np.sqrt(self._friction[points["body_a"]] * self._friction[points["body_b"]]) * warm[:, 0]
+        limit = point_friction(self._friction, points) * warm[:, 0]
         warm[:, 1] = np.clip(warm[:, 1], -limit, limit)
         return _as_warm_start(warm)
 

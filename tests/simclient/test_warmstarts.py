@@ -254,3 +254,23 @@ def test_near_release_and_switch_touch_only_the_contacts_that_open_or_close():
     switch = np.stack(make_provider("oracle:near-switch").warm_start(Solved(), None, points, 0), axis=1)
     np.testing.assert_allclose(release, [[0.0, 0.0], [0.0, 0.0], [0.4, 0.0], [1.0, 0.1]])
     np.testing.assert_allclose(switch, [[0.0, 0.0], [2.0, 0.1], [0.4, 0.0], [1.0, 0.1]])
+
+
+def test_near_cone_and_inside_split_the_points_by_whether_friction_is_at_its_cone_at_either_end():
+    class Solved:
+        near = np.array([[1.0, 0.5], [1.0, 0.1], [1.0, 0.2], [0.0, 0.0]], np.float32)
+
+        def oracle(self, start=None):
+            return self.near
+
+    points = np.zeros(4, dtype=[("builtin", "<f4", (2,)), ("body_a", "<i4"), ("body_b", "<i4")])
+    points["body_a"], points["body_b"] = 0, 1  # friction 0.5 on both bodies: the cone is 0.5 x normal
+    # 0 slides in the solution, 1 slid in Box2D's warm start, 2 sticks at both ends, 3 opens.
+    points["builtin"] = [[1.0, 0.1], [0.4, 0.2], [0.9, 0.1], [0.3, 0.0]]
+    cone, inside = make_provider("oracle:near-cone"), make_provider("oracle:near-inside")
+    for provider in (cone, inside):
+        provider._friction = np.array([0.5, 0.5])  # what prepare() reads from the world
+    at_cone = np.stack(cone.warm_start(Solved(), None, points, 0), axis=1)
+    within = np.stack(inside.warm_start(Solved(), None, points, 0), axis=1)
+    np.testing.assert_allclose(at_cone, [[1.0, 0.5], [1.0, 0.1], [0.9, 0.1], [0.3, 0.0]])
+    np.testing.assert_allclose(within, [[1.0, 0.1], [0.4, 0.2], [1.0, 0.2], [0.0, 0.0]])
