@@ -23,6 +23,12 @@ Probes of what a model could use (docs/results.md, "Where the iterations are"):
                  ones only where last step's friction was inside the cone
     jitter@S     builtin + Gaussian noise of S N s at persisting points (seeded): a
                  control for pick:, candidates that know nothing
+    prestress@M  builtin + a self-stress (impulses that move no body) that lifts every
+                 pressing point's normal impulse toward at least M N s where it is below:
+                 the part of that lift that moves no body (deepcontact.kinematics.body_space_part).
+                 Does any self-stress that keeps contacts off their limits pay, or only the
+                 solution's own?
+    preload@M    the same with a lift of M N s at every pressing point, whatever its load
 Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:persisting   the oracle at points that persist, zero at new ones
     oracle:new          the oracle at new points, builtin where the point persists
@@ -85,6 +91,10 @@ Oracle over warm starts:
                  the part that moves the bodies and the self-stress that moves none
                  (oracle:body-space, oracle:self-stress): which part of a model's
                  correction pays
+    boost:W      serves W, as W alone would, and trial-solves builtin, W, and W's
+                 correction with its self-stress part scaled by 0.5, 1.5, 2 and 3 (the part
+                 that moves the bodies kept): is a model's self-stress right in direction
+                 and short in size?
 """
 
 from __future__ import annotations
@@ -94,7 +104,7 @@ import numpy as np
 from deepcontact.kinematics import points_at_rest
 
 LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K",
-         "jitter@S")
+         "jitter@S", "prestress@M", "preload@M")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
            "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch", "near-cone",
@@ -467,6 +477,29 @@ class Jitter(Provider):
         return _as_warm_start(warm)
 
 
+class Prestress(Provider):
+    """Builtin plus a self-stress chosen without the solution: the part of a lift of the
+    pressing points' normal impulses that moves no body. `floor`: lift each to at least
+    `impulse` N s; else lift every one by `impulse` N s. Normal clamped at 0 after."""
+
+    def __init__(self, impulse: float, floor: bool = True):
+        self.impulse, self.floor = impulse, floor
+        self.name = f"{'prestress' if floor else 'preload'}@{impulse:g}"
+
+    def warm_start(self, engine, bodies, points, step):
+        from deepcontact.kinematics import body_space_part
+
+        if len(points) == 0:
+            return None
+        builtin = points["builtin"].astype(np.float64)
+        pressing = builtin[:, 0] > SWITCH_IMPULSE
+        lift = np.zeros_like(builtin)
+        lift[:, 0] = np.where(pressing, np.maximum(self.impulse - builtin[:, 0], 0.0) if self.floor else self.impulse, 0.0)
+        warm = builtin + lift - body_space_part(bodies, points, lift)
+        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+        return _as_warm_start(warm)
+
+
 class Remote(Provider):
     """A model or provider on the warm-start server (see simclient.simulate)."""
 
@@ -491,7 +524,9 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price", "split")
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost")
+    #: boost:W: the factors its self-stress part is priced at.
+    BOOSTS = (0.5, 1.5, 2.0, 3.0)
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
@@ -502,9 +537,10 @@ class Pick(Provider):
         # mean: serve the candidates' mean, price it and each of them on the same state;
         # price: serve builtin, price the candidates on its states (the same states for every
         # model and every run: a paired, trajectory-free comparison of any two models);
-        # split: serve the one candidate, price it and the two parts of its correction
-        if mode == "split" and len(candidates) != 1:
-            raise ValueError(f"split: takes one warm start, e.g. split:server:default, got {len(candidates)}")
+        # split: serve the one candidate, price it and the two parts of its correction;
+        # boost: serve the one candidate, price it with its self-stress part scaled
+        if mode in ("split", "boost") and len(candidates) != 1:
+            raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
         self.mode = mode
         for i, c in enumerate(candidates):
             if isinstance(c, Jitter):
@@ -521,8 +557,9 @@ class Pick(Provider):
     @property
     def labels(self) -> list[str]:
         """What each entry of a trials row priced: builtin, the candidates (and their mean)."""
-        extra = {"mean": ["mean"], "split": [f"{self.candidates[0].name} body-space",
-                                             f"{self.candidates[0].name} self-stress"]}.get(self.mode, [])
+        first = self.candidates[0].name
+        extra = {"mean": ["mean"], "split": [f"{first} body-space", f"{first} self-stress"],
+                 "boost": [f"{first} self-stress x{k:g}" for k in self.BOOSTS]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -546,19 +583,21 @@ class Pick(Provider):
             normal = np.mean([w[0] for w in candidates[1:]], axis=0, dtype=np.float64)
             tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
             candidates.append(_as_warm_start(np.stack([normal, tangent], axis=1)))
-        if self.mode == "split":
+        if self.mode in ("split", "boost"):
             from deepcontact.kinematics import body_space_part
 
             start = np.stack(candidates[0], axis=1).astype(np.float64)
             correction = np.stack(candidates[1], axis=1).astype(np.float64) - start
             moves = body_space_part(engine.bodies(), points, correction)
-            for part in (moves, correction - moves):
+            stress = correction - moves
+            parts = (moves, stress) if self.mode == "split" else [moves + k * stress for k in self.BOOSTS]
+            for part in parts:
                 warm = start + part
                 warm[:, 0] = np.maximum(warm[:, 0], 0.0)
                 candidates.append(_as_warm_start(warm))
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
-        if self.mode in ("shadow", "split"):
+        if self.mode in ("shadow", "split", "boost"):
             return candidates[1]
         if self.mode == "price":
             return builtin  # the trials left the last candidate's as the step's warm start
@@ -590,6 +629,8 @@ def make_provider(name: str) -> Provider:
     for prefix, parse, make, what in (
             ("lastchange@", float, LastChange, "a factor, e.g. lastchange@-0.5"),
             ("jitter@", float, Jitter, "a noise level in N s, e.g. jitter@0.01"),
+            ("prestress@", float, Prestress, "an impulse in N s, e.g. prestress@0.05"),
+            ("preload@", float, lambda m: Prestress(m, floor=False), "an impulse in N s, e.g. preload@0.05"),
             ("solve@", int, LinearSolve, "a number of iterations, e.g. solve@10"),
             ("solve-active@", int, lambda k: LinearSolve(k, active=True), "a number of iterations, e.g. solve-active@20")):
         if name.startswith(prefix):
@@ -597,7 +638,7 @@ def make_provider(name: str) -> Provider:
                 value = parse(name[len(prefix):])
             except ValueError:
                 raise ValueError(f"{prefix}... needs {what}, got {name!r}") from None
-            if (parse is int and value < 1) or (prefix == "jitter@" and not value > 0):
+            if (parse is int and value < 1) or (parse is float and prefix != "lastchange@" and not value > 0):
                 raise ValueError(f"{prefix}... needs {what}, got {name!r}")
             return make(value)
     factories = {

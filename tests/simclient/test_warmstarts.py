@@ -274,3 +274,38 @@ def test_near_cone_and_inside_split_the_points_by_whether_friction_is_at_its_con
     within = np.stack(inside.warm_start(Solved(), None, points, 0), axis=1)
     np.testing.assert_allclose(at_cone, [[1.0, 0.5], [1.0, 0.1], [0.9, 0.1], [0.3, 0.0]])
     np.testing.assert_allclose(within, [[1.0, 0.1], [0.4, 0.2], [1.0, 0.2], [0.0, 0.0]])
+
+
+def test_boost_serves_its_warm_start_and_prices_it_with_its_self_stress_scaled():
+    provider = make_provider("boost:oracle:near")
+    assert provider.labels == ["builtin", "oracle:near"] + [f"oracle:near self-stress x{k:g}" for k in (0.5, 1.5, 2, 3)]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    assert [t[1] for t in served["trials"]] == its  # serves the warm start itself
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("boost:oracle:near+oracle:half")
+
+
+def test_prestress_lifts_the_pressing_points_by_impulses_that_barely_move_a_body():
+    from deepcontact.kinematics import contact_jacobian
+
+    seen = {}
+
+    class Recording(type(make_provider("prestress@0.1"))):
+        def warm_start(self, engine, bodies, points, step):
+            seen["bodies"], seen["points"] = bodies, points
+            return super().warm_start(engine, bodies, points, step)
+
+    run_simulation(SHORT, 901, Recording(0.1))  # a real pile: the last step's bodies and points are kept
+    bodies, points = seen["bodies"], seen["points"]
+    builtin = points["builtin"].astype(np.float64)
+    for provider in (make_provider("prestress@0.1"), make_provider("preload@0.1")):
+        warm = np.stack(provider.warm_start(None, bodies, points, 0), axis=1).astype(np.float64)
+        lift = np.zeros_like(builtin)
+        lift[:, 0] = np.where(builtin[:, 0] > 0, 0.1 if provider.name.startswith("preload") else
+                              np.maximum(0.1 - builtin[:, 0], 0.0), 0.0)
+        jt = contact_jacobian(bodies, points)
+        # The lift alone would push the bodies; what is added moves them far less: only where the
+        # self-stress would take a normal impulse below zero does the clamp leak a push.
+        assert np.linalg.norm(jt @ (warm - builtin).ravel()) < 0.25 * np.linalg.norm(jt @ lift.ravel())
+        assert np.abs(warm - builtin).max() > 0.01
