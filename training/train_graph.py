@@ -48,6 +48,8 @@ TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracl
 
 CACHE_VERSION = 2  # GraphSet fields
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
+#: mse-sticking: friction at this share of its bound or more counts as sliding (simclient.warmstarts.CONE_SHARE).
+STICKING_SHARE = 0.99
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
 NORMS = (2, 4, 8)  # --norm: higher ones underflow float32 (and their floor with them)
 ORDERS = ("jacobi", "gauss-seidel")
@@ -91,14 +93,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pooled", action="store_true",
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
-    parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "solver", "solver-log",
+    parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "solver", "solver-log",
                                            "solver-projected", "solver-projected-max", "solver-projected-sweeps"),
                         default="solver",
                         help="mse: squared error of the correction at every point; relative: each point's error "
                              "over its own correction's size (+ 0.05 N s), so small corrections count as much as "
                              "large ones; mse-self-stress: mse with the error's self-stress (the part that moves no "
                              "body, training.graph_loss.self_stress_part) weighted by --self-stress-weight, since that "
-                             "part holds most of a warm start's value and little of its size; solver (default): the residual "
+                             "part holds most of a warm start's value and little of its size; mse-sticking: mse at the "
+                             "points whose friction is inside its cone both in Box2D's warm start and in the solver's "
+                             "end (the others weigh nothing), where the exact answer holds nearly all a warm start's "
+                             "value; solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
                              "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
                              "solver-log: per step, the log of that residual over Box2D's warm start's; "
@@ -320,6 +325,8 @@ class BatchLoss:
             return self._at_points(pred, y)
         if self.args.loss == "mse-self-stress":
             return self._split(pred, y, ends, geometry, inverse)
+        if self.args.loss == "mse-sticking":
+            return self._sticking(points, pred, y, step_of)
         error, builtin_error = self._errors(points, pred, y)
         solver = (ends, geometry, masses, inverse, step_of)
         if self.args.loss in self.PROJECTED_LOSSES:
@@ -352,6 +359,26 @@ class BatchLoss:
         per_point = tf.reduce_sum((tf.square(moving) + self.args.self_stress_weight * tf.square(stress))
                                   * self.loss_weight, axis=1)
         return per_point, tf.ones_like(per_point)
+
+    def _sticking(self, points, pred, y, step_of):
+        """mse-sticking: mse at the points whose friction stays inside its cone (below
+        STICKING_SHARE of mu times the normal impulse, or not pressing) in Box2D's warm start
+        and in the solver's end; the other points weigh nothing."""
+        tf = self.tf
+        from training.graph_loss import friction_bounds
+
+        raw = points * self.in_std + self.in_mean
+        builtin = tf.gather(raw, self.builtin_columns, axis=1)
+        solution = builtin + (y * self.out_std + self.out_mean)  # the solver's end, N s
+        mu = friction_bounds(solution, step_of)
+
+        def at_cone(lam):
+            # mu is 0 in a step without friction: nothing there is held back by a cone.
+            return (lam[:, 0] > 1e-4) & (mu > 0.0) & (tf.abs(lam[:, 1]) >= STICKING_SHARE * mu * lam[:, 0])
+
+        sticking = tf.cast(~(at_cone(builtin) | at_cone(solution)), tf.float32)
+        per_point = tf.reduce_sum(tf.square(pred - y) * self.loss_weight, axis=1) * sticking
+        return per_point, sticking
 
     def _errors(self, points, pred, y):
         """(error, builtin_error), (P, T) N s: what the served warm start and Box2D's own miss
@@ -532,7 +559,8 @@ def _compiled_steps(net, batch_loss, lr: float):
     def train_step(*batch):
         with tf.GradientTape() as tape:
             losses, weights = batch_loss(*batch)
-            loss = tf.reduce_sum(losses) / tf.reduce_sum(weights)
+            # A batch may weigh nothing (mse-sticking: every point slides): no loss, no step.
+            loss = tf.reduce_sum(losses) / tf.maximum(tf.reduce_sum(weights), 1e-12)
         optimizer.apply_gradients(zip(tape.gradient(loss, net.trainable), net.trainable))
         return loss
 

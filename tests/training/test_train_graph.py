@@ -178,7 +178,8 @@ def test_gauss_seidel_sweeps_update_one_point_after_another(graphs):
     np.testing.assert_allclose(change, expected, atol=1e-4 * np.abs(expected).max())
 
 
-@pytest.mark.parametrize("loss", ["mse", "relative", "mse-self-stress", "solver", "solver-log", "solver-projected",
+@pytest.mark.parametrize("loss", ["mse", "relative", "mse-self-stress", "mse-sticking", "solver", "solver-log",
+                                  "solver-projected",
                                   "solver-projected-max", "solver-projected-sweeps"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
     out = tmp_path / "graph.onnx"
@@ -542,3 +543,23 @@ def test_a_model_reading_last_steps_correction_is_served_what_training_saw(data,
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "keys" in err.value.details()
     finally:
         srv.stop()
+
+
+def test_mse_sticking_weighs_only_the_points_whose_friction_stays_inside_its_cone():
+    import argparse
+
+    from training.train_graph import BatchLoss, Scaling
+
+    inputs = ("new_point", "builtin_normal", "builtin_tangent", "vn", "vt")
+    scaling = Scaling(np.zeros(5, np.float32), np.ones(5, np.float32), np.zeros(2, np.float32), np.ones(2, np.float32))
+    args = argparse.Namespace(loss="mse-sticking", tangent_weight=1.0, combine="residual")
+    # One step; the solver's end slides at point 0 (|t| = 0.5 n, the step's largest ratio, so mu = 0.5),
+    # Box2D's warm start slides at point 1, points 2 and 3 stick at both ends.
+    builtin = np.array([[1.0, 0.0], [1.0, 0.5], [1.0, 0.1], [2.0, -0.2]], np.float32)
+    correction = np.array([[0.0, 0.5], [0.2, -0.3], [0.1, 0.0], [0.0, 0.1]], np.float32)
+    points = np.concatenate([np.zeros((4, 1), np.float32), builtin, np.zeros((4, 2), np.float32)], axis=1)
+    pred = correction + np.array([[1.0, 1.0], [1.0, 1.0], [0.5, 0.0], [0.0, 0.5]], np.float32)
+    loss = BatchLoss(lambda *a: pred, args, scaling, [], inputs)
+    per_point, weights = loss(points, None, None, correction, None, None, None, np.zeros(4, np.int32), None)
+    np.testing.assert_allclose(weights.numpy(), [0.0, 0.0, 1.0, 1.0])
+    np.testing.assert_allclose(per_point.numpy(), [0.0, 0.0, 0.25, 0.25], atol=1e-6)
