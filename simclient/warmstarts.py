@@ -69,6 +69,14 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:near-cone    that solution at the points whose friction is at its cone (at least
                         0.99 of its limit) in Box2D's warm start or in the solution, Box2D's elsewhere
     oracle:near-inside  that solution at the other points (friction inside the cone at both ends)
+    oracle:near-admissible  builtin + that solution's body-space part, then the smallest self-stress
+                        that brings every point inside its friction cone (normal >= 0, |tangent| <=
+                        mu normal; deepcontact.kinematics.nearest_admissible): the bodies' motion
+                        exact, the self-stress chosen by the limits alone, without the solution's
+    oracle:near-admissible-open  the same with the points that solution lets go held at 0 as well
+    oracle:near-admissible@R  oracle:near-admissible from a motion known to within noise: Gaussian
+                        noise of R times the body-space correction's root-mean-square size added at
+                        each point and taken to body space (seeded), then admitted as above
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -95,6 +103,11 @@ Oracle over warm starts:
                  correction with its self-stress part scaled by 0.5, 1.5, 2 and 3 (the part
                  that moves the bodies kept): is a model's self-stress right in direction
                  and short in size?
+    admit:W      serves W, as W alone would, and trial-solves builtin, W, and two
+                 admissible forms of it (deepcontact.kinematics.nearest_admissible): W
+                 moved by the smallest self-stress that brings every point inside its
+                 friction cone, and builtin plus W's body-space part moved the same way
+                 (W's motion, the self-stress chosen by the limits alone)
 """
 
 from __future__ import annotations
@@ -108,14 +121,15 @@ LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
            "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch", "near-cone",
-           "near-inside")
+           "near-inside", "near-admissible", "near-admissible-open")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
                       "big": "a correction size in N s, e.g. oracle:big@1",
                       "noisy": "a noise level in N s, e.g. oracle:noisy@0.05",
                       "relnoisy": "a noise level relative to the correction, e.g. oracle:relnoisy@0.5",
-                      "some": "a share of the points, 0 < F <= 1, e.g. oracle:some@0.5"}
+                      "some": "a share of the points, 0 < F <= 1, e.g. oracle:some@0.5",
+                      "near-admissible": "a noise level relative to the motion, e.g. oracle:near-admissible@0.5"}
 #: oracle:near-release and -switch: a normal impulse above this (N s) presses; at or below, the contact is open.
 SWITCH_IMPULSE = 1e-6
 #: oracle:near-cone and -inside, solve-active@K: friction at this share of its limit or more slides.
@@ -202,7 +216,7 @@ class OracleMix(Provider):
         self.variant = variant
         self.name = f"oracle:{variant}"
         kind, at, value = variant.partition("@")
-        self.kind = kind
+        self.kind, self.value = kind, 0.0
         if kind in _ORACLE_PARAMETERS and at:
             try:
                 self.value = float(value)
@@ -269,6 +283,15 @@ class OracleMix(Provider):
             mu = point_friction(self._friction, points)
             cone = at_friction_cone(builtin, mu) | at_friction_cone(exact, mu)
             warm = np.where((cone if v == "cone" else ~cone)[:, None], exact, builtin)
+        elif v in ("admissible", "admissible-open"):
+            from deepcontact.kinematics import body_space_part, nearest_admissible
+
+            released = exact[:, 0] <= SWITCH_IMPULSE if v == "admissible-open" else None
+            moves = body_space_part(bodies, points, exact - builtin)
+            if self.value:  # oracle:near-admissible@R
+                size = np.sqrt(np.mean(moves ** 2))
+                moves = body_space_part(bodies, points, moves + self._rng.normal(0.0, self.value * size, moves.shape))
+            warm = nearest_admissible(bodies, points, builtin + moves, point_friction(self._friction, points), released)
         elif v in ("body-space", "self-stress"):
             from deepcontact.kinematics import body_space_part
 
@@ -524,7 +547,7 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price", "split", "boost")
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit")
     #: boost:W: the factors its self-stress part is priced at.
     BOOSTS = (0.5, 1.5, 2.0, 3.0)
     PREFIXES = tuple(f"{m}:" for m in MODES)
@@ -538,8 +561,9 @@ class Pick(Provider):
         # price: serve builtin, price the candidates on its states (the same states for every
         # model and every run: a paired, trajectory-free comparison of any two models);
         # split: serve the one candidate, price it and the two parts of its correction;
-        # boost: serve the one candidate, price it with its self-stress part scaled
-        if mode in ("split", "boost") and len(candidates) != 1:
+        # boost: serve the one candidate, price it with its self-stress part scaled;
+        # admit: serve the one candidate, price it and its admissible forms
+        if mode in ("split", "boost", "admit") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
         self.mode = mode
         for i, c in enumerate(candidates):
@@ -559,7 +583,8 @@ class Pick(Provider):
         """What each entry of a trials row priced: builtin, the candidates (and their mean)."""
         first = self.candidates[0].name
         extra = {"mean": ["mean"], "split": [f"{first} body-space", f"{first} self-stress"],
-                 "boost": [f"{first} self-stress x{k:g}" for k in self.BOOSTS]}.get(self.mode, [])
+                 "boost": [f"{first} self-stress x{k:g}" for k in self.BOOSTS],
+                 "admit": [f"{first} admissible", f"{first} body-space admissible"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -567,6 +592,7 @@ class Pick(Provider):
         return self.models[0] if self.models else ""
 
     def prepare(self, engine) -> None:
+        self._friction = body_friction(engine)
         for c in self.candidates:
             c.prepare(engine)
 
@@ -583,6 +609,14 @@ class Pick(Provider):
             normal = np.mean([w[0] for w in candidates[1:]], axis=0, dtype=np.float64)
             tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
             candidates.append(_as_warm_start(np.stack([normal, tangent], axis=1)))
+        if self.mode == "admit":
+            from deepcontact.kinematics import body_space_part, nearest_admissible
+
+            bodies, mu = engine.bodies(), point_friction(self._friction, points)
+            start = np.stack(candidates[0], axis=1).astype(np.float64)
+            served = np.stack(candidates[1], axis=1).astype(np.float64)
+            motion = start + body_space_part(bodies, points, served - start)
+            candidates += [_as_warm_start(nearest_admissible(bodies, points, w, mu)) for w in (served, motion)]
         if self.mode in ("split", "boost"):
             from deepcontact.kinematics import body_space_part
 
@@ -597,7 +631,7 @@ class Pick(Provider):
                 candidates.append(_as_warm_start(warm))
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
-        if self.mode in ("shadow", "split", "boost"):
+        if self.mode in ("shadow", "split", "boost", "admit"):
             return candidates[1]
         if self.mode == "price":
             return builtin  # the trials left the last candidate's as the step's warm start

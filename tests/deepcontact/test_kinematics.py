@@ -91,3 +91,47 @@ def test_the_body_space_part_moves_the_bodies_as_the_whole_does_and_the_rest_mov
     assert np.abs(stress).max() > 1e-3  # the pile's solution does carry a self-stress
     assert abs(float((part * stress).sum())) < 1e-9 * float((exact * exact).sum())  # orthogonal parts
     assert body_space_part(bodies, points[:0], exact[:0]).shape == (0, 2)
+
+
+def test_cones_keep_what_is_inside_and_take_the_rest_to_the_nearest_edge_or_zero():
+    from deepcontact.kinematics import project_to_cones
+
+    impulses = np.array([[1.0, 0.3], [1.0, 1.0], [-1.0, 0.2], [0.0, -2.0], [2.0, 0.0]])
+    mu = np.array([0.5, 0.5, 0.5, 0.5, 0.0])
+    # Inside; beyond the edge (1, 0.5): (1 + 0.5) / 1.25 along it; in the polar cone: 0;
+    # tangent only: onto the lower edge; no friction: the normal only.
+    np.testing.assert_allclose(project_to_cones(impulses, mu),
+                               [[1.0, 0.3], [1.2, 0.6], [0.0, 0.0], [0.8, -0.4], [2.0, 0.0]])
+
+
+def test_the_nearest_admissible_impulses_move_the_bodies_alike_and_keep_every_limit():
+    # Box2D's warm start plus the part of this step's correction that moves the bodies
+    # leaves friction outside its cone at some points. A self-stress alone (the bodies'
+    # motion kept) takes every point back inside; with the points that let go held at 0
+    # it finds the solution's own impulses, give or take what moves nothing.
+    from deepcontact.kinematics import body_space_part, contact_jacobian, nearest_admissible
+
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    builtin = points["builtin"].astype(np.float64)
+    exact = engine.oracle(start=(points["builtin"][:, 0].copy(), points["builtin"][:, 1].copy())).astype(np.float64)
+    mu = np.full(len(points), 0.5)  # the thesis world's friction at every pair
+    motion = builtin + body_space_part(bodies, points, exact - builtin)
+
+    def outside(x):
+        return np.maximum(np.abs(x[:, 1]) - mu * x[:, 0], 0.0).sum() + np.maximum(-x[:, 0], 0.0).sum()
+
+    assert outside(motion) > 0.1
+    admitted = nearest_admissible(bodies, points, motion, mu)
+    jt = contact_jacobian(bodies, points)
+    assert outside(admitted) < 1e-9
+    assert np.abs(jt @ (admitted - motion).ravel()).max() < 1e-4
+    np.testing.assert_allclose(nearest_admissible(bodies, points, exact, mu), exact, atol=1e-4)  # admissible already
+
+    released = exact[:, 0] <= 1e-6
+    with_release = nearest_admissible(bodies, points, motion, mu, open_points=released)
+    assert not with_release[released].any()
+    start = lambda x: tuple(np.ascontiguousarray(x[:, k], np.float32) for k in (0, 1))  # noqa: E731
+    assert engine.trial(*start(with_release)) <= 3 < engine.trial(*start(admitted)) < engine.trial(*start(motion))
+    assert nearest_admissible(bodies, points[:0], exact[:0], mu[:0]).shape == (0, 2)

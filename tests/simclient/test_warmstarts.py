@@ -181,7 +181,8 @@ def test_the_oracle_at_half_the_points_is_worth_much_less_than_at_all_of_them():
 
 def test_probe_warm_starts_check_their_parameter():
     for name, match in (("lastchange@x", "factor"), ("solve@0", "iterations"), ("oracle:small@0", "correction size"),
-                        ("oracle:noisy@-1", "noise level"), ("oracle:some@1.5", "share of the points")):
+                        ("oracle:noisy@-1", "noise level"), ("oracle:some@1.5", "share of the points"),
+                        ("oracle:near-admissible@0", "relative to the motion")):
         with pytest.raises(ValueError, match=match):
             make_provider(name)
 
@@ -284,6 +285,23 @@ def test_boost_serves_its_warm_start_and_prices_it_with_its_self_stress_scaled()
     assert [t[1] for t in served["trials"]] == its  # serves the warm start itself
     with pytest.raises(ValueError, match="one warm start"):
         make_provider("boost:oracle:near+oracle:half")
+
+
+def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
+    # Served here: the solution's body-space part alone (oracle:near-body-space). Brought
+    # inside the friction cones by the smallest self-stress, the same motion takes far
+    # fewer iterations: given the motion, the limits choose the self-stress.
+    provider = make_provider("admit:oracle:near-body-space")
+    assert provider.labels == ["builtin", "oracle:near-body-space", "oracle:near-body-space admissible",
+                               "oracle:near-body-space body-space admissible"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    trials = np.array(served["trials"])
+    assert trials[:, 1].tolist() == its  # serves the warm start itself
+    assert trials[:, 2].sum() < 0.8 * trials[:, 1].sum()  # the same motion inside the cones
+    assert trials[:, 3].sum() < 0.8 * trials[:, 1].sum()  # W's motion from Box2D's warm start: W itself, near enough
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("admit:oracle:near+oracle:half")
 
 
 def test_prestress_lifts_the_pressing_points_by_impulses_that_barely_move_a_body():
