@@ -74,6 +74,9 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
                         mu normal; deepcontact.kinematics.nearest_admissible): the bodies' motion
                         exact, the self-stress chosen by the limits alone, without the solution's
     oracle:near-admissible-open  the same with the points that solution lets go held at 0 as well
+    oracle:near-admissible-separating  the same with the points the motion itself pulls apart held at 0:
+                        those whose normal velocity after it is above SEPARATING_SPEED (the motion
+                        alone, no more of the solution, names the contacts that let go)
     oracle:near-admissible@R  oracle:near-admissible from a motion known to within noise: Gaussian
                         noise of R times the body-space correction's root-mean-square size added at
                         each point and taken to body space (seeded), then admitted as above
@@ -103,11 +106,12 @@ Oracle over warm starts:
                  correction with its self-stress part scaled by 0.5, 1.5, 2 and 3 (the part
                  that moves the bodies kept): is a model's self-stress right in direction
                  and short in size?
-    admit:W      serves W, as W alone would, and trial-solves builtin, W, and two
+    admit:W      serves W, as W alone would, and trial-solves builtin, W, and three
                  admissible forms of it (deepcontact.kinematics.nearest_admissible): W
                  moved by the smallest self-stress that brings every point inside its
-                 friction cone, and builtin plus W's body-space part moved the same way
-                 (W's motion, the self-stress chosen by the limits alone)
+                 friction cone; builtin plus W's body-space part moved the same way
+                 (W's motion, the self-stress chosen by the limits alone); and that with
+                 the points W's motion pulls apart held at 0 (oracle:near-admissible-separating's rule)
 """
 
 from __future__ import annotations
@@ -121,7 +125,7 @@ LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
            "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch", "near-cone",
-           "near-inside", "near-admissible", "near-admissible-open")
+           "near-inside", "near-admissible", "near-admissible-open", "near-admissible-separating")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -132,6 +136,9 @@ _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "near-admissible": "a noise level relative to the motion, e.g. oracle:near-admissible@0.5"}
 #: oracle:near-release and -switch: a normal impulse above this (N s) presses; at or below, the contact is open.
 SWITCH_IMPULSE = 1e-6
+#: oracle:near-admissible-separating: a point whose normal velocity after the motion is above this (m/s) lets go;
+#: a thousandth of a metre a second, ten times what the stopping rule's 1e-4 N s leaves at a point of about 1 kg.
+SEPARATING_SPEED = 1e-3
 #: oracle:near-cone and -inside, solve-active@K: friction at this share of its limit or more slides.
 CONE_SHARE = 0.99
 #: oracle:noisy and oracle:relnoisy perturb the corrections of oracle:small at this size (N s).
@@ -283,11 +290,16 @@ class OracleMix(Provider):
             mu = point_friction(self._friction, points)
             cone = at_friction_cone(builtin, mu) | at_friction_cone(exact, mu)
             warm = np.where((cone if v == "cone" else ~cone)[:, None], exact, builtin)
-        elif v in ("admissible", "admissible-open"):
-            from deepcontact.kinematics import body_space_part, nearest_admissible
+        elif v in ("admissible", "admissible-open", "admissible-separating"):
+            from deepcontact.kinematics import Physics, body_space_part, contact_velocities, nearest_admissible
 
-            released = exact[:, 0] <= SWITCH_IMPULSE if v == "admissible-open" else None
             moves = body_space_part(bodies, points, exact - builtin)
+            released = None
+            if v == "admissible-open":
+                released = exact[:, 0] <= SWITCH_IMPULSE
+            elif v == "admissible-separating":
+                physics = Physics(engine.config.dt, tuple(engine.world.gravity))
+                released = contact_velocities(bodies, points, builtin + moves, physics)[:, 0] > SEPARATING_SPEED
             if self.value:  # oracle:near-admissible@R
                 size = np.sqrt(np.mean(moves ** 2))
                 moves = body_space_part(bodies, points, moves + self._rng.normal(0.0, self.value * size, moves.shape))
@@ -584,7 +596,8 @@ class Pick(Provider):
         first = self.candidates[0].name
         extra = {"mean": ["mean"], "split": [f"{first} body-space", f"{first} self-stress"],
                  "boost": [f"{first} self-stress x{k:g}" for k in self.BOOSTS],
-                 "admit": [f"{first} admissible", f"{first} body-space admissible"]}.get(self.mode, [])
+                 "admit": [f"{first} admissible", f"{first} body-space admissible",
+                           f"{first} body-space admissible, separating open"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -610,13 +623,16 @@ class Pick(Provider):
             tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
             candidates.append(_as_warm_start(np.stack([normal, tangent], axis=1)))
         if self.mode == "admit":
-            from deepcontact.kinematics import body_space_part, nearest_admissible
+            from deepcontact.kinematics import Physics, body_space_part, contact_velocities, nearest_admissible
 
             bodies, mu = engine.bodies(), point_friction(self._friction, points)
             start = np.stack(candidates[0], axis=1).astype(np.float64)
             served = np.stack(candidates[1], axis=1).astype(np.float64)
             motion = start + body_space_part(bodies, points, served - start)
-            candidates += [_as_warm_start(nearest_admissible(bodies, points, w, mu)) for w in (served, motion)]
+            physics = Physics(engine.config.dt, tuple(engine.world.gravity))
+            separating = contact_velocities(bodies, points, motion, physics)[:, 0] > SEPARATING_SPEED
+            candidates += [_as_warm_start(nearest_admissible(bodies, points, w, mu, o))
+                           for w, o in ((served, None), (motion, None), (motion, separating))]
         if self.mode in ("split", "boost"):
             from deepcontact.kinematics import body_space_part
 

@@ -112,6 +112,12 @@
 #                              points whose friction stays inside its cone at both ends (--loss
 #                              mse-sticking): the exact answer there holds nearly all a warm start's
 #                              value (docs/results.md, "It is at the contacts that stick"); control -e20
+#   graph-mse-1-799-motion     graph-mse-1-799-e20's run with the squared error of the part that moves
+#                              the bodies alone (--loss mse-self-stress --self-stress-weight 0): given
+#                              the bodies' motion, the friction cones choose the self-stress
+#                              (deepcontact.kinematics.nearest_admissible; docs/results.md, "The limits
+#                              choose the self-stress"), so the motion is all a model has to get right;
+#                              priced with admit:; control -e20
 #   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
@@ -221,6 +227,10 @@ run() {
             variant "$1" --loss mse-self-stress --self-stress-weight $weight --max-steps-per-file 20000 --epochs 4 \
                 --patience 3 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
+        graph-mse-1-799-motion)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse-self-stress --self-stress-weight 0 --max-steps-per-file 20000 --epochs 4 \
+                --patience 3 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz ;;
         graph-mse-1-799-sticking)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse-sticking --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 \

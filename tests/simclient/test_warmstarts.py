@@ -293,13 +293,15 @@ def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
     # fewer iterations: given the motion, the limits choose the self-stress.
     provider = make_provider("admit:oracle:near-body-space")
     assert provider.labels == ["builtin", "oracle:near-body-space", "oracle:near-body-space admissible",
-                               "oracle:near-body-space body-space admissible"]
+                               "oracle:near-body-space body-space admissible",
+                               "oracle:near-body-space body-space admissible, separating open"]
     served = run_simulation(SHORT, 901, provider)
     its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
     trials = np.array(served["trials"])
     assert trials[:, 1].tolist() == its  # serves the warm start itself
     assert trials[:, 2].sum() < 0.8 * trials[:, 1].sum()  # the same motion inside the cones
     assert trials[:, 3].sum() < 0.8 * trials[:, 1].sum()  # W's motion from Box2D's warm start: W itself, near enough
+    assert trials.shape[1] == 5 and trials.min() >= 1  # and the same with the contacts its motion pulls apart
     with pytest.raises(ValueError, match="one warm start"):
         make_provider("admit:oracle:near+oracle:half")
 
