@@ -80,6 +80,8 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:near-admissible@R  oracle:near-admissible from a motion known to within noise: Gaussian
                         noise of R times the body-space correction's root-mean-square size added at
                         each point and taken to body space (seeded), then admitted as above
+    oracle:near-admissible-abs@S  the same with noise of S N s at each point, whatever the step's
+                        correction: a model's error, which is not scaled to each step's own
 Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
@@ -125,7 +127,8 @@ LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
            "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch", "near-cone",
-           "near-inside", "near-admissible", "near-admissible-open", "near-admissible-separating")
+           "near-inside", "near-admissible", "near-admissible-open", "near-admissible-separating", "near-admissible@R",
+           "near-admissible-abs@S")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -133,7 +136,8 @@ _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "noisy": "a noise level in N s, e.g. oracle:noisy@0.05",
                       "relnoisy": "a noise level relative to the correction, e.g. oracle:relnoisy@0.5",
                       "some": "a share of the points, 0 < F <= 1, e.g. oracle:some@0.5",
-                      "near-admissible": "a noise level relative to the motion, e.g. oracle:near-admissible@0.5"}
+                      "near-admissible": "a noise level relative to the motion, e.g. oracle:near-admissible@0.5",
+                      "near-admissible-abs": "a noise level in N s, e.g. oracle:near-admissible-abs@0.2"}
 #: oracle:near-release and -switch: a normal impulse above this (N s) presses; at or below, the contact is open.
 SWITCH_IMPULSE = 1e-6
 #: oracle:near-admissible-separating: a point whose normal velocity after the motion is above this (m/s) lets go;
@@ -290,7 +294,7 @@ class OracleMix(Provider):
             mu = point_friction(self._friction, points)
             cone = at_friction_cone(builtin, mu) | at_friction_cone(exact, mu)
             warm = np.where((cone if v == "cone" else ~cone)[:, None], exact, builtin)
-        elif v in ("admissible", "admissible-open", "admissible-separating"):
+        elif v in ("admissible", "admissible-open", "admissible-separating", "admissible-abs"):
             from deepcontact.kinematics import Physics, body_space_part, contact_velocities, nearest_admissible
 
             moves = body_space_part(bodies, points, exact - builtin)
@@ -300,8 +304,8 @@ class OracleMix(Provider):
             elif v == "admissible-separating":
                 physics = Physics(engine.config.dt, tuple(engine.world.gravity))
                 released = contact_velocities(bodies, points, builtin + moves, physics)[:, 0] > SEPARATING_SPEED
-            if self.value:  # oracle:near-admissible@R
-                size = np.sqrt(np.mean(moves ** 2))
+            if self.value:  # oracle:near-admissible@R, oracle:near-admissible-abs@S
+                size = 1.0 if v == "admissible-abs" else np.sqrt(np.mean(moves ** 2))
                 moves = body_space_part(bodies, points, moves + self._rng.normal(0.0, self.value * size, moves.shape))
             warm = nearest_admissible(bodies, points, builtin + moves, point_friction(self._friction, points), released)
         elif v in ("body-space", "self-stress"):

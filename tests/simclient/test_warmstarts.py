@@ -182,7 +182,8 @@ def test_the_oracle_at_half_the_points_is_worth_much_less_than_at_all_of_them():
 def test_probe_warm_starts_check_their_parameter():
     for name, match in (("lastchange@x", "factor"), ("solve@0", "iterations"), ("oracle:small@0", "correction size"),
                         ("oracle:noisy@-1", "noise level"), ("oracle:some@1.5", "share of the points"),
-                        ("oracle:near-admissible@0", "relative to the motion")):
+                        ("oracle:near-admissible@0", "relative to the motion"),
+                        ("oracle:near-admissible-abs@-1", "noise level in N s")):
         with pytest.raises(ValueError, match=match):
             make_provider(name)
 
