@@ -25,6 +25,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("health",), "deepcontact.health", "exit 0 if a warm-start server reports SERVING"),
     (("simulate",), "simclient.simulate", "one simulation with one warm start; iterations and latency to JSON"),
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
+    (("bench", "admission"), "bench.admission", "what admitting a motion (nearest_admissible) costs a step, beside Box2D's solve"),
     (("bench", "corrections"), "bench.corrections", "a served model's corrections against the solver's, by size: where it errs"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
@@ -51,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (corrections, engine, generate, inference, iterations, load, scale, server, soak, surrogate, transfer, walltime)"}
+    group_help = {("bench",): "benchmarks (admission, corrections, engine, generate, inference, iterations, load, scale, server, soak, surrogate, transfer, walltime)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

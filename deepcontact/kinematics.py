@@ -207,6 +207,26 @@ def body_space_part(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray
     return (jt.T @ y).reshape(-1, 2)
 
 
+def body_space_part_of(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, chosen: np.ndarray,
+                       frame: ContactFrame | None = None) -> np.ndarray:
+    """The least-norm point impulses that move the `chosen` bodies as `impulses` do and
+    no other body, (P, 2) N s.
+
+    impulses: (P, 2) (normal, tangent) N s; chosen: (B,) bool over `bodies`. The result
+    r has J^T r = J^T impulses on every chosen dynamic body and J^T r = 0 on the others
+    (in the least-squares sense where a body's points cannot push it every way); with
+    every body chosen it is body_space_part. It splits a change of motion between bodies.
+    """
+    if len(points) == 0:
+        return np.zeros((0, 2))
+    f = contact_frame(bodies, points) if frame is None else frame
+    jt = contact_jacobian(bodies, points, f)
+    keep = np.repeat(np.asarray(chosen, bool)[f.dynamic], 3)  # rows: (x, y, angular) of each dynamic body
+    target = np.where(keep, jt @ np.asarray(impulses, np.float64).ravel(), 0.0)
+    r, *_ = np.linalg.lstsq(jt, target, rcond=None)  # the least-norm r with J^T r = target
+    return r.reshape(-1, 2)
+
+
 #: Below this speed (m/s) a body counts as at rest (points_at_rest): about what gravity adds
 #: in a step of 1 ms, far below a falling body's and far above a settled pile's drift.
 REST_SPEED = 0.01
@@ -216,8 +236,13 @@ def points_at_rest(bodies: np.ndarray, points: np.ndarray, speed: float = REST_S
     """(P,) bool: the points whose dynamic bodies both move slower than `speed` (m/s,
     linear velocity as recorded). A point on a settled pile: its bodies' velocities, and
     what a model reads from them, are near 0 there."""
-    moving = (np.hypot(*bodies["velocity"].T) >= speed) & (bodies["type"] == BODY_DYNAMIC)
+    moving = bodies_moving(bodies, speed)
     return ~(moving[points["body_a"]] | moving[points["body_b"]])
+
+
+def bodies_moving(bodies: np.ndarray, speed: float = REST_SPEED) -> np.ndarray:
+    """(B,) bool: the dynamic bodies whose recorded linear velocity is `speed` (m/s) or more."""
+    return (np.hypot(*bodies["velocity"].T) >= speed) & (bodies["type"] == BODY_DYNAMIC)
 
 
 def project_to_cones(impulses: np.ndarray, mu: np.ndarray) -> np.ndarray:

@@ -29,6 +29,12 @@ Probes of what a model could use (docs/results.md, "Where the iterations are"):
                  Does any self-stress that keeps contacts off their limits pay, or only the
                  solution's own?
     preload@M    the same with a lift of M N s at every pressing point, whatever its load
+    rest-admissible  a motion guessed without the solution, then admitted: every touching body
+                 slower than REST_SPEED (m/s) brought to rest by its contacts (their net impulse and
+                 torque cancel its velocity after gravity), every other body moved as Box2D's warm
+                 start moves it; the least-norm change to Box2D's warm start with that motion, then
+                 the smallest self-stress that brings every point inside its cone (as
+                 oracle:near-admissible does with the solution's motion)
 Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:persisting   the oracle at points that persist, zero at new ones
     oracle:new          the oracle at new points, builtin where the point persists
@@ -77,6 +83,10 @@ Oracle experiments (where a warm start's value lies; docs/results.md):
     oracle:near-admissible-separating  the same with the points the motion itself pulls apart held at 0:
                         those whose normal velocity after it is above SEPARATING_SPEED (the motion
                         alone, no more of the solution, names the contacts that let go)
+    oracle:near-admissible-moving  the same with the solution's motion at the moving bodies only
+                        (recorded speed REST_SPEED or more, deepcontact.kinematics.bodies_moving) and
+                        Box2D's warm start's at the others (body_space_part_of): whose motion pays?
+    oracle:near-admissible-settled  the solution's motion at the other bodies, Box2D's at the moving
     oracle:near-admissible@R  oracle:near-admissible from a motion known to within noise: Gaussian
                         noise of R times the body-space correction's root-mean-square size added at
                         each point and taken to body space (seeded), then admitted as above
@@ -113,21 +123,25 @@ Oracle over warm starts:
                  moved by the smallest self-stress that brings every point inside its
                  friction cone; builtin plus W's body-space part moved the same way
                  (W's motion, the self-stress chosen by the limits alone); and that with
-                 the points W's motion pulls apart held at 0 (oracle:near-admissible-separating's rule)
+                 the points W's motion pulls apart held at 0 (oracle:near-admissible-separating's rule);
+                 and builtin plus W's motion at the moving bodies only, Box2D's at the others,
+                 admitted (oracle:near-admissible-moving's split), and the same not admitted
+                 (normal impulses clamped at 0 only): does the admission pay, or the split?
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from deepcontact.kinematics import points_at_rest
+from deepcontact.kinematics import REST_SPEED, points_at_rest
 
 LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K",
-         "jitter@S", "prestress@M", "preload@M")
+         "jitter@S", "prestress@M", "preload@M", "rest-admissible")
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
            "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch", "near-cone",
-           "near-inside", "near-admissible", "near-admissible-open", "near-admissible-separating", "near-admissible@R",
+           "near-inside", "near-admissible", "near-admissible-open", "near-admissible-separating", "near-admissible-moving",
+           "near-admissible-settled", "near-admissible@R",
            "near-admissible-abs@S")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
@@ -163,6 +177,18 @@ class Provider:
 
     def observe(self, points_after_solve: np.ndarray) -> None:
         """After each solve, with the step's points and their final impulses."""
+
+
+class ReadsFriction(Provider):
+    """A provider that needs each point's friction coefficient (point_friction): it reads
+    the bodies' from the world before the first step."""
+
+    _friction = np.zeros(0)  # (B,) per body, creation order; set by prepare()
+
+    def prepare(self, engine) -> None:
+        super().prepare(engine)
+        # pybox2d lists the bodies in creation order, the records' body index.
+        self._friction = body_friction(engine)
 
 
 class NoWarmStart(Provider):
@@ -220,7 +246,7 @@ class Extrapolate(Provider):
         self._keys, self._impulse_prev2 = keys, prev
 
 
-class OracleMix(Provider):
+class OracleMix(ReadsFriction):
     """The oracle's impulses where they say most, builtin elsewhere (see the module docstring)."""
 
     def __init__(self, variant: str):
@@ -238,11 +264,6 @@ class OracleMix(Provider):
         elif variant not in ORACLES:
             raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
         self._rng = np.random.default_rng(0)  # a fresh provider per world: the same noise every run
-        self._friction = np.zeros(0)  # per body, creation order
-
-    def prepare(self, engine) -> None:
-        super().prepare(engine)
-        self._friction = body_friction(engine)
 
     def warm_start(self, engine, bodies, points, step):
         if len(points) == 0:
@@ -294,10 +315,16 @@ class OracleMix(Provider):
             mu = point_friction(self._friction, points)
             cone = at_friction_cone(builtin, mu) | at_friction_cone(exact, mu)
             warm = np.where((cone if v == "cone" else ~cone)[:, None], exact, builtin)
-        elif v in ("admissible", "admissible-open", "admissible-separating", "admissible-abs"):
-            from deepcontact.kinematics import Physics, body_space_part, contact_velocities, nearest_admissible
+        elif v in ("admissible", "admissible-open", "admissible-separating", "admissible-abs", "admissible-moving",
+                   "admissible-settled"):
+            from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of,
+                                                contact_velocities, nearest_admissible)
 
-            moves = body_space_part(bodies, points, exact - builtin)
+            if v in ("admissible-moving", "admissible-settled"):
+                moving = bodies_moving(bodies)
+                moves = body_space_part_of(bodies, points, exact - builtin, moving if v == "admissible-moving" else ~moving)
+            else:
+                moves = body_space_part(bodies, points, exact - builtin)
             released = None
             if v == "admissible-open":
                 released = exact[:, 0] <= SWITCH_IMPULSE
@@ -385,7 +412,7 @@ class LastChange(Provider):
         self._change = np.nan_to_num(after["impulse"].astype(np.float64) - after["warm_start"])
 
 
-class LinearSolve(Provider):
+class LinearSolve(ReadsFriction):
     """Builtin plus `iterations` conjugate-gradient steps on this step's contact
     problem without its limits: find the correction c (P, 2) that leaves no
     relative velocity at any point, A c = -v, with A = J M^-1 J^T (both
@@ -403,12 +430,6 @@ class LinearSolve(Provider):
     def __init__(self, iterations: int, active: bool = False):
         self.iterations, self.active = iterations, active
         self.name = f"solve{'-active' if active else ''}@{iterations}"
-        self._friction = np.zeros(0)  # per body, creation order
-
-    def prepare(self, engine) -> None:
-        super().prepare(engine)
-        # pybox2d lists the bodies in creation order, the records' body index.
-        self._friction = body_friction(engine)
 
     def warm_start(self, engine, bodies, points, step):
         from deepcontact.kinematics import Physics, contact_frame, contact_velocities
@@ -539,6 +560,41 @@ class Prestress(Provider):
         return _as_warm_start(warm)
 
 
+class RestAdmissible(ReadsFriction):
+    """A settled pile's motion guessed from its velocities alone, then admitted (module docstring).
+
+    A pile whose contacts all press and stick comes to rest: after a converged solve its
+    bodies do not move. So a slow body's contacts must cancel its momentum after gravity,
+    -m (v + g dt) and -I w, whatever the solution's self-stress; nearest_admissible then
+    chooses the self-stress from the limits. Bodies that move keep Box2D's warm start's motion.
+    """
+
+    name = "rest-admissible"
+
+    def warm_start(self, engine, bodies, points, step):
+        from deepcontact.kinematics import contact_frame, contact_jacobian, nearest_admissible
+
+        if len(points) == 0:
+            return None
+        builtin = points["builtin"].astype(np.float64)
+        frame = contact_frame(bodies, points)
+        jt = contact_jacobian(bodies, points, frame)  # (3 D, 2 P)
+        dynamic = np.flatnonzero(frame.dynamic)
+        target = (jt @ builtin.ravel()).reshape(-1, 3)  # (D, 3) N s, N s, N m s: Box2D's warm start's motion
+        gravity = np.asarray(engine.world.gravity, np.float64) * engine.config.dt
+        velocity = bodies["velocity"][dynamic].astype(np.float64)
+        touching = np.abs(jt).reshape(len(dynamic), -1).any(axis=1)
+        slow = touching & (np.hypot(*velocity.T) < REST_SPEED)
+        mass, inertia = bodies["mass"][dynamic].astype(np.float64), bodies["inertia"][dynamic].astype(np.float64)
+        target[slow, :2] = -mass[slow, None] * (velocity[slow] + gravity)
+        target[slow, 2] = -inertia[slow] * bodies["angular_velocity"][dynamic][slow]
+        # The least-norm change with that motion (least squares where a body's points cannot give it).
+        change, *_ = np.linalg.lstsq(jt, target.ravel() - jt @ builtin.ravel(), rcond=None)
+        warm = nearest_admissible(bodies, points, builtin + change.reshape(-1, 2), point_friction(self._friction, points),
+                                  frame=frame)
+        return _as_warm_start(warm)
+
+
 class Remote(Provider):
     """A model or provider on the warm-start server (see simclient.simulate)."""
 
@@ -601,7 +657,8 @@ class Pick(Provider):
         extra = {"mean": ["mean"], "split": [f"{first} body-space", f"{first} self-stress"],
                  "boost": [f"{first} self-stress x{k:g}" for k in self.BOOSTS],
                  "admit": [f"{first} admissible", f"{first} body-space admissible",
-                           f"{first} body-space admissible, separating open"]}.get(self.mode, [])
+                           f"{first} body-space admissible, separating open",
+                           f"{first} moving bodies' motion admissible", f"{first} moving bodies' motion"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -627,16 +684,19 @@ class Pick(Provider):
             tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
             candidates.append(_as_warm_start(np.stack([normal, tangent], axis=1)))
         if self.mode == "admit":
-            from deepcontact.kinematics import Physics, body_space_part, contact_velocities, nearest_admissible
+            from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of,
+                                                contact_velocities, nearest_admissible)
 
             bodies, mu = engine.bodies(), point_friction(self._friction, points)
             start = np.stack(candidates[0], axis=1).astype(np.float64)
             served = np.stack(candidates[1], axis=1).astype(np.float64)
             motion = start + body_space_part(bodies, points, served - start)
+            moving = start + body_space_part_of(bodies, points, served - start, bodies_moving(bodies))
             physics = Physics(engine.config.dt, tuple(engine.world.gravity))
             separating = contact_velocities(bodies, points, motion, physics)[:, 0] > SEPARATING_SPEED
             candidates += [_as_warm_start(nearest_admissible(bodies, points, w, mu, o))
-                           for w, o in ((served, None), (motion, None), (motion, separating))]
+                           for w, o in ((served, None), (motion, None), (motion, separating), (moving, None))]
+            candidates.append(_as_warm_start(np.column_stack([np.maximum(moving[:, 0], 0.0), moving[:, 1]])))
         if self.mode in ("split", "boost"):
             from deepcontact.kinematics import body_space_part
 
@@ -702,6 +762,7 @@ def make_provider(name: str) -> Provider:
         "copy2": lambda: Copy("copy2", 2),
         "copy0": lambda: Copy("copy0", 0),
         "extrapolate": Extrapolate,
+        "rest-admissible": RestAdmissible,
     }
     if name not in factories:
         raise ValueError(f"unknown warm start {name!r}: use one of {', '.join(LOCAL)}, oracle:VARIANT "

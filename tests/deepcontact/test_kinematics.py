@@ -93,6 +93,30 @@ def test_the_body_space_part_moves_the_bodies_as_the_whole_does_and_the_rest_mov
     assert body_space_part(bodies, points[:0], exact[:0]).shape == (0, 2)
 
 
+def test_the_body_space_part_of_some_bodies_moves_them_as_the_whole_does_and_the_others_not_at_all():
+    # Splitting a change of motion between the bodies that move and those at rest: the
+    # two parts add up to the whole change's body-space part.
+    from deepcontact.kinematics import bodies_moving, body_space_part, body_space_part_of, contact_jacobian
+
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    engine.collide()
+    bodies, points, exact = engine.bodies(), engine.contacts(), engine.oracle().astype(np.float64)
+    change = exact - points["builtin"]
+    moving = bodies_moving(bodies)
+    assert 0 < moving.sum() < (bodies["type"] == BODY_DYNAMIC).sum()  # a pile with some bodies still moving
+    assert not moving[bodies["type"] != BODY_DYNAMIC].any()
+
+    jt = contact_jacobian(bodies, points)
+    rows = np.repeat(moving[bodies["type"] == BODY_DYNAMIC], 3)
+    part = body_space_part_of(bodies, points, change, moving)
+    whole, pushed = jt @ change.ravel(), jt @ part.ravel()
+    np.testing.assert_allclose(pushed[rows], whole[rows], atol=1e-6)
+    np.testing.assert_allclose(pushed[~rows], 0.0, atol=1e-6)
+    np.testing.assert_allclose(part + body_space_part_of(bodies, points, change, ~moving),
+                               body_space_part(bodies, points, change), atol=1e-6)
+    assert body_space_part_of(bodies, points[:0], change[:0], moving).shape == (0, 2)
+
+
 def test_cones_keep_what_is_inside_and_take_the_rest_to_the_nearest_edge_or_zero():
     from deepcontact.kinematics import project_to_cones
 

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simclient.scene import SceneSpec
+from simclient.scene import SceneSpec, settled_world
 from simclient.simulate import run_simulation
 from simclient.warmstarts import Extrapolate, make_provider
 
@@ -295,16 +295,43 @@ def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
     provider = make_provider("admit:oracle:near-body-space")
     assert provider.labels == ["builtin", "oracle:near-body-space", "oracle:near-body-space admissible",
                                "oracle:near-body-space body-space admissible",
-                               "oracle:near-body-space body-space admissible, separating open"]
+                               "oracle:near-body-space body-space admissible, separating open",
+                               "oracle:near-body-space moving bodies' motion admissible",
+                               "oracle:near-body-space moving bodies' motion"]
     served = run_simulation(SHORT, 901, provider)
     its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
     trials = np.array(served["trials"])
     assert trials[:, 1].tolist() == its  # serves the warm start itself
     assert trials[:, 2].sum() < 0.8 * trials[:, 1].sum()  # the same motion inside the cones
     assert trials[:, 3].sum() < 0.8 * trials[:, 1].sum()  # W's motion from Box2D's warm start: W itself, near enough
-    assert trials.shape[1] == 5 and trials.min() >= 1  # and the same with the contacts its motion pulls apart
+    assert trials.shape[1] == 7 and trials.min() >= 1  # and with the contacts its motion pulls apart; its moving bodies
     with pytest.raises(ValueError, match="one warm start"):
         make_provider("admit:oracle:near+oracle:half")
+
+
+def test_rest_admissible_brings_the_slow_bodies_to_rest_inside_the_cones():
+    # The guess without the solution: the touching bodies slower than 1 cm/s stopped by their
+    # contacts, the rest moved as Box2D's warm start moves them, every point inside its cone.
+    from deepcontact.kinematics import REST_SPEED, contact_jacobian
+
+    provider = make_provider("rest-admissible")
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    provider.prepare(engine)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    warm = np.stack(provider.warm_start(engine, bodies, points, engine.step_index), axis=1).astype(np.float64)
+    assert (warm[:, 0] >= 0).all() and (np.abs(warm[:, 1]) <= 0.5 * warm[:, 0] + 1e-6).all()  # friction 0.5
+
+    dynamic = bodies["type"] == 2
+    touching = np.zeros(len(bodies), bool)
+    touching[points["body_a"]] = touching[points["body_b"]] = True
+    slow = dynamic & touching & (np.hypot(*bodies["velocity"].T) < REST_SPEED)
+    jt = contact_jacobian(bodies, points)
+    pushed = (jt @ warm.ravel()).reshape(-1, 3)[slow[dynamic]]
+    gravity = np.array([0.0, -9.8]) * SceneSpec.thesis().solver.dt
+    stopping = -bodies["mass"][slow, None] * (bodies["velocity"][slow] + gravity)
+    # Where the cones admit it (here at every slow body; one held at a single point may not be).
+    np.testing.assert_allclose(pushed[:, :2], stopping, atol=1e-3)
 
 
 def test_prestress_lifts_the_pressing_points_by_impulses_that_barely_move_a_body():
