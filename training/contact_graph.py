@@ -51,6 +51,8 @@ class GraphSet:
     inverse (M, 2) float32: per body, 1/mass and 1/inertia (0 for static bodies).
     The last three let training run the solver's iteration on a prediction's
     error (training.graph_loss).
+    speed (M,) float32: per body, its recorded linear speed (m/s), which says
+    which bodies move (deepcontact.kinematics.bodies_moving) to a loss.
     """
 
     features: np.ndarray
@@ -63,6 +65,7 @@ class GraphSet:
     geometry: np.ndarray
     masses: np.ndarray
     inverse: np.ndarray
+    speed: np.ndarray
     inputs: tuple[str, ...]
     target_names: tuple[str, ...]
 
@@ -82,6 +85,11 @@ class GraphSet:
         masses (P, 2), inverse (B, 2), rows as in batch(steps)."""
         points, bodies, _ = self._rows(steps)
         return self.geometry[points], self.masses[points], self.inverse[bodies]
+
+    def body_speeds(self, steps) -> np.ndarray:
+        """(B,) float32: each body's recorded speed (m/s), rows as in batch(steps)."""
+        _, bodies, _ = self._rows(steps)
+        return self.speed[bodies]
 
     def _rows(self, steps):
         steps = np.asarray(steps, np.int64)
@@ -142,12 +150,13 @@ def build_graph_set(path: str | os.PathLike, inputs=GRAPH_INPUTS, targets=GRAPH_
     if len(index) == 0:
         raise GridDataError(f"{path}: no steps with contact points")
     feats, targs, ends, dyn, builtin, n_points, n_bodies = [], [], [], [], [], [], []
-    geometry, masses, inverse = [], [], []
+    geometry, masses, inverse, speed = [], [], [], []
     for _, step in iter_steps(path, steps, index):  # loop over steps, not points
         c, b = step.contacts, step.bodies
         geometry.append(point_geometry(b, c))
         masses.append(effective_masses(b, c).astype(np.float32))
         inverse.append(inverse_masses(b))
+        speed.append(np.hypot(*b["velocity"].T).astype(np.float32))
         feats.append(channel_values(inputs, step).astype(np.float32))
         targs.append(channel_values(targets, step).astype(np.float32))
         ends.append(np.stack([c["body_a"], c["body_b"]], axis=1).astype(np.int32))
@@ -161,7 +170,7 @@ def build_graph_set(path: str | os.PathLike, inputs=GRAPH_INPUTS, targets=GRAPH_
                   np.concatenate([[0], np.cumsum(n_points)]).astype(np.int64),
                   np.concatenate([[0], np.cumsum(n_bodies)]).astype(np.int64),
                   np.concatenate(builtin), np.concatenate(geometry), np.concatenate(masses),
-                  np.concatenate(inverse), tuple(inputs), tuple(targets))
+                  np.concatenate(inverse), np.concatenate(speed), tuple(inputs), tuple(targets))
     if not (np.isfinite(gs.features).all() and np.isfinite(gs.targets).all()):
         raise GridDataError(f"{path}: non-finite channel values")
     return gs

@@ -233,17 +233,25 @@ def colour_points(ends, inverse, seed: int = 0):
     return colour
 
 
-def _body_velocities(lam, ends, geometry, inverse):
-    """(dv (B, 2) m/s, dw (B,) rad/s): what impulses lam (P, 2) N s do to every body."""
+def body_impulses(lam, ends, geometry, n_bodies):
+    """(net impulse (B, 2) N s, torque impulse (B,) N m s) that impulses lam (P, 2) N s put on
+    every body, static ones included: J^T lam, the TensorFlow twin of deepcontact.kinematics's."""
     import tensorflow as tf  # already imported by training; not import_tensorflow(), which autograph would trace
 
     a, b = ends[:, 0], ends[:, 1]
     n, t, ra, rb = geometry[:, 0:2], geometry[:, 2:4], geometry[:, 4:6], geometry[:, 6:8]
-    n_bodies = tf.shape(inverse)[0]
     impulse = lam[:, 0:1] * n + lam[:, 1:2] * t  # on B; its opposite on A
     force = tf.math.unsorted_segment_sum(impulse, b, n_bodies) - tf.math.unsorted_segment_sum(impulse, a, n_bodies)
     torque = (tf.math.unsorted_segment_sum(_cross(rb, impulse), b, n_bodies)
               - tf.math.unsorted_segment_sum(_cross(ra, impulse), a, n_bodies))
+    return force, torque
+
+
+def _body_velocities(lam, ends, geometry, inverse):
+    """(dv (B, 2) m/s, dw (B,) rad/s): what impulses lam (P, 2) N s do to every body."""
+    import tensorflow as tf  # already imported by training; not import_tensorflow(), which autograph would trace
+
+    force, torque = body_impulses(lam, ends, geometry, tf.shape(inverse)[0])
     return force * inverse[:, 0:1], torque * inverse[:, 1]
 
 

@@ -118,6 +118,11 @@
 #                              (deepcontact.kinematics.nearest_admissible; docs/results.md, "The limits
 #                              choose the self-stress"), so the motion is all a model has to get right;
 #                              priced with admit:; control -e20
+#   graph-mse-1-799-moving     the same run with the squared net push of the error on each body moving
+#                              at 1 cm/s or more only (--loss mse-moving): the moving bodies' motion,
+#                              admitted, holds most of a warm start's value (docs/results.md, "Whose
+#                              motion: the moving bodies'"); priced with admit:'s moving-bodies form;
+#                              controls -motion and the default
 #   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
@@ -231,6 +236,10 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse-self-stress --self-stress-weight 0 --max-steps-per-file 20000 --epochs 4 \
                 --patience 3 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz ;;
+        graph-mse-1-799-moving)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse-moving --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-e16.weights.npz ;;
         graph-mse-1-799-sticking)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse-sticking --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 \

@@ -46,7 +46,7 @@ from training.grids import GridDataError
 # correction (docs/results.md, "Training on the converged solution").
 TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracle_correction_tangent")}
 
-CACHE_VERSION = 2  # GraphSet fields
+CACHE_VERSION = 3  # GraphSet fields (3: speed)
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
 #: mse-sticking: friction at this share of its bound or more counts as sliding (simclient.warmstarts.CONE_SHARE).
 STICKING_SHARE = 0.99
@@ -93,7 +93,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pooled", action="store_true",
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
-    parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "solver", "solver-log",
+    parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving", "solver",
+                                           "solver-log",
                                            "solver-projected", "solver-projected-max", "solver-projected-sweeps"),
                         default="solver",
                         help="mse: squared error of the correction at every point; relative: each point's error "
@@ -103,7 +104,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "part holds most of a warm start's value and little of its size; mse-sticking: mse at the "
                              "points whose friction is inside its cone both in Box2D's warm start and in the solver's "
                              "end (the others weigh nothing), where the exact answer holds nearly all a warm start's "
-                             "value; solver (default): the residual "
+                             "value; mse-moving: the squared net impulse and torque the error puts on each body "
+                             "moving at 1 cm/s or more, per body (the others and the self-stress weigh nothing): "
+                             "the moving bodies' motion, which admitted holds most of a warm start's value; "
+                             "solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
                              "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
                              "solver-log: per step, the log of that residual over Box2D's warm start's; "
@@ -281,7 +285,7 @@ class Scaling:
         """Steps of gs as one normalized batch: points (P, F), ends (P, 2), dynamic (B, 1),
         targets (P, T), geometry (P, 8), masses (P, 2), inverse (B, 2), step_of (P,) int32
         (each point's step within the batch), colour (P,) int32 (training.graph_loss.colour_points
-        with `colour`, for --order gauss-seidel; else 0)."""
+        with `colour`, for --order gauss-seidel; else 0), speed (B,) m/s."""
         from training.graph_loss import colour_points
 
         f, t, e, d = gs.batch(steps)
@@ -290,14 +294,14 @@ class Scaling:
         geometry, masses, inverse = gs.solver_batch(steps)
         colours = colour_points(e, inverse) if colour else np.zeros(len(e), np.int32)
         return ((f - self.in_mean) / self.in_std, e, d, (t - self.out_mean) / self.out_std,
-                geometry, masses, inverse, step_of, colours)
+                geometry, masses, inverse, step_of, colours, gs.body_speeds(steps))
 
 
 class BatchLoss:
     """A batch's loss for --loss: batch_loss(points, ends, dynamic, y, geometry, masses,
-    inverse, step_of, colour) -> (losses, weights), the loss being sum(losses) / sum(weights);
+    inverse, step_of, colour, speed) -> (losses, weights), the loss being sum(losses) / sum(weights);
     per point for mse, relative, solver and solver-projected, per step for solver-log
-    and solver-projected-max.
+    and solver-projected-max, per body for mse-moving.
 
     points (P, F) and y (P, T) are normalized (Scaling); `inputs` names the points'
     columns. The solver losses score the error a served correction leaves, in N s."""
@@ -319,7 +323,7 @@ class BatchLoss:
         # own warm start (no correction) leaves there on the training data, so each counts alike.
         self.scales = tf.constant(residual_scales, tf.float32)
 
-    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour):
+    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed):
         pred = self.net(points, ends, dynamic, step_of)
         if self.args.loss in self.POINT_LOSSES:
             return self._at_points(pred, y)
@@ -327,6 +331,8 @@ class BatchLoss:
             return self._split(pred, y, ends, geometry, inverse)
         if self.args.loss == "mse-sticking":
             return self._sticking(points, pred, y, step_of)
+        if self.args.loss == "mse-moving":
+            return self._moving(pred, y, ends, geometry, inverse, speed)
         error, builtin_error = self._errors(points, pred, y)
         solver = (ends, geometry, masses, inverse, step_of)
         if self.args.loss in self.PROJECTED_LOSSES:
@@ -359,6 +365,21 @@ class BatchLoss:
         per_point = tf.reduce_sum((tf.square(moving) + self.args.self_stress_weight * tf.square(stress))
                                   * self.loss_weight, axis=1)
         return per_point, tf.ones_like(per_point)
+
+    def _moving(self, pred, y, ends, geometry, inverse, speed):
+        """mse-moving: the squared net impulse and torque the error puts on each dynamic body
+        moving at REST_SPEED or more (N s and N m s, over the normal target's std), per body;
+        the other bodies and the error's self-stress weigh nothing. The motion the admission
+        of the moving bodies needs (docs/results.md, "Whose motion: the moving bodies'")."""
+        tf = self.tf
+        from deepcontact.kinematics import REST_SPEED
+        from training.graph_loss import body_impulses
+
+        error = (pred - y) * self.out_std  # N s
+        force, torque = body_impulses(error, ends, geometry, tf.shape(inverse)[0])
+        moving = tf.cast((inverse[:, 0] > 0) & (speed >= REST_SPEED), tf.float32)
+        per_body = (tf.reduce_sum(tf.square(force), axis=1) + tf.square(torque)) / float(self.out_std[0]) ** 2
+        return per_body * moving, moving
 
     def _sticking(self, points, pred, y, step_of):
         """mse-sticking: mse at the points whose friction stays inside its cone (below
@@ -553,13 +574,14 @@ def _compiled_steps(net, batch_loss, lr: float):
     spec_in = net.signature() + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
                                  tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
                                  tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32),
-                                 tf.TensorSpec((None,), tf.int32)]
+                                 tf.TensorSpec((None,), tf.int32), tf.TensorSpec((None,), tf.float32)]
 
     @tf.function(input_signature=spec_in)
     def train_step(*batch):
         with tf.GradientTape() as tape:
             losses, weights = batch_loss(*batch)
-            # A batch may weigh nothing (mse-sticking: every point slides): no loss, no step.
+            # A batch may weigh nothing (mse-sticking: every point slides; mse-moving: no body
+            # moves): no loss, no step.
             loss = tf.reduce_sum(losses) / tf.maximum(tf.reduce_sum(weights), 1e-12)
         optimizer.apply_gradients(zip(tape.gradient(loss, net.trainable), net.trainable))
         return loss

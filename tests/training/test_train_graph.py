@@ -178,7 +178,7 @@ def test_gauss_seidel_sweeps_update_one_point_after_another(graphs):
     np.testing.assert_allclose(change, expected, atol=1e-4 * np.abs(expected).max())
 
 
-@pytest.mark.parametrize("loss", ["mse", "relative", "mse-self-stress", "mse-sticking", "solver", "solver-log",
+@pytest.mark.parametrize("loss", ["mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving", "solver", "solver-log",
                                   "solver-projected",
                                   "solver-projected-max", "solver-projected-sweeps"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
@@ -560,6 +560,33 @@ def test_mse_sticking_weighs_only_the_points_whose_friction_stays_inside_its_con
     points = np.concatenate([np.zeros((4, 1), np.float32), builtin, np.zeros((4, 2), np.float32)], axis=1)
     pred = correction + np.array([[1.0, 1.0], [1.0, 1.0], [0.5, 0.0], [0.0, 0.5]], np.float32)
     loss = BatchLoss(lambda *a: pred, args, scaling, [], inputs)
-    per_point, weights = loss(points, None, None, correction, None, None, None, np.zeros(4, np.int32), None)
+    per_point, weights = loss(points, None, None, correction, None, None, None, np.zeros(4, np.int32), None, None)
     np.testing.assert_allclose(weights.numpy(), [0.0, 0.0, 1.0, 1.0])
     np.testing.assert_allclose(per_point.numpy(), [0.0, 0.0, 0.25, 0.25], atol=1e-6)
+
+
+def test_mse_moving_weighs_the_net_push_of_the_error_on_each_moving_body_only():
+    import argparse
+
+    from training.train_graph import BatchLoss, Scaling
+
+    scaling = Scaling(np.zeros(3, np.float32), np.ones(3, np.float32), np.zeros(2, np.float32),
+                      np.full(2, 2.0, np.float32))  # normalized targets: 1 unit = 2 N s
+    args = argparse.Namespace(loss="mse-moving", tangent_weight=1.0, combine="residual")
+    # Bodies: 0 static ground, 1 moving at 0.5 m/s, 2 at rest on it. Points: 1 on the ground
+    # (normal up from A = 0 to B = 1), 2 on 1, both at the bodies' centres' vertical line.
+    ends = np.array([[0, 1], [1, 2]], np.int32)
+    n, t = np.array([0.0, 1.0]), np.array([1.0, 0.0])  # tangent (n_y, -n_x)
+    geometry = np.array([np.concatenate([n, t, [0.0, 0.0], [0.0, -0.5]]),
+                         np.concatenate([n, t, [0.0, 0.5], [0.0, -0.5]])], np.float32)
+    inverse = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 1.0]], np.float32)
+    speed = np.array([0.0, 0.5, 0.001], np.float32)
+    y = np.zeros((2, 2), np.float32)
+    pred = np.array([[0.5, 0.0], [0.0, 0.25]], np.float32)  # errors of 1 N s normal at 0, 0.5 N s tangent at 1
+    loss = BatchLoss(lambda *a: pred, args, scaling, [], ("new_point", "builtin_normal", "builtin_tangent", "vn", "vt"))
+    per_body, weights = loss(np.zeros((2, 5), np.float32), ends, None, y, geometry, None, inverse,
+                             np.zeros(2, np.int32), None, speed)
+    np.testing.assert_allclose(weights.numpy(), [0.0, 1.0, 0.0])  # the ground never, body 2 is at rest
+    # Body 1 takes +1 N s up from point 0 and -0.5 N s along x from point 1 at r = (0, 0.5):
+    # force (-0.5, 1), torque r x f = 0 * 0 - 0.5 * (-0.5) = 0.25; over the normal's std of 2 N s.
+    np.testing.assert_allclose(per_body.numpy(), [0.0, (0.25 + 1.0 + 0.0625) / 4.0, 0.0], atol=1e-6)
