@@ -123,6 +123,9 @@
 #                              admitted, holds most of a warm start's value (docs/results.md, "Whose
 #                              motion: the moving bodies'"); priced with admit:'s moving-bodies form;
 #                              controls -motion and the default
+#   graph-mse-1-799-moving-rel  the same with that push summed per step over the step's own correction's
+#                              (--loss relative-moving): a pooled fit is made on the steps with large
+#                              corrections, and the iterations are in those with small ones
 #   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
@@ -236,9 +239,10 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse-self-stress --self-stress-weight 0 --max-steps-per-file 20000 --epochs 4 \
                 --patience 3 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz ;;
-        graph-mse-1-799-moving)
+        graph-mse-1-799-moving|graph-mse-1-799-moving-rel)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            variant "$1" --loss mse-moving --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 \
+            local loss=mse-moving; [ "$1" = graph-mse-1-799-moving-rel ] && loss=relative-moving
+            variant "$1" --loss $loss --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 \
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz ;;
         graph-mse-1-799-sticking)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")

@@ -48,6 +48,9 @@ TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracl
 
 CACHE_VERSION = 3  # GraphSet fields (3: speed)
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
+#: relative-moving: each moving body's correction counts as at least this push (N s) in its step's
+#: denominator: about an eighth of what gravity gives a thesis disc in a step (0.785 kg x 0.098 m/s).
+MOVING_FLOOR = 0.01
 #: mse-sticking: friction at this share of its bound or more counts as sliding (simclient.warmstarts.CONE_SHARE).
 STICKING_SHARE = 0.99
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
@@ -93,8 +96,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pooled", action="store_true",
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
-    parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving", "solver",
-                                           "solver-log",
+    parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving",
+                                           "relative-moving", "solver", "solver-log",
                                            "solver-projected", "solver-projected-max", "solver-projected-sweeps"),
                         default="solver",
                         help="mse: squared error of the correction at every point; relative: each point's error "
@@ -107,6 +110,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "value; mse-moving: the squared net impulse and torque the error puts on each body "
                              "moving at 1 cm/s or more, per body (the others and the self-stress weigh nothing): "
                              "the moving bodies' motion, which admitted holds most of a warm start's value; "
+                             "relative-moving: that summed per step over the same of the step's own correction "
+                             "(each moving body counted at least 0.01 N s), so small corrections count as much; "
                              "solver (default): the residual "
                              "the solver's sweeps leave of the warm start's error after --sweeps sweeps "
                              "(training.graph_loss), each checkpoint scaled by Box2D's own warm start's; "
@@ -301,7 +306,7 @@ class BatchLoss:
     """A batch's loss for --loss: batch_loss(points, ends, dynamic, y, geometry, masses,
     inverse, step_of, colour, speed) -> (losses, weights), the loss being sum(losses) / sum(weights);
     per point for mse, relative, solver and solver-projected, per step for solver-log
-    and solver-projected-max, per body for mse-moving.
+    and solver-projected-max and relative-moving, per body for mse-moving.
 
     points (P, F) and y (P, T) are normalized (Scaling); `inputs` names the points'
     columns. The solver losses score the error a served correction leaves, in N s."""
@@ -331,8 +336,8 @@ class BatchLoss:
             return self._split(pred, y, ends, geometry, inverse)
         if self.args.loss == "mse-sticking":
             return self._sticking(points, pred, y, step_of)
-        if self.args.loss == "mse-moving":
-            return self._moving(pred, y, ends, geometry, inverse, speed)
+        if self.args.loss in ("mse-moving", "relative-moving"):
+            return self._moving(pred, y, ends, geometry, inverse, speed, step_of)
         error, builtin_error = self._errors(points, pred, y)
         solver = (ends, geometry, masses, inverse, step_of)
         if self.args.loss in self.PROJECTED_LOSSES:
@@ -366,20 +371,36 @@ class BatchLoss:
                                   * self.loss_weight, axis=1)
         return per_point, tf.ones_like(per_point)
 
-    def _moving(self, pred, y, ends, geometry, inverse, speed):
+    def _moving(self, pred, y, ends, geometry, inverse, speed, step_of):
         """mse-moving: the squared net impulse and torque the error puts on each dynamic body
         moving at REST_SPEED or more (N s and N m s, over the normal target's std), per body;
         the other bodies and the error's self-stress weigh nothing. The motion the admission
-        of the moving bodies needs (docs/results.md, "Whose motion: the moving bodies'")."""
+        of the moving bodies needs (docs/results.md, "Whose motion: the moving bodies'").
+        relative-moving: the same summed per step, over the same of the step's correction."""
         tf = self.tf
         from deepcontact.kinematics import REST_SPEED
         from training.graph_loss import body_impulses
 
-        error = (pred - y) * self.out_std  # N s
-        force, torque = body_impulses(error, ends, geometry, tf.shape(inverse)[0])
+        n_bodies = tf.shape(inverse)[0]
         moving = tf.cast((inverse[:, 0] > 0) & (speed >= REST_SPEED), tf.float32)
-        per_body = (tf.reduce_sum(tf.square(force), axis=1) + tf.square(torque)) / float(self.out_std[0]) ** 2
-        return per_body * moving, moving
+
+        def pushes(impulses):  # (P, 2) N s -> (B,) (N s)^2 at the moving bodies, 0 elsewhere
+            force, torque = body_impulses(impulses, ends, geometry, n_bodies)
+            return (tf.reduce_sum(tf.square(force), axis=1) + tf.square(torque)) * moving
+
+        error = pushes((pred - y) * self.out_std)
+        if self.args.loss == "mse-moving":
+            return error / float(self.out_std[0]) ** 2, moving
+        # relative-moving: per step, over the step's own correction's push on its moving bodies
+        # (each such body counted at least MOVING_FLOOR N s), so a step whose bodies barely need
+        # correcting, where the iterations are, asks for an error as small as its correction.
+        step_of_body = tf.maximum(tf.math.unsorted_segment_max(tf.concat([step_of, step_of], 0),
+                                                               tf.concat([ends[:, 0], ends[:, 1]], 0), n_bodies), 0)
+        n_steps = tf.reduce_max(step_of) + 1
+        target = pushes(y * self.out_std + self.out_mean)
+        per_step = tf.math.unsorted_segment_sum(tf.stack([error, target, moving], axis=1), step_of_body, n_steps)
+        weight = tf.cast(per_step[:, 2] > 0, tf.float32)
+        return per_step[:, 0] / (per_step[:, 1] + per_step[:, 2] * MOVING_FLOOR ** 2 + (1.0 - weight)), weight
 
     def _sticking(self, points, pred, y, step_of):
         """mse-sticking: mse at the points whose friction stays inside its cone (below

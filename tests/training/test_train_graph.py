@@ -178,7 +178,8 @@ def test_gauss_seidel_sweeps_update_one_point_after_another(graphs):
     np.testing.assert_allclose(change, expected, atol=1e-4 * np.abs(expected).max())
 
 
-@pytest.mark.parametrize("loss", ["mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving", "solver", "solver-log",
+@pytest.mark.parametrize("loss", ["mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving", "relative-moving",
+                                  "solver", "solver-log",
                                   "solver-projected",
                                   "solver-projected-max", "solver-projected-sweeps"])
 def test_train_graph_writes_a_model_that_onnx_runtime_runs_like_tensorflow(data, tmp_path, loss):
@@ -590,3 +591,28 @@ def test_mse_moving_weighs_the_net_push_of_the_error_on_each_moving_body_only():
     # Body 1 takes +1 N s up from point 0 and -0.5 N s along x from point 1 at r = (0, 0.5):
     # force (-0.5, 1), torque r x f = 0 * 0 - 0.5 * (-0.5) = 0.25; over the normal's std of 2 N s.
     np.testing.assert_allclose(per_body.numpy(), [0.0, (0.25 + 1.0 + 0.0625) / 4.0, 0.0], atol=1e-6)
+
+
+def test_relative_moving_scores_each_step_against_its_own_moving_bodies_correction():
+    import argparse
+
+    from training.train_graph import MOVING_FLOOR, BatchLoss, Scaling
+
+    scaling = Scaling(np.zeros(3, np.float32), np.ones(3, np.float32), np.zeros(2, np.float32), np.ones(2, np.float32))
+    args = argparse.Namespace(loss="relative-moving", tangent_weight=1.0, combine="residual")
+    # Two steps of one disc each on a static ground (bodies 0, 1 step 0; 2, 3 step 1), both moving;
+    # a third step's disc (bodies 4, 5) at rest. Each point pushes its disc straight up.
+    ends = np.array([[0, 1], [2, 3], [4, 5]], np.int32)
+    row = np.array([0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.float32)  # n, t, r_A, r_B (on the line of centres)
+    geometry = np.stack([row, row, row])
+    inverse = np.array([[0, 0], [1, 1], [0, 0], [1, 1], [0, 0], [1, 1]], np.float32)
+    speed = np.array([0.0, 0.5, 0.0, 0.5, 0.0, 0.0], np.float32)
+    y = np.array([[1.0, 0.0], [0.0, 0.0], [2.0, 0.0]], np.float32)  # corrections 1 N s, 0, 2 N s
+    pred = y + np.array([[0.5, 0.0], [0.02, 0.0], [1.0, 0.0]], np.float32)  # errors 0.5, 0.02, 1 N s
+    loss = BatchLoss(lambda *a: pred, args, scaling, [], ("new_point", "builtin_normal", "builtin_tangent", "vn", "vt"))
+    per_step, weights = loss(np.zeros((3, 5), np.float32), ends, None, y, geometry, None, inverse,
+                             np.array([0, 1, 2], np.int32), None, speed)
+    np.testing.assert_allclose(weights.numpy(), [1.0, 1.0, 0.0])  # the resting disc's step weighs nothing
+    # The same error counts for more where the step's own correction is small (floored).
+    np.testing.assert_allclose(per_step.numpy(), [0.25 / (1.0 + MOVING_FLOOR ** 2), 0.02 ** 2 / MOVING_FLOOR ** 2, 0.0],
+                               rtol=1e-5)
