@@ -127,6 +127,10 @@ Oracle over warm starts:
                  and builtin plus W's motion at the moving bodies only, Box2D's at the others,
                  admitted (oracle:near-admissible-moving's split), and the same not admitted
                  (normal impulses clamped at 0 only): does the admission pay, or the split?
+    graft:W1+W2  serves W1, as W1 alone would, and trial-solves builtin, W1, W2, and W1 with W2's
+                 motion at the moving bodies (W1 plus the least-norm change that moves them as W2
+                 does and no other body), admitted and not: one model's self-stress and resting
+                 bodies with another's moving bodies
 """
 
 from __future__ import annotations
@@ -619,7 +623,7 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit")
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft")
     #: boost:W: the factors its self-stress part is priced at.
     BOOSTS = (0.5, 1.5, 2.0, 3.0)
     PREFIXES = tuple(f"{m}:" for m in MODES)
@@ -634,9 +638,13 @@ class Pick(Provider):
         # model and every run: a paired, trajectory-free comparison of any two models);
         # split: serve the one candidate, price it and the two parts of its correction;
         # boost: serve the one candidate, price it with its self-stress part scaled;
-        # admit: serve the one candidate, price it and its admissible forms
+        # admit: serve the one candidate, price it and its admissible forms;
+        # graft: serve the first, price it with the second's moving bodies' motion
         if mode in ("split", "boost", "admit") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
+        if mode == "graft" and len(candidates) != 2:
+            raise ValueError(f"graft: takes two warm starts, e.g. graft:server:default+server:graph-mse-1-799-moving-rel, "
+                             f"got {len(candidates)}")
         self.mode = mode
         for i, c in enumerate(candidates):
             if isinstance(c, Jitter):
@@ -658,7 +666,9 @@ class Pick(Provider):
                  "boost": [f"{first} self-stress x{k:g}" for k in self.BOOSTS],
                  "admit": [f"{first} admissible", f"{first} body-space admissible",
                            f"{first} body-space admissible, separating open",
-                           f"{first} moving bodies' motion admissible", f"{first} moving bodies' motion"]}.get(self.mode, [])
+                           f"{first} moving bodies' motion admissible", f"{first} moving bodies' motion"],
+                 "graft": [f"{first} with {self.candidates[-1].name}'s moving bodies' motion admissible",
+                           f"{first} with {self.candidates[-1].name}'s moving bodies' motion"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -697,6 +707,14 @@ class Pick(Provider):
             candidates += [_as_warm_start(nearest_admissible(bodies, points, w, mu, o))
                            for w, o in ((served, None), (motion, None), (motion, separating), (moving, None))]
             candidates.append(_as_warm_start(np.column_stack([np.maximum(moving[:, 0], 0.0), moving[:, 1]])))
+        if self.mode == "graft":
+            from deepcontact.kinematics import bodies_moving, body_space_part_of, nearest_admissible
+
+            bodies = engine.bodies()
+            base, donor = (np.stack(w, axis=1).astype(np.float64) for w in candidates[1:3])
+            grafted = base + body_space_part_of(bodies, points, donor - base, bodies_moving(bodies))
+            candidates += [_as_warm_start(nearest_admissible(bodies, points, grafted, point_friction(self._friction, points))),
+                           _as_warm_start(np.column_stack([np.maximum(grafted[:, 0], 0.0), grafted[:, 1]]))]
         if self.mode in ("split", "boost"):
             from deepcontact.kinematics import body_space_part
 
@@ -711,7 +729,7 @@ class Pick(Provider):
                 candidates.append(_as_warm_start(warm))
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
-        if self.mode in ("shadow", "split", "boost", "admit"):
+        if self.mode in ("shadow", "split", "boost", "admit", "graft"):
             return candidates[1]
         if self.mode == "price":
             return builtin  # the trials left the last candidate's as the step's warm start

@@ -334,6 +334,23 @@ def test_rest_admissible_brings_the_slow_bodies_to_rest_inside_the_cones():
     np.testing.assert_allclose(pushed[:, :2], stopping, atol=1e-3)
 
 
+def test_graft_serves_the_first_and_prices_it_with_the_seconds_moving_bodies_motion():
+    # The base has the solution's motion at the resting bodies only (oracle:near-admissible-settled),
+    # the donor at every body (oracle:near-body-space). The donor's moving bodies' motion grafted
+    # onto the base and admitted puts every body's motion right: far fewer iterations than the base.
+    provider = make_provider("graft:oracle:near-admissible-settled+oracle:near-body-space")
+    assert provider.labels == ["builtin", "oracle:near-admissible-settled", "oracle:near-body-space",
+                               "oracle:near-admissible-settled with oracle:near-body-space's moving bodies' motion admissible",
+                               "oracle:near-admissible-settled with oracle:near-body-space's moving bodies' motion"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    trials = np.array(served["trials"])
+    assert trials[:, 1].tolist() == its  # serves the first warm start itself
+    assert trials[:, 3].sum() < 0.8 * trials[:, 1].sum()
+    with pytest.raises(ValueError, match="two warm starts"):
+        make_provider("graft:oracle:near")
+
+
 def test_prestress_lifts_the_pressing_points_by_impulses_that_barely_move_a_body():
     from deepcontact.kinematics import contact_jacobian
 
