@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from deepcontact.kinematics import bodies_moving, body_space_part, body_space_part_of, nearest_admissible
     from simclient.scene import SceneSpec, settled_world
     from simclient.seeds import parse_seeds
-    from simclient.warmstarts import body_friction, point_friction
+    from simclient.provider import body_friction, point_friction
 
     if args.settle < 0 or args.steps < 1:
         raise SystemExit("bench admission: --settle must be >= 0 and --steps >= 1")

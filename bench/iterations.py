@@ -41,7 +41,8 @@ from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
 from simclient.scene import add_scene_arguments, spec_from_args, spec_from_dict, spec_to_dict
 from simclient.simulate import DEFAULT_DEADLINE_MS, StepRecord, run_simulation, summarize
-from simclient.warmstarts import Pick, make_provider
+from simclient.composites import Pick
+from simclient.warmstarts import make_provider
 
 DEFAULT_WARM_STARTS = ("none,builtin,copy,copy2,copy0,extrapolate,"
                        "server:random,server:bad,server:grid-identity,server:pressure")
@@ -61,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "self-stress part scaled, admit:W prices W moved inside the friction cones by a self-stress, graft:W1+W2 "
                              "prices W1 with W2's moving bodies' motion; all print a same-state table; "
                              "server:* stands for every model the server serves, e.g. price:server:* "
-                             "(all names: simclient/warmstarts.py)")
+                             "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
                              "over replicas); server: warm starts with --ray ADDRESS need it, as the cluster's "

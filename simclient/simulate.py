@@ -28,7 +28,8 @@ import numpy as np
 from deepcontact import wire
 from deepcontact.io import write_json_atomic
 from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_to_dict
-from simclient.warmstarts import Provider, make_provider
+from simclient.provider import Provider
+from simclient.warmstarts import make_provider
 
 DEFAULT_DEADLINE_MS = 10.0
 # Opening a stream and readying the model for a new grid: once per simulation, not a step.
@@ -232,7 +233,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="none, builtin, copy, copy2, copy0, extrapolate, or server:MODEL "
                              "(server:random, server:bad, server:grid-identity, server:<onnx model>); "
                              "probes and oracles (oracle:VARIANT, solve@K, jitter@S, pick:W1+W2...) "
-                             "are listed in simclient/warmstarts.py")
+                             "are listed in simclient/warmstarts.py, oracles.py and composites.py")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="warm-start server for server:MODEL (any gRPC target, e.g. dns:///server:50051)")
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,

@@ -51,7 +51,7 @@ RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start 
 #: relative-moving: each moving body's correction counts as at least this push (N s) in its step's
 #: denominator: about an eighth of what gravity gives a thesis disc in a step (0.785 kg x 0.098 m/s).
 MOVING_FLOOR = 0.01
-#: mse-sticking: friction at this share of its bound or more counts as sliding (simclient.warmstarts.CONE_SHARE).
+#: mse-sticking: friction at this share of its bound or more counts as sliding (simclient.provider.CONE_SHARE).
 STICKING_SHARE = 0.99
 LOG_FLOOR = 1e-8  # (N s)^2: solver-log's floor, far below any residual the solver stops at
 NORMS = (2, 4, 8)  # --norm: higher ones underflow float32 (and their floor with them)

@@ -1,0 +1,171 @@
+"""Warm starts over warm starts: each step the engine solves the step from Box2D's warm start
+and from each candidate's (trial solves, the world unchanged), and one of them is served.
+simclient.simulate asks every candidate, then calls Pick.pick().
+
+    provider = make_provider("price:server:default+oracle:near")   # simclient.warmstarts.make_provider
+
+    pick:W1+W2+...  each step, the engine solves the step from Box2D's warm start and
+                 from each of W1, W2, ... (any warm starts, e.g. server:default;
+                 trial solves, the world unchanged) and keeps the one that takes the
+                 fewest iterations (builtin on a tie): what a perfect per-step choice
+                 among them is worth. A solve per candidate; not one a server could serve
+    shadow:W1+W2+...  serves W1 every step, as W1 alone would, and trial-solves builtin
+                 and the others beside it: each against builtin on W1's own trajectory
+    mean:W1+W2+...  serves the mean of W1, W2, ... and trial-solves builtin, each of them
+                 and the mean on the same states: does averaging two kinds of guess pay?
+    price:W1+W2+...  serves builtin, so its steps are Builtin's own, and trial-solves
+                 W1, W2, ... beside it: every model priced on one set of states, the same
+                 in every run, so two models (or two checkpoints) measured apart are
+                 compared step by step, with no trajectory between them
+    split:W      serves W, as W alone would, and trial-solves builtin, W, and the two
+                 parts of W's correction (W - builtin) each alone on Box2D's warm start:
+                 the part that moves the bodies and the self-stress that moves none
+                 (oracle:body-space, oracle:self-stress): which part of a model's
+                 correction pays
+    boost:W      serves W, as W alone would, and trial-solves builtin, W, and W's
+                 correction with its self-stress part scaled by 0.5, 1.5, 2 and 3 (the part
+                 that moves the bodies kept): is a model's self-stress right in direction
+                 and short in size?
+    admit:W      serves W, as W alone would, and trial-solves builtin, W, and forms of
+                 it made admissible (deepcontact.kinematics.nearest_admissible): W
+                 moved by the smallest self-stress that brings every point inside its
+                 friction cone; builtin plus W's body-space part moved the same way
+                 (W's motion, the self-stress chosen by the limits alone); and that with
+                 the points W's motion pulls apart held at 0 (oracle:near-admissible-separating's rule);
+                 and builtin plus W's motion at the moving bodies only, Box2D's at the others,
+                 admitted (oracle:near-admissible-moving's split), and the same not admitted
+                 (normal impulses clamped at 0 only): does the admission pay, or the split?
+    graft:W1+W2  serves W1, as W1 alone would, and trial-solves builtin, W1, W2, and W1 with W2's
+                 motion at the moving bodies (W1 plus the least-norm change that moves them as W2
+                 does and no other body), admitted and not: one model's self-stress and resting
+                 bodies with another's moving bodies
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from simclient.oracles import SEPARATING_SPEED
+from simclient.provider import Provider, as_warm_start, body_friction, point_friction
+
+class Pick(Provider):
+    """An oracle over warm starts: each step, the engine solves the step from
+    Box2D's warm start and from each candidate's (trial solves, the world
+    unchanged) and keeps the one that takes the fewest iterations (builtin on
+    a tie). simclient.simulate asks every candidate, then calls pick()."""
+
+    picks = True
+
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft")
+    #: boost:W: the factors its self-stress part is priced at.
+    BOOSTS = (0.5, 1.5, 2.0, 3.0)
+    PREFIXES = tuple(f"{m}:" for m in MODES)
+
+    def __init__(self, candidates: list[Provider], mode: str = "pick"):
+        if mode not in self.MODES:
+            raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
+        self.candidates = candidates
+        # pick: serve the cheapest; shadow: serve the first, price the others beside it;
+        # mean: serve the candidates' mean, price it and each of them on the same state;
+        # price: serve builtin, price the candidates on its states (the same states for every
+        # model and every run: a paired, trajectory-free comparison of any two models);
+        # split: serve the one candidate, price it and the two parts of its correction;
+        # boost: serve the one candidate, price it with its self-stress part scaled;
+        # admit: serve the one candidate, price it and its admissible forms;
+        # graft: serve the first, price it with the second's moving bodies' motion
+        if mode in ("split", "boost", "admit") and len(candidates) != 1:
+            raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
+        if mode == "graft" and len(candidates) != 2:
+            raise ValueError(f"graft: takes two warm starts, e.g. graft:server:default+server:graph-mse-1-799-moving-rel, "
+                             f"got {len(candidates)}")
+        self.mode = mode
+        for i, c in enumerate(candidates):
+            if hasattr(c, "reseed"):  # jitter@S
+                c.reseed(i)  # two jitters in one pick draw different noise
+        self.name = f"{mode}:" + "+".join(c.name for c in candidates)
+        self.uses_server = any(c.uses_server for c in candidates)
+        self.sends_oracle = False
+        self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
+
+    @property
+    def models(self) -> tuple[str, ...]:
+        return tuple(m for c in self.candidates if c.uses_server for m in c.models)
+
+    @property
+    def labels(self) -> list[str]:
+        """What each entry of a trials row priced: builtin, the candidates (and their mean)."""
+        first = self.candidates[0].name
+        extra = {"mean": ["mean"], "split": [f"{first} body-space", f"{first} self-stress"],
+                 "boost": [f"{first} self-stress x{k:g}" for k in self.BOOSTS],
+                 "admit": [f"{first} admissible", f"{first} body-space admissible",
+                           f"{first} body-space admissible, separating open",
+                           f"{first} moving bodies' motion admissible", f"{first} moving bodies' motion"],
+                 "graft": [f"{first} with {self.candidates[-1].name}'s moving bodies' motion admissible",
+                           f"{first} with {self.candidates[-1].name}'s moving bodies' motion"]}.get(self.mode, [])
+        return ["builtin", *(c.name for c in self.candidates)] + extra
+
+    @property
+    def model(self) -> str:
+        return self.models[0] if self.models else ""
+
+    def prepare(self, engine) -> None:
+        self._friction = body_friction(engine)
+        for c in self.candidates:
+            c.prepare(engine)
+
+    def observe(self, points_after_solve):
+        for c in self.candidates:
+            c.observe(points_after_solve)
+
+    def pick(self, engine, points, served: list) -> tuple[np.ndarray, np.ndarray]:
+        """The best for this step, by trial solves, of Box2D's warm start and the
+        candidates' (`served`: (normal, tangent) each, or None for Box2D's own)."""
+        builtin = (np.ascontiguousarray(points["builtin"][:, 0]), np.ascontiguousarray(points["builtin"][:, 1]))
+        candidates = [builtin] + [builtin if w is None else w for w in served]
+        if self.mode == "mean":
+            normal = np.mean([w[0] for w in candidates[1:]], axis=0, dtype=np.float64)
+            tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
+            candidates.append(as_warm_start(np.stack([normal, tangent], axis=1)))
+        if self.mode == "admit":
+            from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of,
+                                                contact_velocities, nearest_admissible)
+
+            bodies, mu = engine.bodies(), point_friction(self._friction, points)
+            start = np.stack(candidates[0], axis=1).astype(np.float64)
+            served = np.stack(candidates[1], axis=1).astype(np.float64)
+            motion = start + body_space_part(bodies, points, served - start)
+            moving = start + body_space_part_of(bodies, points, served - start, bodies_moving(bodies))
+            physics = Physics(engine.config.dt, tuple(engine.world.gravity))
+            separating = contact_velocities(bodies, points, motion, physics)[:, 0] > SEPARATING_SPEED
+            candidates += [as_warm_start(nearest_admissible(bodies, points, w, mu, o))
+                           for w, o in ((served, None), (motion, None), (motion, separating), (moving, None))]
+            candidates.append(as_warm_start(np.column_stack([np.maximum(moving[:, 0], 0.0), moving[:, 1]])))
+        if self.mode == "graft":
+            from deepcontact.kinematics import bodies_moving, body_space_part_of, nearest_admissible
+
+            bodies = engine.bodies()
+            base, donor = (np.stack(w, axis=1).astype(np.float64) for w in candidates[1:3])
+            grafted = base + body_space_part_of(bodies, points, donor - base, bodies_moving(bodies))
+            candidates += [as_warm_start(nearest_admissible(bodies, points, grafted, point_friction(self._friction, points))),
+                           as_warm_start(np.column_stack([np.maximum(grafted[:, 0], 0.0), grafted[:, 1]]))]
+        if self.mode in ("split", "boost"):
+            from deepcontact.kinematics import body_space_part
+
+            start = np.stack(candidates[0], axis=1).astype(np.float64)
+            correction = np.stack(candidates[1], axis=1).astype(np.float64) - start
+            moves = body_space_part(engine.bodies(), points, correction)
+            stress = correction - moves
+            parts = (moves, stress) if self.mode == "split" else [moves + k * stress for k in self.BOOSTS]
+            for part in parts:
+                warm = start + part
+                warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+                candidates.append(as_warm_start(warm))
+        iterations = [engine.trial(*w) for w in candidates]
+        self.trials.append(iterations)
+        if self.mode in ("shadow", "split", "boost", "admit", "graft"):
+            return candidates[1]
+        if self.mode == "price":
+            return builtin  # the trials left the last candidate's as the step's warm start
+        if self.mode == "mean":
+            return candidates[-1]
+        return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie

@@ -1,0 +1,82 @@
+"""What every warm-start provider is: the interface the simulation loop calls, and the
+helpers for the contact limits that several providers share.
+
+    provider.prepare(engine)                                  # before the first step
+    warm = provider.warm_start(engine, bodies, points, step)  # after collide()
+    # warm is None (use Box2D's own: builtin or none) or (normal (n,), tangent (n,)) float32, N s
+    provider.observe(engine.contacts())                       # after the solve
+
+The providers themselves: simclient.warmstarts (local ones, and the registry make_provider),
+simclient.oracles (experiments that read the step's solution) and simclient.composites
+(several warm starts priced on the same states).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: A normal impulse above this (N s) presses; at or below, the contact is open.
+SWITCH_IMPULSE = 1e-6
+#: Friction at this share of its limit or more slides (oracle:near-cone, solve-active@K).
+CONE_SHARE = 0.99
+
+
+class Provider:
+    """A warm start: `name` is what make_provider was given; a provider that asks the server
+    sets `uses_server`, one that needs the engine's trial solves sets `picks`."""
+
+    name: str
+    uses_server = False
+    picks = False  # pick:...: the engine's trial solves choose among builtin and candidates
+
+    def prepare(self, engine) -> None:
+        """Before the first step (e.g. switch Box2D's own warm starting)."""
+        engine.world.warmStarting = True
+
+    def warm_start(self, engine, bodies, points, step):
+        return None
+
+    def observe(self, points_after_solve: np.ndarray) -> None:
+        """After each solve, with the step's points and their final impulses."""
+
+
+class ReadsFriction(Provider):
+    """A provider that needs each point's friction coefficient (point_friction): it reads
+    the bodies' from the world before the first step."""
+
+    _friction = np.zeros(0)  # (B,) per body, creation order; set by prepare()
+
+    def prepare(self, engine) -> None:
+        super().prepare(engine)
+        # pybox2d lists the bodies in creation order, the records' body index.
+        self._friction = body_friction(engine)
+
+
+def body_friction(engine) -> np.ndarray:
+    """(B,) each body's friction coefficient; pybox2d lists the bodies in creation order, the records' body index."""
+    return np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in engine.world.bodies])
+
+
+def point_friction(friction: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(P,) the friction coefficient at each point: Box2D mixes two fixtures' as sqrt(f_A f_B)."""
+    return np.sqrt(friction[points["body_a"]] * friction[points["body_b"]])
+
+
+def at_friction_cone(impulses: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """(P,) bool: the point presses (normal > SWITCH_IMPULSE) and its tangent impulse is at
+    CONE_SHARE of mu times the normal one or more. impulses: (P, 2) N s."""
+    return (impulses[:, 0] > SWITCH_IMPULSE) & (np.abs(impulses[:, 1]) >= CONE_SHARE * mu * impulses[:, 0])
+
+
+def persisting_rows(keys: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(idx (P,), persisting (P,) bool): each point's row in `keys`, a previous step's sorted
+    point keys, and whether it is there and Box2D carries an impulse into it (not a new point)."""
+    idx = np.searchsorted(keys, points["key"]).clip(max=max(len(keys) - 1, 0))
+    persisting = (keys[idx] == points["key"]) & points["builtin"].any(axis=1) if len(keys) else np.zeros(len(points), bool)
+    return idx, persisting
+
+
+def as_warm_start(warm: np.ndarray):
+    """(P, 2) impulses (N s) as the (normal, tangent) float32 pair the engine takes."""
+    warm = warm.astype(np.float32)
+    return np.ascontiguousarray(warm[:, 0]), np.ascontiguousarray(warm[:, 1])

@@ -1,0 +1,123 @@
+"""Warm starts over warm starts (simclient.composites): trial solves on the same states."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from simclient.scene import SceneSpec
+from simclient.simulate import run_simulation
+from simclient.warmstarts import make_provider
+
+SHORT = dataclasses.replace(SceneSpec.thesis(), steps=120)
+
+
+def mean_iterations(name, spec=SHORT):
+    return run_simulation(spec, 901, make_provider(name))["summary"]["mean_velocity_iterations"]
+
+
+def test_shadow_serves_its_first_candidate_as_it_would_alone_and_prices_builtin_beside_it():
+    alone = run_simulation(SHORT, 901, make_provider("jitter@0.01"))
+    shadowed = run_simulation(SHORT, 901, make_provider("shadow:jitter@0.01"))
+    assert shadowed["per_step"]["velocity_iterations"] == alone["per_step"]["velocity_iterations"]
+    its = [i for i, n in zip(alone["per_step"]["velocity_iterations"], alone["per_step"]["contact_points"]) if n]
+    assert [t[1] for t in shadowed["trials"]] == its  # builtin's count on the same states is t[0]
+
+
+def test_price_steps_as_builtin_and_prices_each_candidate_on_builtins_states():
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    jitter = run_simulation(SHORT, 901, make_provider("shadow:jitter@0.01"))
+    priced = run_simulation(SHORT, 901, make_provider("price:jitter@0.01"))
+    assert priced["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
+    its = [i for i, n in zip(builtin["per_step"]["velocity_iterations"], builtin["per_step"]["contact_points"]) if n]
+    assert [t[0] for t in priced["trials"]] == its  # a trial from builtin's start is the step's own solve
+    # the same states in every run: a second run prices the same candidate the same way
+    assert run_simulation(SHORT, 901, make_provider("price:jitter@0.01"))["trials"] == priced["trials"]
+    assert [t[1] for t in priced["trials"]] != [t[1] for t in jitter["trials"]]  # jitter's own states differ
+
+
+def test_mean_serves_the_candidates_mean_and_prices_it_beside_each_of_them():
+    provider = make_provider("mean:jitter@0.1+jitter@0.1")
+    assert provider.labels == ["builtin", "jitter@0.1", "jitter@0.1", "mean"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    assert [t[3] for t in served["trials"]] == its
+    assert any(t[3] not in (t[1], t[2]) for t in served["trials"])  # the mean is neither candidate
+
+
+def test_a_shadow_whose_server_is_away_serves_builtin_and_counts_the_fallbacks():
+    shadowed = run_simulation(SHORT, 901, make_provider("shadow:server:zero"), client=None)
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    assert shadowed["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
+    assert shadowed["summary"]["fallback_steps"] == builtin["summary"]["steps_with_contacts"] > 0
+
+
+def test_pick_never_does_worse_than_builtin_and_jitter_alone_wins_some_steps():
+    # Candidates that know nothing: the per-step choice still finds cheaper starts
+    # (docs/results.md, "Nor does choosing per step").
+    picked = run_simulation(SHORT, 901, make_provider("pick:jitter@0.01+jitter@0.01"))
+    its = [i for i, n in zip(picked["per_step"]["velocity_iterations"], picked["per_step"]["contact_points"]) if n]
+    assert its == [min(t) for t in picked["trials"]]
+    assert any(t[1] != t[2] for t in picked["trials"])  # the two jitters draw different noise
+    assert np.mean(its) < mean_iterations("builtin")
+
+
+def test_split_serves_its_warm_start_and_prices_the_two_parts_of_its_correction():
+    provider = make_provider("split:oracle:near")
+    assert provider.labels == ["builtin", "oracle:near", "oracle:near body-space", "oracle:near self-stress"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    assert [t[1] for t in served["trials"]] == its  # serves the warm start itself
+    assert all(t[1] <= 2 for t in served["trials"])
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("split:oracle:near+oracle:half")
+
+
+def test_boost_serves_its_warm_start_and_prices_it_with_its_self_stress_scaled():
+    provider = make_provider("boost:oracle:near")
+    assert provider.labels == ["builtin", "oracle:near"] + [f"oracle:near self-stress x{k:g}" for k in (0.5, 1.5, 2, 3)]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    assert [t[1] for t in served["trials"]] == its  # serves the warm start itself
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("boost:oracle:near+oracle:half")
+
+
+def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
+    # Served here: the solution's body-space part alone (oracle:near-body-space). Brought
+    # inside the friction cones by the smallest self-stress, the same motion takes far
+    # fewer iterations: given the motion, the limits choose the self-stress.
+    provider = make_provider("admit:oracle:near-body-space")
+    assert provider.labels == ["builtin", "oracle:near-body-space", "oracle:near-body-space admissible",
+                               "oracle:near-body-space body-space admissible",
+                               "oracle:near-body-space body-space admissible, separating open",
+                               "oracle:near-body-space moving bodies' motion admissible",
+                               "oracle:near-body-space moving bodies' motion"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    trials = np.array(served["trials"])
+    assert trials[:, 1].tolist() == its  # serves the warm start itself
+    assert trials[:, 2].sum() < 0.8 * trials[:, 1].sum()  # the same motion inside the cones
+    assert trials[:, 3].sum() < 0.8 * trials[:, 1].sum()  # W's motion from Box2D's warm start: W itself, near enough
+    assert trials.shape[1] == 7 and trials.min() >= 1  # and with the contacts its motion pulls apart; its moving bodies
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("admit:oracle:near+oracle:half")
+
+
+def test_graft_serves_the_first_and_prices_it_with_the_seconds_moving_bodies_motion():
+    # The base has the solution's motion at the resting bodies only (oracle:near-admissible-settled),
+    # the donor at every body (oracle:near-body-space). The donor's moving bodies' motion grafted
+    # onto the base and admitted puts every body's motion right: far fewer iterations than the base.
+    provider = make_provider("graft:oracle:near-admissible-settled+oracle:near-body-space")
+    assert provider.labels == ["builtin", "oracle:near-admissible-settled", "oracle:near-body-space",
+                               "oracle:near-admissible-settled with oracle:near-body-space's moving bodies' motion admissible",
+                               "oracle:near-admissible-settled with oracle:near-body-space's moving bodies' motion"]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    trials = np.array(served["trials"])
+    assert trials[:, 1].tolist() == its  # serves the first warm start itself
+    assert trials[:, 3].sum() < 0.8 * trials[:, 1].sum()
+    with pytest.raises(ValueError, match="two warm starts"):
+        make_provider("graft:oracle:near")
