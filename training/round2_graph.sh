@@ -126,6 +126,9 @@
 #   graph-mse-1-799-moving-rel  the same with that push summed per step over the step's own correction's
 #                              (--loss relative-moving): a pooled fit is made on the steps with large
 #                              corrections, and the iterations are in those with small ones
+#   graph-projected-max-1-799-moving-rel  graph-projected-max-1-799-e20's stage (the default's first
+#                              stopping-rule fine-tune) from graph-mse-1-799-moving-rel's weights instead of
+#                              the MSE model's: a better base for the loss? (with a -t1 card); control -e20
 #   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
@@ -218,10 +221,12 @@ run() {
             variant "$1" --loss mse --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 "${extra[@]}" \
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
-        graph-projected-max-1-799-last2|graph-projected-max-1-799-e20|graph-projected-max-1-799-asinh2)
+        graph-projected-max-1-799-last2|graph-projected-max-1-799-e20|graph-projected-max-1-799-asinh2|graph-projected-max-1-799-moving-rel)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             local from=graph-mse-1-799-e20 extra=()
-            if [ "$1" = graph-projected-max-1-799-last2 ]; then
+            if [ "$1" = graph-projected-max-1-799-moving-rel ]; then
+                from=graph-mse-1-799-moving-rel
+            elif [ "$1" = graph-projected-max-1-799-last2 ]; then
                 from=graph-mse-1-799-last extra=(--extra-inputs last_correction_normal,last_correction_tangent)
             elif [ "$1" = graph-projected-max-1-799-asinh2 ]; then
                 from=graph-mse-1-799-asinh extra=(--extra-inputs "$ASINH")
