@@ -122,7 +122,7 @@ def self_stress_part(e, ends, geometry, inverse, *, iterations: int = 40):
 
     dynamic = tf.cast(inverse > 0, e.dtype)
     a, b = ends[:, 0], ends[:, 1]
-    n, t, ra, rb = geometry[:, 0:2], geometry[:, 2:4], geometry[:, 4:6], geometry[:, 6:8]
+    n, ra, rb = geometry[:, 0:2], geometry[:, 4:6], geometry[:, 6:8]
     n_bodies = tf.shape(inverse)[0]
 
     def jt(lam):  # J^T: impulses at points to (force (B, 2), torque (B,)) on dynamic bodies
