@@ -126,9 +126,20 @@
 #   graph-mse-1-799-moving-rel  the same with that push summed per step over the step's own correction's
 #                              (--loss relative-moving): a pooled fit is made on the steps with large
 #                              corrections, and the iterations are in those with small ones
+#   graph-mse-1-799-moving-rel-long  6 more epochs of graph-mse-1-799-moving-rel from its weights, on
+#                              every step of both 1-799 files (it saw 20,000 of each, 4 epochs, and its
+#                              validation loss was still falling): does a closer per-step fit of the
+#                              moving bodies' push pay? From a fresh clone, `python -m
+#                              training.recover_weights` on -moving-rel's card first
+#   graph-mse-1-799-w64-moving-rel-long  the same loss at twice the width: 6 epochs on every step
+#                              from graph-mse-1-799-w64-e16's weights (`python -m
+#                              training.recover_weights` on its card first); does capacity help
+#                              this loss, whose fit kept improving with training?
 #   graph-projected-max-1-799-moving-rel  graph-projected-max-1-799-e20's stage (the default's first
 #                              stopping-rule fine-tune) from graph-mse-1-799-moving-rel's weights instead of
 #                              the MSE model's: a better base for the loss? (with a -t1 card); control -e20
+#   graph-projected-max-1-799-moving-rel-long  the same stage from graph-mse-1-799-moving-rel-long's
+#                              weights (with a -t1 card): a base that prices as the default does
 #   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
@@ -221,11 +232,14 @@ run() {
             variant "$1" --loss mse --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 "${extra[@]}" \
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 0.3 ;;
-        graph-projected-max-1-799-last2|graph-projected-max-1-799-e20|graph-projected-max-1-799-asinh2|graph-projected-max-1-799-moving-rel)
+        graph-projected-max-1-799-last2|graph-projected-max-1-799-e20|graph-projected-max-1-799-asinh2|graph-projected-max-1-799-moving-rel|\
+        graph-projected-max-1-799-moving-rel-long)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             local from=graph-mse-1-799-e20 extra=()
             if [ "$1" = graph-projected-max-1-799-moving-rel ]; then
                 from=graph-mse-1-799-moving-rel
+            elif [ "$1" = graph-projected-max-1-799-moving-rel-long ]; then
+                from=graph-mse-1-799-moving-rel-long
             elif [ "$1" = graph-projected-max-1-799-last2 ]; then
                 from=graph-mse-1-799-last extra=(--extra-inputs last_correction_normal,last_correction_tangent)
             elif [ "$1" = graph-projected-max-1-799-asinh2 ]; then
@@ -249,6 +263,14 @@ run() {
             local loss=mse-moving; [ "$1" = graph-mse-1-799-moving-rel ] && loss=relative-moving
             variant "$1" --loss $loss --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 \
                 --init runs/graph-cache/graph-mse-1-799-e16.weights.npz ;;
+        graph-mse-1-799-moving-rel-long)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss relative-moving --epochs 6 --patience 3 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-moving-rel.weights.npz ;;
+        graph-mse-1-799-w64-moving-rel-long)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss relative-moving --width 64 --epochs 6 --patience 3 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-w64-e16.weights.npz ;;
         graph-mse-1-799-sticking)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse-sticking --max-steps-per-file 20000 --epochs 4 --patience 3 --lr 5e-4 \
