@@ -60,6 +60,9 @@
 #                              (training/ensemble.py; train those three first), with a -t1 card
 #   graph-ensemble-long-e2     the same with -long-e2 in -long's place (with a -t1 card)
 #   graph-ensemble-e2-e3       the mean correction of -long-e2 and -long-e3 (train both first)
+#   graph-ensemble-default-moving-rel  the mean correction of the default's network (-long-e2) and
+#                              graph-mse-1-799-moving-rel-long: two losses that err at other steps;
+#                              -moving-rel3 adds graph-mse-1-799-w64-moving-rel-long
 #   graph-agree3               the mean correction of -long-e2, -pooled and graph-mse-1-799-e16
 #                              served only where they agree (--agree 0.2 and 0.35: graph-agree3-k0.2,
 #                              graph-agree3-k0.35); train the three first
@@ -392,6 +395,13 @@ run() {
         graph-ensemble-e2-e3)
             "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799-long-e2.json" \
                 "$OUT/graph-projected-max-1-799-long-e3.json" --name "$1" --out-dir "$OUT" ;;
+        graph-ensemble-default-moving-rel|graph-ensemble-default-moving-rel3)
+            # Members of two losses: the default's (saves much where right, worse than Builtin at a
+            # third of the steps) and relative-moving (saves less, worse at a fifth).
+            local more=()
+            [ "$1" = graph-ensemble-default-moving-rel3 ] && more=("$OUT/graph-mse-1-799-w64-moving-rel-long.json")
+            "$PY" -m training.ensemble "$OUT/graph-projected-max-1-799-long-e2.json" \
+                "$OUT/graph-mse-1-799-moving-rel-long.json" "${more[@]}" --name "$1" --out-dir "$OUT" ;;
         graph-agree3)
             # Three networks of three losses; each K is its own ONNX graph (the gate is inside it).
             for k in 0.2 0.35; do
