@@ -143,6 +143,8 @@
 #                              the MSE model's: a better base for the loss? (with a -t1 card); control -e20
 #   graph-projected-max-1-799-moving-rel-long  the same stage from graph-mse-1-799-moving-rel-long's
 #                              weights (with a -t1 card): a base that prices as the default does
+#   graph-projected-max-1-799-w64-moving-rel-long  the same stage at width 64 from
+#                              graph-mse-1-799-w64-moving-rel-long's weights (with a -t1 card)
 #   graph-projected-max-1-799-w64-long, graph-projected-max-1-799-w64-long-e2  -long and -long-e2's
 #                              steps from graph-projected-max-1-799-w64's weights (from a fresh clone,
 #                              `python -m training.recover_weights` on its card first): does the
@@ -208,6 +210,11 @@ run() {
             local base=${1%-e16}
             variant "$1" --loss mse --width "${base##*-w}" --epochs 8 --patience 3 --lr 1e-3 \
                 --init "runs/graph-cache/$base.weights.npz" ;;
+        graph-projected-max-1-799-w64-moving-rel-long)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --width 64 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-w64-moving-rel-long.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-w64|graph-projected-max-1-799-w128)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             local width=${1##*-w}
