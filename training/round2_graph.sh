@@ -77,6 +77,15 @@
 #                              features per point), 3 epochs of 3,000 steps per 1-799 file
 #                              (with a -t1 card): is the default's network too small?
 #   graph-projected-max-w32    its control: the same at the default's width
+#   graph-mse-1-799-r8         graph-mse-1-799's recipe with 8 rounds of message passing instead
+#                              of 3 (52,834 parameters), 6 epochs: the GPU probe's finding
+#                              (training/device_graph_probe.sh: 8 rounds halve the validation
+#                              loss) on two cores
+#   graph-projected-max-1-799-r8  graph-projected-max-1-799's recipe from graph-mse-1-799-r8's
+#                              weights (with a -t1 card)
+#   graph-projected-max-1-799-w128-r8-gpu  the same from the GPU probe's width-128, 8-round
+#                              network (graph-mse-1-799-w128-r8-gpu: `python -m training.recover_weights`
+#                              on its card first; with a -t1 card)
 #   graph-mse-1-799-w64        graph-mse-1-799's recipe at twice the width (64 features per point,
 #                              83,906 parameters): 8 epochs, then graph-mse-1-799-w64-e16, 8 more
 #                              from its weights as -e16 is made; about 40 min each on two cores
@@ -202,6 +211,9 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799 --loss mse --epochs 8 --patience 3
             "$PY" -m training.card_variant "$OUT/graph-mse-1-799.json" --correction-threshold 0.3 ;;
+        graph-mse-1-799-r8)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-mse-1-799-r8 --loss mse --rounds 8 --epochs 6 --patience 3 ;;
         graph-mse-1-799-w64|graph-mse-1-799-w128)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse --width "${1##*-w}" --epochs 8 --patience 3 ;;
@@ -214,6 +226,18 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --width 64 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
                 --init runs/graph-cache/graph-mse-1-799-w64-moving-rel-long.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-r8)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-r8.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-w128-r8-gpu)
+            # From the GPU probe's weights (training/device_graph_probe.sh), recovered from the shipped
+            # file first: python -m training.recover_weights models/graph-mse-1-799-w128-r8-gpu.json
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --width 128 --rounds 8 --max-steps-per-file 3000 --epochs 2 \
+                --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w128-r8-gpu.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-w64|graph-projected-max-1-799-w128)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
