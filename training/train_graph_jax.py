@@ -31,6 +31,7 @@ files read in parallel.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import queue
@@ -330,6 +331,10 @@ def main(argv=None) -> int:
     missing = [x for x in args.train + args.val if not Path(x).exists()]
     if missing:
         print(f"train_graph_jax: no such file: {', '.join(missing)}", file=sys.stderr)
+        return 2
+    if importlib.util.find_spec("jax") is None:
+        print("train_graph_jax: needs JAX, which is not one of deepcontact's dependencies: pip install jax "
+              "(on a GPU machine, the CUDA build)", file=sys.stderr)
         return 2
     if args.seconds <= 0 or min(args.batch_steps, args.feeders, args.point_bucket) < 1:
         print("train_graph_jax: --seconds must be > 0, --batch-steps, --feeders and --point-bucket >= 1",

@@ -3,6 +3,7 @@ here, over a real server; and the JAX trainer's batching, which needs no JAX."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 from pathlib import Path
@@ -109,6 +110,16 @@ def test_a_network_is_given_as_width_x_rounds():
     for bad in ("128", "0x3", "ax3"):
         with pytest.raises(Exception, match="WIDTHxROUNDS|>= 1"):
             parse_config(bad)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("jax") is not None, reason="JAX is installed here")
+def test_the_jax_trainer_says_it_needs_jax_where_jax_is_missing(data, tmp_path, capsys):
+    from training.train_graph_jax import main as train
+
+    assert train(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--config", "8x2",
+                  "--out", str(tmp_path / "run")]) == 2
+    assert "needs JAX" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 def test_the_jax_trainer_leaves_each_networks_weights_and_its_validation_history(data, tmp_path):
