@@ -83,6 +83,8 @@
 #                              loss) on two cores
 #   graph-projected-max-1-799-r8  graph-projected-max-1-799's recipe from graph-mse-1-799-r8's
 #                              weights (with a -t1 card)
+#   graph-projected-max-1-799-r8-long, -r8-long-e2  the default's two long stages (-long, -long-e2)
+#                              step for step from graph-projected-max-1-799-r8's weights
 #   graph-projected-max-1-799-w128-r8-gpu  the same from the GPU probe's width-128, 8-round
 #                              network (graph-mse-1-799-w128-r8-gpu: `python -m training.recover_weights`
 #                              on its card first; with a -t1 card)
@@ -399,15 +401,19 @@ run() {
                   --init runs/graph-cache/graph-projected-max-1-799-long.weights.npz )
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --correction-threshold 1.0
             "$PY" -m training.card_variant "$OUT/graph-projected-max-1-799-long-e2.json" --combine persisting ;;
-        graph-projected-max-1-799-w64-long|graph-projected-max-1-799-w64-long-e2)
+        graph-projected-max-1-799-w64-long|graph-projected-max-1-799-w64-long-e2|\
+        graph-projected-max-1-799-r8-long|graph-projected-max-1-799-r8-long-e2)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            # the default's two long stages, step for step, at width 64
-            local from=graph-projected-max-1-799-w64 lr=2.5e-4 seed=0
-            if [ "$1" = graph-projected-max-1-799-w64-long-e2 ]; then
-                from=graph-projected-max-1-799-w64-long lr=1.25e-4 seed=1
+            # -long-e2's two long stages, step for step, at width 64 or with 8 rounds
+            local base=${1%-long*}
+            local arch=(--width 64)
+            [ "$base" = graph-projected-max-1-799-r8 ] && arch=(--rounds 8)
+            local from=$base lr=2.5e-4 seed=0
+            if [ "$1" = "$base-long-e2" ]; then
+                from=$base-long lr=1.25e-4 seed=1
             fi
             ( ulimit -s 524288   # as for graph-projected-max-1-799-long
-              variant "$1" --loss solver-projected-max --width 64 --sweeps 256,1024 \
+              variant "$1" --loss solver-projected-max "${arch[@]}" --sweeps 256,1024 \
                   --max-steps-per-file 3000 --epochs 1 --lr "$lr" --seed "$seed" \
                   --init "runs/graph-cache/$from.weights.npz" )
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;

@@ -14,4 +14,5 @@ def test_every_model_the_script_prices_is_shipped_and_priced_once():
     names = [n for b in batches for n in b.split()]
     assert len(batches) == 3 and len(names) == len(set(names)) > 60
     assert all((ROOT / "models" / f"{n}.json").is_file() for n in names)
-    assert "graph-projected-max-1-799-long-e2" not in names  # the default is served, not priced
+    assert "graph-projected-max-1-799-long-e2" not in names  # the default it was measured with is served, not priced
+    assert "candidates=server:graph-projected-max-1-799-long-e2\n" in script
