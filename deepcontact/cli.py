@@ -29,6 +29,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "corrections"), "bench.corrections", "a served model's corrections against the solver's, by size: where it errs"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
+    (("bench", "graph-size"), "bench.graph_size", "a contact-graph model's inference against the step's points and bodies"),
     (("bench", "inference"), "bench.inference", "ONNX Runtime levers on a grid model's inference: session options, int8, cropped grids"),
     (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
     (("bench", "load"), "bench.load", "latency and throughput with many simulations streaming at once"),
@@ -52,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (admission, corrections, engine, generate, inference, iterations, load, scale, server, soak, surrogate, transfer, walltime)"}
+    group_help = {("bench",): "benchmarks (admission, corrections, engine, generate, graph-size, inference, iterations, load, scale, server, soak, surrogate, transfer, walltime)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

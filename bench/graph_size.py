@@ -1,0 +1,99 @@
+"""`deepcontact bench graph-size`: a contact-graph model's inference against the step's size.
+
+    deepcontact bench graph-size --model default,graph-projected-max-1-799-long-e2 \
+        --sizes 140x100,400x400,400x1600 --json bench/results/graph-size/sizes.json
+
+The exported contact-graph network sums each round's messages per body with dense one-hot
+incidence matrices (points x bodies; docs/models.md, "Contact-graph models"), so its cost should
+grow with points times bodies, once per round of message passing. This times the ONNX session
+alone, as the server runs it (`GraphPredictor.run_session`, one thread), on synthetic steps of
+P contact points between B dynamic bodies: random normalized inputs and random ends, since the
+arithmetic does not depend on the values. Printed: per model and size, the median over
+--repeats runs, in ms. Set OMP_NUM_THREADS=1 for numbers comparable to the other benchmarks'.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.io import write_json_atomic
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", default="default,graph-projected-max-1-799-long-e2",
+                        help="comma-separated contact-graph models (card names; default %(default)s)")
+    parser.add_argument("--models", default="models", help="model folder (default %(default)s)")
+    parser.add_argument("--sizes", default="140x100,400x400,400x1600",
+                        help="comma-separated POINTSxBODIES (default %(default)s: the thesis world's median "
+                             "step, and 400 points among 400 and 1,600 bodies)")
+    parser.add_argument("--repeats", type=int, default=30, help="timed runs per model and size (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic inputs (default %(default)s)")
+    parser.add_argument("--json", metavar="FILE", help="write the rows here as JSON")
+
+
+def parse_sizes(text: str) -> list[tuple[int, int]]:
+    """'140x100,400x1600' -> [(140, 100), (400, 1600)] (points, bodies), each at least 1."""
+    sizes = []
+    for item in text.split(","):
+        try:
+            points, bodies = (int(v) for v in item.strip().lower().split("x"))
+        except ValueError:
+            raise ValueError(f"size {item.strip()!r} is not POINTSxBODIES, e.g. 400x1600") from None
+        if points < 1 or bodies < 1:
+            raise ValueError(f"size {item.strip()!r}: points and bodies must be at least 1")
+        sizes.append((points, bodies))
+    return sizes
+
+
+def synthetic_step(points: int, bodies: int, channels: int, rng: np.random.Generator):
+    """Inputs of one step: points (P, channels) float32 normalized, ends (P, 2) int32 rows of
+    dynamic, dynamic (B, 1) float32 (all bodies dynamic)."""
+    return (rng.standard_normal((points, channels)).astype(np.float32),
+            rng.integers(0, bodies, (points, 2)).astype(np.int32),
+            np.ones((bodies, 1), np.float32))
+
+
+def run(args: argparse.Namespace) -> int:
+    from deepcontact.modelcard import ModelCard
+    from server.predictors import GraphPredictor, load_model
+
+    try:
+        sizes = parse_sizes(args.sizes)
+    except ValueError as e:
+        raise SystemExit(f"bench graph-size: {e}") from None
+    if args.repeats < 1:
+        raise SystemExit("bench graph-size: --repeats must be at least 1")
+    folder = Path(args.models)
+    rows = []
+    for name in (n.strip() for n in args.model.split(",") if n.strip()):
+        path = folder / f"{name}.json"
+        if not path.is_file():
+            raise SystemExit(f"bench graph-size: no card {path}")
+        target = ModelCard.alias_target(path)
+        predictor = load_model(folder / f"{target}.json" if target else path)
+        if not isinstance(predictor, GraphPredictor):
+            raise SystemExit(f"bench graph-size: {name} is a {predictor.kind} model, not a contact-graph one")
+        rounds = predictor.card.architecture.get("config", {}).get("rounds")
+        rng = np.random.default_rng(args.seed)
+        for points, bodies in sizes:
+            feed = synthetic_step(points, bodies, len(predictor.inputs), rng)
+            predictor.run_session(*feed)  # the first run at a shape plans its memory
+            times = []
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                predictor.run_session(*feed)
+                times.append(time.perf_counter() - t0)
+            rows.append({"model": name, "served": predictor.name, "rounds": rounds, "points": points,
+                         "bodies": bodies, "median_ms": 1e3 * float(np.median(times))})
+    print("| model | rounds | points | bodies | inference median ms |\n|---|---|---|---|---|")
+    for r in rows:
+        shown = r["model"] if r["model"] == r["served"] else f"{r['model']} ({r['served']})"
+        print(f"| {shown} | {r['rounds']} | {r['points']} | {r['bodies']} | {r['median_ms']:.2f} |")
+    if args.json:
+        write_json_atomic(args.json, {"repeats": args.repeats, "seed": args.seed, "rows": rows})
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,49 @@
+"""bench/graph_size.py: a shipped contact-graph model timed on synthetic steps of given sizes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.graph_size import parse_sizes, synthetic_step
+from deepcontact.cli import main
+
+MODELS = Path(__file__).resolve().parents[2] / "models"
+
+
+def test_sizes_read_as_points_by_bodies_and_bad_ones_are_refused():
+    assert parse_sizes("140x100, 400X1600") == [(140, 100), (400, 1600)]
+    with pytest.raises(ValueError, match="POINTSxBODIES"):
+        parse_sizes("400")
+    with pytest.raises(ValueError, match="at least 1"):
+        parse_sizes("0x10")
+
+
+def test_a_synthetic_step_has_the_server_s_shapes_and_ends_within_the_bodies():
+    points, ends, dynamic = synthetic_step(7, 3, 14, np.random.default_rng(0))
+    assert points.shape == (7, 14) and points.dtype == np.float32
+    assert ends.shape == (7, 2) and ends.dtype == np.int32 and ends.min() >= 0 and ends.max() < 3
+    assert dynamic.shape == (3, 1) and np.all(dynamic == 1)
+
+
+def test_the_default_and_a_named_model_are_timed_at_every_size(tmp_path, capsys):
+    out = tmp_path / "sizes.json"
+    code = main(["bench", "graph-size", "--models", str(MODELS), "--model", "default,graph-projected-max-1-799-long-e2",
+                 "--sizes", "5x3,20x10", "--repeats", "2", "--json", str(out)])
+    assert code == 0
+    rows = json.loads(out.read_text())["rows"]
+    target = json.loads((MODELS / "default.json").read_text())["alias_of"]
+    assert [(r["model"], r["points"], r["bodies"]) for r in rows] == [
+        ("default", 5, 3), ("default", 20, 10),
+        ("graph-projected-max-1-799-long-e2", 5, 3), ("graph-projected-max-1-799-long-e2", 20, 10)]
+    assert rows[0]["served"] == target and rows[2]["rounds"] == 3
+    assert all(r["median_ms"] > 0 for r in rows)
+    assert f"default ({target})" in capsys.readouterr().out
+
+
+def test_a_grid_model_is_refused_with_a_message():
+    with pytest.raises(SystemExit, match="not a contact-graph one"):
+        main(["bench", "graph-size", "--models", str(MODELS), "--model", "pressure", "--sizes", "5x3", "--repeats", "1"])
