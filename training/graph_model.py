@@ -24,6 +24,10 @@ of its step: a graph-wide summary that reaches past the rounds' few contacts
 A batch of several steps passes `step_of` (P,), each point's step; without it
 the whole input is one step, as the server runs it.
 
+With `layer_norm`, each round reads its state through a layer normalization
+(pre-norm, as deep transformers do) and so does the decoder: without it, sixteen
+residual rounds did not train (docs/results.md, "Eight rounds").
+
 Plain tf.Module, no Keras: the weights are a dict of arrays (saved as .npz)
 and the same tf.function is trained and exported (tf2onnx, opset 17).
 """
@@ -38,6 +42,9 @@ import numpy as np
 from training.models import import_tensorflow
 
 
+LAYER_NORM_EPS = 1e-5
+
+
 @dataclasses.dataclass(frozen=True)
 class GraphConfig:
     in_channels: int
@@ -46,6 +53,7 @@ class GraphConfig:
     rounds: int = 3  # message-passing rounds
     kind: str = "graph"
     pooled: bool = False  # each round also reads the mean state of the step's points
+    layer_norm: bool = False  # each round reads its state through a layer normalization (pre-norm)
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
@@ -62,9 +70,15 @@ def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
     return shapes
 
 
+def _norm_names(c: GraphConfig) -> list[str]:
+    """The layer normalizations, in the order the network uses them: one before each round, one before the decoder."""
+    return [f"round{r}_norm" for r in range(c.rounds)] + ["decode_norm"] if c.layer_norm else []
+
+
 def init_weights(c: GraphConfig, seed: int = 0) -> dict[str, np.ndarray]:
     """Glorot-uniform kernels, zero biases; the last layer starts at zero, so an
-    untrained model predicts the targets' mean (no correction for residual targets)."""
+    untrained model predicts the targets' mean (no correction for residual targets).
+    Layer normalizations start as gain 1, offset 0."""
     rng = np.random.default_rng(seed)
     weights = {}
     for name, (fan_in, fan_out) in _dense_shapes(c).items():
@@ -74,6 +88,9 @@ def init_weights(c: GraphConfig, seed: int = 0) -> dict[str, np.ndarray]:
             kernel = np.zeros_like(kernel)
         weights[f"{name}/kernel"] = kernel.astype(np.float32)
         weights[f"{name}/bias"] = np.zeros(fan_out, np.float32)
+    for name in _norm_names(c):
+        weights[f"{name}/gain"] = np.ones(c.width, np.float32)
+        weights[f"{name}/offset"] = np.zeros(c.width, np.float32)
     return weights
 
 
@@ -107,6 +124,16 @@ class ContactGraphNet:
         y = self.tf.matmul(x, self.variables[f"{name}/kernel"]) + self.variables[f"{name}/bias"]
         return self.tf.nn.relu(y) if relu else y
 
+    def _norm(self, x, name: str):
+        """(P, W) -> (P, W): each row to zero mean and unit variance, then the layer's gain and offset.
+        Without layer_norm, x itself: the network is then exactly the one without these layers."""
+        if not self.config.layer_norm:
+            return x
+        tf = self.tf
+        mean = tf.reduce_mean(x, axis=1, keepdims=True)
+        var = tf.reduce_mean(tf.square(x - mean), axis=1, keepdims=True)
+        return (x - mean) * tf.math.rsqrt(var + LAYER_NORM_EPS) * self.variables[f"{name}/gain"] + self.variables[f"{name}/offset"]
+
     def __call__(self, points, ends, dynamic, step_of=None):
         """points (P, F), ends (P, 2), dynamic (B, 1) as in the module docstring;
         step_of (P,) int32, each point's step, read only by a pooled network."""
@@ -117,19 +144,22 @@ class ContactGraphNet:
         if self.incidence == "matmul":
             at_a, at_b = tf.one_hot(a, n_bodies), tf.one_hot(b, n_bodies)  # (P, B)
         for r in range(self.config.rounds):  # loop over rounds, not points
-            to_a = self._dense(h, f"round{r}_to_a")
-            to_b = self._dense(h, f"round{r}_to_b")
+            # Pre-norm: the residual stream h is summed, never normalized, so deep stacks keep
+            # their gradients; each round reads a normalized copy.
+            x = self._norm(h, f"round{r}_norm")
+            to_a = self._dense(x, f"round{r}_to_a")
+            to_b = self._dense(x, f"round{r}_to_b")
             if self.incidence == "matmul":
                 load = (tf.matmul(at_a, to_a, transpose_a=True) + tf.matmul(at_b, to_b, transpose_a=True)) * dynamic
-                u = tf.concat([h, tf.matmul(at_a, load), tf.matmul(at_b, load)], axis=1)
+                u = tf.concat([x, tf.matmul(at_a, load), tf.matmul(at_b, load)], axis=1)
             else:
                 load = (tf.math.unsorted_segment_sum(to_a, a, n_bodies)
                         + tf.math.unsorted_segment_sum(to_b, b, n_bodies)) * dynamic
-                u = tf.concat([h, tf.gather(load, a), tf.gather(load, b)], axis=1)
+                u = tf.concat([x, tf.gather(load, a), tf.gather(load, b)], axis=1)
             if self.config.pooled:
-                u = tf.concat([u, self._step_mean(h, step_of)], axis=1)
+                u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
             h = h + self._dense(self._dense(u, f"round{r}_update0"), f"round{r}_update1", relu=False)
-        return self._dense(self._dense(h, "decode0"), "decode1", relu=False)
+        return self._dense(self._dense(self._norm(h, "decode_norm"), "decode0"), "decode1", relu=False)
 
     def _step_mean(self, h, step_of):
         """(P, W): the mean of h over each point's step."""

@@ -47,7 +47,7 @@ def import_weights(weights_path: Path, probe_path: Path, out_dir: Path, name: st
         raise ValueError(f"{probe_path} describes no network {key!r} (it has {', '.join(probe['networks'])})")
     weights = load_weights(weights_path)
     config = GraphConfig(in_channels=len(GRAPH_INPUTS), out_channels=len(GRAPH_TARGETS), width=run["width"],
-                         rounds=run["rounds"])
+                         rounds=run["rounds"], layer_norm=run.get("layer_norm", False))
     net = ContactGraphNet(config, weights)
     onnx_bytes = to_onnx(net)
     parity = _parity(net, onnx_bytes, config)
@@ -65,7 +65,7 @@ def import_weights(weights_path: Path, probe_path: Path, out_dir: Path, name: st
                   "train": probe["train"], "val": probe["val"], "train_steps": probe["train_steps"],
                   "train_points": probe["train_points"], "settings": {
                       "loss": probe["loss"], "width": run["width"], "rounds": run["rounds"],
-                      "batch_steps": probe["batch_steps"], "lr": probe["lr"], "seed": probe["seed"]},
+                      "layer_norm": run.get("layer_norm", False), "batch_steps": probe["batch_steps"], "lr": probe["lr"], "seed": probe["seed"]},
                   "lr_schedule": "cosine over the time budget", "train_seconds": probe["train_seconds"],
                   "read_seconds": probe["read_seconds"], "epochs": probe["epochs"],
                   "best_at_seconds": run["best_at_seconds"], "history": run["history"]},

@@ -45,22 +45,29 @@ from pathlib import Path
 import numpy as np
 
 from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, GraphSet, build_graph_set
-from training.graph_model import GraphConfig, init_weights
+from training.graph_model import LAYER_NORM_EPS, GraphConfig, init_weights
 
 POINT_BUCKET = 16384  # points per batch are padded to a multiple of this (--point-bucket)
 BODY_BUCKET = 2048
 VAL_STEPS = 500  # per validation file, drawn as train-graph draws them (--max-val-steps)
 
 
-def parse_config(text: str) -> tuple[int, int]:
-    """'WIDTHxROUNDS' -> (width, rounds)."""
+def parse_config(text: str) -> tuple[int, int, bool]:
+    """'WIDTHxROUNDS' -> (width, rounds, False); 'WIDTHxROUNDSn' -> (width, rounds, True): with layer norms."""
+    t = text.lower()
+    norm = t.endswith("n")
     try:
-        width, rounds = (int(x) for x in text.lower().split("x"))
+        width, rounds = (int(x) for x in t.removesuffix("n").split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"a network is WIDTHxROUNDS like 128x8, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"a network is WIDTHxROUNDS like 128x8, or 128x16n with layer norms, "
+                                         f"got {text!r}") from None
     if width < 1 or rounds < 1:
         raise argparse.ArgumentTypeError(f"width and rounds must be >= 1, got {text!r}")
-    return width, rounds
+    return width, rounds, norm
+
+
+def network_name(width: int, rounds: int, norm: bool) -> str:
+    return f"jax-w{width}-r{rounds}" + ("-ln" if norm else "")
 
 
 def _read(job: tuple[str, int | None, str]) -> str:
@@ -129,17 +136,25 @@ def _network(jax, jnp):
         y = x @ params[f"{name}/kernel"] + params[f"{name}/bias"]
         return jax.nn.relu(y) if relu else y
 
+    def norm(params, x, name):
+        if f"{name}/gain" not in params:
+            return x
+        mean = jnp.mean(x, axis=1, keepdims=True)
+        var = jnp.mean(jnp.square(x - mean), axis=1, keepdims=True)
+        return (x - mean) * jax.lax.rsqrt(var + LAYER_NORM_EPS) * params[f"{name}/gain"] + params[f"{name}/offset"]
+
     def forward(params, points, ends, dynamic, rounds):
         h = dense(params, dense(params, points, "encode0"), "encode1")
         a, b = ends[:, 0], ends[:, 1]
         n = dynamic.shape[0]
         for r in range(rounds):  # loop over rounds, not points
-            to_a = dense(params, h, f"round{r}_to_a")
-            to_b = dense(params, h, f"round{r}_to_b")
+            x = norm(params, h, f"round{r}_norm")
+            to_a = dense(params, x, f"round{r}_to_a")
+            to_b = dense(params, x, f"round{r}_to_b")
             load = (jax.ops.segment_sum(to_a, a, n) + jax.ops.segment_sum(to_b, b, n)) * dynamic
-            u = jnp.concatenate([h, load[a], load[b]], axis=1)
+            u = jnp.concatenate([x, load[a], load[b]], axis=1)
             h = h + dense(params, dense(params, u, f"round{r}_update0"), f"round{r}_update1", relu=False)
-        return dense(params, dense(params, h, "decode0"), "decode1", relu=False)
+        return dense(params, dense(params, norm(params, h, "decode_norm"), "decode0"), "decode1", relu=False)
 
     return forward
 
@@ -147,19 +162,19 @@ def _network(jax, jnp):
 class Probe:
     """Several networks trained by Adam on one stream of batches (see the module docstring)."""
 
-    def __init__(self, configs: list[tuple[int, int]], in_channels: int, out_channels: int, out_mean, out_std,
+    def __init__(self, configs: list[tuple[int, int, bool]], in_channels: int, out_channels: int, out_mean, out_std,
                  lr: float, seed: int):
         import jax
         import jax.numpy as jnp
 
         self.jax, self.jnp, self.lr = jax, jnp, lr
-        self.names = [f"jax-w{w}-r{r}" for w, r in configs]
-        self.rounds = [r for _, r in configs]
+        self.names = [network_name(*c) for c in configs]
+        self.rounds = [r for _, r, _ in configs]
         forward = _network(jax, jnp)
         self.params, self.moments = [], []
-        for w, r in configs:
+        for w, r, norm in configs:
             weights = init_weights(GraphConfig(in_channels=in_channels, out_channels=out_channels, width=w,
-                                               rounds=r), seed)
+                                               rounds=r, layer_norm=norm), seed)
             # Start from Box2D's own warm start, as train-graph does: a zero correction.
             weights["decode1/bias"] = ((0 - out_mean) / out_std).astype(np.float32)
             p = {k: jnp.asarray(v) for k, v in weights.items()}
@@ -289,9 +304,9 @@ def run(args: argparse.Namespace) -> int:
         "read_seconds": round(read_seconds, 1), "train_seconds": args.seconds, "batch_steps": args.batch_steps,
         "lr": args.lr, "seed": args.seed, "normalization": norm, "loss": "mse", "loss_no_correction": no_correction,
         "steps": steps, "epochs": round(steps * args.batch_steps / len(train), 2),
-        "networks": {name: {"width": w, "rounds": r, "best_loss": best[k][0], "best_at_seconds": round(best[k][2], 1),
+        "networks": {name: {"width": w, "rounds": r, "layer_norm": norm, "best_loss": best[k][0], "best_at_seconds": round(best[k][2], 1),
                             "history": history[k]}
-                     for k, (name, (w, r)) in enumerate(zip(probe.names, args.config))},
+                     for k, (name, (w, r, norm)) in enumerate(zip(probe.names, args.config))},
     }
     _write_json(args.out / "probe.json", report)
     return 0
@@ -315,7 +330,8 @@ def main(argv=None) -> int:
     p.add_argument("--train", action="append", required=True, help="recorded .h5 file (repeat; read in parallel)")
     p.add_argument("--val", action="append", required=True, help=f"validation .h5 file ({VAL_STEPS} steps each)")
     p.add_argument("--config", action="append", type=parse_config, required=True,
-                   help="a network as WIDTHxROUNDS, e.g. 128x8 (repeat: trained side by side)")
+                   help="a network as WIDTHxROUNDS, e.g. 128x8, or 128x16n with a layer norm before each "
+                        "round (repeat: trained side by side)")
     p.add_argument("--seconds", type=float, default=300.0, help="training budget, wall clock (default 300)")
     p.add_argument("--val-every", type=float, default=30.0, help="validate every this many seconds (default 30)")
     p.add_argument("--batch-steps", type=int, default=128, help="steps per batch (default 128)")

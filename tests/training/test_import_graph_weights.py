@@ -31,7 +31,8 @@ def probe_for(card: ModelCard, key: str) -> dict:
             "read_seconds": 0.0, "train_seconds": 1.0, "batch_steps": 1, "lr": 1e-3, "seed": 0,
             "normalization": {k: list(v) for k, v in card.gridspec.normalization.items()}, "loss": "mse",
             "loss_no_correction": 2.0, "steps": 1, "epochs": 0.1,
-            "networks": {key: {"width": config["width"], "rounds": config["rounds"], "best_loss": 0.5,
+            "networks": {key: {"width": config["width"], "rounds": config["rounds"],
+                               "layer_norm": config.get("layer_norm", False), "best_loss": 0.5,
                                "best_at_seconds": 1.0, "history": [[1.0, 1, 0.6, 0.5]]}}}
 
 
@@ -105,9 +106,10 @@ def test_concatenated_sets_batch_each_step_as_its_own_set_does(data):
             np.testing.assert_array_equal(got, want)
 
 
-def test_a_network_is_given_as_width_x_rounds():
-    assert parse_config("128x8") == (128, 8)
-    for bad in ("128", "0x3", "ax3"):
+def test_a_network_is_given_as_width_x_rounds_and_n_for_layer_norms():
+    assert parse_config("128x8") == (128, 8, False)
+    assert parse_config("64x16n") == (64, 16, True)
+    for bad in ("128", "0x3", "ax3", "8x2m"):
         with pytest.raises(Exception, match="WIDTHxROUNDS|>= 1"):
             parse_config(bad)
 
@@ -128,10 +130,58 @@ def test_the_jax_trainer_leaves_each_networks_weights_and_its_validation_history
 
     out = tmp_path / "run"
     assert train(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--config", "8x2",
-                  "--seconds", "3", "--val-every", "1", "--batch-steps", "4", "--point-bucket", "256",
+                  "--config", "8x2n", "--seconds", "3", "--val-every", "1", "--batch-steps", "4", "--point-bucket", "256",
                   "--workers", "1", "--feeders", "1", "--out", str(out)]) == 0
     probe = json.loads((out / "probe.json").read_text())
     run = probe["networks"]["jax-w8-r2"]
     assert (run["width"], run["rounds"]) == (8, 2) and run["history"] and np.isfinite(run["best_loss"])
     with np.load(out / "jax-w8-r2.weights.npz") as f:
         assert f["encode0/kernel"].shape == (14, 8) and f["round1_update1/kernel"].shape == (8, 8)
+        assert "round0_norm/gain" not in f.files
+    assert probe["networks"]["jax-w8-r2-ln"]["layer_norm"] is True
+    with np.load(out / "jax-w8-r2-ln.weights.npz") as f:
+        assert f["round1_norm/gain"].shape == (8,) and f["decode_norm/offset"].shape == (8,)
+
+
+def test_a_network_with_layer_norms_is_imported_with_them_and_its_onnx_file_computes_what_tensorflow_does(tmp_path):
+    from training.graph_model import GraphConfig, init_weights
+
+    config = GraphConfig(in_channels=14, width=8, rounds=3, layer_norm=True)
+    weights = init_weights(config, seed=2)
+    rng = np.random.default_rng(0)
+    weights = {k: v + rng.normal(0, 0.1, v.shape).astype(np.float32) for k, v in weights.items()}  # not the identity
+    np.savez(tmp_path / "jax-w8-r3-ln.weights.npz", **weights)
+    card = ModelCard.load(SHIPPED / f"{SOURCE}.json")
+    probe = probe_for(card, "jax-w8-r3-ln")
+    probe["networks"]["jax-w8-r3-ln"].update(width=8, rounds=3, layer_norm=True)
+    (tmp_path / "probe.json").write_text(json.dumps(probe))
+    out = tmp_path / "served"
+    out.mkdir()
+    imported = import_weights(tmp_path / "jax-w8-r3-ln.weights.npz", tmp_path / "probe.json", out)
+    assert imported.architecture["config"]["layer_norm"] is True
+    assert imported.parameters == sum(v.size for v in weights.values())
+    assert imported.parity_max_abs_error < 1e-4
+    recovered, _ = recover(out / "jax-w8-r3-ln.json")
+    assert set(recovered) == set(weights) and "round2_norm/gain" in recovered
+
+
+def test_the_jax_network_computes_what_the_tensorflow_network_does_with_and_without_layer_norms():
+    pytest.importorskip("jax", reason="JAX is not a dependency; training.train_graph_jax runs where it is installed")
+    import jax
+    import jax.numpy as jnp
+
+    from training.graph_model import ContactGraphNet, GraphConfig, init_weights
+    from training.train_graph_jax import _network
+
+    forward = _network(jax, jnp)
+    rng = np.random.default_rng(1)
+    points = rng.standard_normal((60, 14)).astype(np.float32)
+    ends = rng.integers(0, 12, (60, 2)).astype(np.int32)
+    dynamic = (rng.random((12, 1)) < 0.8).astype(np.float32)
+    for norm in (False, True):
+        config = GraphConfig(in_channels=14, width=8, rounds=3, layer_norm=norm)
+        weights = {k: v + rng.normal(0, 0.1, v.shape).astype(np.float32)
+                   for k, v in init_weights(config, seed=3).items()}
+        want = ContactGraphNet(config, weights)(points, ends, dynamic).numpy()
+        got = forward({k: jnp.asarray(v) for k, v in weights.items()}, points, ends, dynamic, 3)
+        np.testing.assert_allclose(np.asarray(got), want, atol=1e-4)
