@@ -83,6 +83,9 @@
 #                              loss) on two cores
 #   graph-projected-max-1-799-r8  graph-projected-max-1-799's recipe from graph-mse-1-799-r8's
 #                              weights (with a -t1 card)
+#   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
+#                              (--layer-norm): on the GPU it trained eight rounds faster and let
+#                              sixteen train; does it help the default's shape on two cores?
 #   graph-projected-max-1-799-r8-long, -r8-long-e2  the default's two long stages (-long, -long-e2)
 #                              step for step from graph-projected-max-1-799-r8's weights
 #   graph-projected-max-1-799-w128-r8-gpu  the same from the GPU probe's width-128, 8-round
@@ -216,6 +219,9 @@ run() {
         graph-mse-1-799-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-r8 --loss mse --rounds 8 --epochs 6 --patience 3 ;;
+        graph-mse-1-799-r8-ln)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant graph-mse-1-799-r8-ln --loss mse --rounds 8 --layer-norm --epochs 6 --patience 3 ;;
         graph-mse-1-799-w64|graph-mse-1-799-w128)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse --width "${1##*-w}" --epochs 8 --patience 3 ;;

@@ -96,6 +96,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pooled", action="store_true",
                         help="each round also reads the mean state of all points of the step, a graph-wide "
                              "summary; with --init from a network without it, the summary's weights start at 0")
+    parser.add_argument("--layer-norm", action="store_true",
+                        help="each round, and the decoder, reads the point states through a layer normalization "
+                             "(pre-norm): what let sixteen rounds train on the GPU (docs/results.md)")
     parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving",
                                            "relative-moving", "solver", "solver-log",
                                            "solver-projected", "solver-projected-max", "solver-projected-sweeps"),
@@ -531,7 +534,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names, normalization=normalization(train))
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
-                         rounds=args.rounds, pooled=args.pooled)
+                         rounds=args.rounds, pooled=args.pooled,
+                         layer_norm=getattr(args, "layer_norm", False))
     if args.init is not None:
         net = ContactGraphNet(config, initial_weights(args.init, config))
     else:
@@ -582,7 +586,8 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
     got = {k: v.shape for k, v in weights.items()}
     if got != expected:
         raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
-                         f"{config.rounds}{' --pooled' if config.pooled else ''} with {config.in_channels} inputs")
+                         f"{config.rounds}{' --pooled' if config.pooled else ''}{' --layer-norm' if config.layer_norm else ''} "
+                         f"with {config.in_channels} inputs")
     return weights
 
 
@@ -705,6 +710,7 @@ class _CardParts:
                                                                    "max_steps_per_file",
                                                                    "max_val_steps")}
                                   | ({"extra_inputs": args.extra_inputs} if getattr(args, "extra_inputs", "") else {})
+                                  | ({"layer_norm": True} if getattr(args, "layer_norm", False) else {})
                                   | ({"self_stress_weight": args.self_stress_weight,
                                       "self_stress_iterations": args.self_stress_iterations}
                                      if args.loss == "mse-self-stress" else {}),

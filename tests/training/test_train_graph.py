@@ -323,6 +323,23 @@ def test_train_graph_pooled_from_a_plain_run_exports_a_model_onnx_runtime_runs_l
     assert {i.name for i in session.get_inputs()} == {"points", "ends", "dynamic"}  # served as any graph model
 
 
+def test_train_graph_with_layer_norms_exports_them_and_will_not_start_from_a_network_without(data, tmp_path,
+                                                                                            capsys):
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--rounds", "2", "--width", "8", "--loss", "mse", "--cache",
+              str(tmp_path / "cache"), "--quiet"]
+    assert main(common + ["--out", str(tmp_path / "normed.onnx"), "--layer-norm"]) == 0
+    card = json.loads((tmp_path / "normed.json").read_text())
+    assert card["architecture"]["config"]["layer_norm"] is True and card["parity_max_abs_error"] < 1e-4
+    assert card["training"]["settings"]["layer_norm"] is True
+    assert main(common + ["--out", str(tmp_path / "plain.onnx")]) == 0
+    # A plain network's function changes under a normalization: refused, not silently grown.
+    assert main(common + ["--out", str(tmp_path / "grown.onnx"), "--layer-norm", "--init",
+                          str(tmp_path / "cache" / "plain.weights.npz")]) != 0
+    assert "--layer-norm" in capsys.readouterr().err
+    assert not (tmp_path / "grown.onnx").exists()
+
+
 def test_a_diverging_run_says_so_and_writes_nothing(data, tmp_path, capsys):
     out = tmp_path / "m.onnx"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
