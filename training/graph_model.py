@@ -29,7 +29,9 @@ With `layer_norm`, each round reads its state through a layer normalization
 residual rounds did not train (docs/results.md, "Eight rounds").
 
 Plain tf.Module, no Keras: the weights are a dict of arrays (saved as .npz)
-and the same tf.function is trained and exported (tf2onnx, opset 17).
+and the same tf.function is trained and exported (tf2onnx, opset 17). How points
+reach their bodies (`incidence`) changes the graph's ops, not its numbers: training
+sums by segments, the export by one-hot matmuls or by scatter-adds.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from training.models import import_tensorflow
 
 
 LAYER_NORM_EPS = 1e-5
+INCIDENCE_MODES = ("segments", "matmul", "scatter")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,8 +110,13 @@ class ContactGraphNet:
         self.tf = tf
         self.config = config
         # How points reach their bodies: "segments" (unsorted_segment_sum, fast in TF on big
-        # batches) or "matmul" (one-hot incidence matrices, (P, B): fast in ONNX Runtime on
-        # one step, where tf2onnx turns segment sums into a sort). The same sums either way.
+        # batches), "matmul" (one-hot incidence matrices, (P, B): fast in ONNX Runtime on
+        # small steps, where tf2onnx turns segment sums into a sort, but its cost grows with
+        # points times bodies) or "scatter" (tensor_scatter_nd_add, which tf2onnx writes as
+        # ONNX ScatterND with reduction "add": cost grows with the points alone).
+        # The same sums every way.
+        if incidence not in INCIDENCE_MODES:
+            raise ValueError(f"incidence {incidence!r} is not one of {', '.join(INCIDENCE_MODES)}")
         self.incidence = incidence
         weights = init_weights(config, seed) if weights is None else weights
         self.variables = {k: tf.Variable(v, name=k.replace("/", "_")) for k, v in sorted(weights.items())}
@@ -141,6 +149,8 @@ class ContactGraphNet:
         h = self._dense(self._dense(points, "encode0"), "encode1")
         a, b = ends[:, 0], ends[:, 1]
         n_bodies = tf.shape(dynamic)[0]
+        # Built once, used by every round: the one-hot matrices are the costly part of "matmul".
+        at_a = at_b = None
         if self.incidence == "matmul":
             at_a, at_b = tf.one_hot(a, n_bodies), tf.one_hot(b, n_bodies)  # (P, B)
         for r in range(self.config.rounds):  # loop over rounds, not points
@@ -149,17 +159,31 @@ class ContactGraphNet:
             x = self._norm(h, f"round{r}_norm")
             to_a = self._dense(x, f"round{r}_to_a")
             to_b = self._dense(x, f"round{r}_to_b")
-            if self.incidence == "matmul":
-                load = (tf.matmul(at_a, to_a, transpose_a=True) + tf.matmul(at_b, to_b, transpose_a=True)) * dynamic
-                u = tf.concat([x, tf.matmul(at_a, load), tf.matmul(at_b, load)], axis=1)
-            else:
-                load = (tf.math.unsorted_segment_sum(to_a, a, n_bodies)
-                        + tf.math.unsorted_segment_sum(to_b, b, n_bodies)) * dynamic
-                u = tf.concat([x, tf.gather(load, a), tf.gather(load, b)], axis=1)
+            load = (self._sum_at_bodies(to_a, a, at_a, n_bodies)
+                    + self._sum_at_bodies(to_b, b, at_b, n_bodies)) * dynamic
+            u = tf.concat([x, self._read_bodies(load, a, at_a), self._read_bodies(load, b, at_b)], axis=1)
             if self.config.pooled:
                 u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
             h = h + self._dense(self._dense(u, f"round{r}_update0"), f"round{r}_update1", relu=False)
         return self._dense(self._dense(self._norm(h, "decode_norm"), "decode0"), "decode1", relu=False)
+
+    def _sum_at_bodies(self, messages, body, one_hot, n_bodies):
+        """messages (P, W), body (P,) int32 each point's body, one_hot (P, B) float32 of body
+        (only with "matmul", else None) -> (B, W): the sum of the messages each body receives."""
+        tf = self.tf
+        if self.incidence == "matmul":
+            return tf.matmul(one_hot, messages, transpose_a=True)
+        if self.incidence == "scatter":
+            # Indices (P, 1): each point adds its whole row W into row body of the sums.
+            zeros = tf.zeros([n_bodies, self.config.width], messages.dtype)
+            return tf.tensor_scatter_nd_add(zeros, body[:, None], messages)
+        return tf.math.unsorted_segment_sum(messages, body, n_bodies)
+
+    def _read_bodies(self, load, body, one_hot):
+        """load (B, W), body (P,) int32, one_hot (P, B) or None -> (P, W): each point's body's row."""
+        if self.incidence == "matmul":
+            return self.tf.matmul(one_hot, load)
+        return self.tf.gather(load, body)
 
     def _step_mean(self, h, step_of):
         """(P, W): the mean of h over each point's step."""
@@ -182,17 +206,21 @@ def config_to_dict(c: GraphConfig) -> dict[str, Any]:
     return dataclasses.asdict(c)
 
 
-def to_onnx(net: ContactGraphNet, opset: int = 17) -> bytes:
+def to_onnx(net: ContactGraphNet, opset: int = 17, incidence: str = "matmul") -> bytes:
     """The network as ONNX: inputs "points", "ends", "dynamic", output "impulses".
-    Exported with one-hot incidence matrices, which ONNX Runtime runs faster than
-    tf2onnx's sort-based segment sums; training.train_graph checks it against `net`."""
+    `incidence` picks how the exported graph sums per body (ContactGraphNet): "matmul",
+    one-hot (P, B) matrices, which ONNX Runtime runs faster than tf2onnx's sort-based
+    segment sums; "scatter", ScatterND adds (opset 16 or later), whose cost does not grow
+    with the bodies. training.train_graph checks the export against `net`."""
+    if incidence == "scatter" and opset < 16:
+        raise ValueError(f"a scatter export needs opset 16 or later (ScatterND's reduction), not {opset}")
     import logging
 
     logging.getLogger("tf2onnx").setLevel(logging.ERROR)
     import tf2onnx
 
     tf = net.tf
-    net = ContactGraphNet(net.config, net.weights(), incidence="matmul")
+    net = ContactGraphNet(net.config, net.weights(), incidence=incidence)
 
     @tf.function(input_signature=net.signature())
     def forward(points, ends, dynamic):

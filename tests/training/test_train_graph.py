@@ -633,3 +633,66 @@ def test_relative_moving_scores_each_step_against_its_own_moving_bodies_correcti
     # The same error counts for more where the step's own correction is small (floored).
     np.testing.assert_allclose(per_step.numpy(), [0.25 / (1.0 + MOVING_FLOOR ** 2), 0.02 ** 2 / MOVING_FLOOR ** 2, 0.0],
                                rtol=1e-5)
+
+
+def _shared_body_step(in_channels: int, rng: np.random.Generator):
+    """One step of 30 points among 9 bodies: bodies 0 and 1 static, body 8 touched by no point,
+    so most bodies gather several points and some points push on a static body.
+    points (30, F) float32, ends (30, 2) int32, dynamic (9, 1) float32."""
+    points = rng.standard_normal((30, in_channels)).astype(np.float32)
+    ends = np.stack([rng.integers(0, 8, 30), rng.integers(0, 4, 30)], axis=1).astype(np.int32)
+    dynamic = np.array([0, 0, 1, 1, 1, 1, 1, 1, 1], np.float32)[:, None]
+    return points, ends, dynamic
+
+
+def _random_net(config, rng: np.random.Generator, incidence: str = "segments"):
+    """A network with every weight random: init_weights zeroes the last layer, whose outputs
+    would then agree however the sums were taken."""
+    from training.graph_model import ContactGraphNet, init_weights
+
+    weights = {k: (0.5 * rng.standard_normal(v.shape)).astype(np.float32) for k, v in init_weights(config).items()}
+    return ContactGraphNet(config, weights, incidence=incidence)
+
+
+@pytest.mark.parametrize("layer_norm,pooled", [(False, False), (True, False), (True, True)])
+def test_a_scatter_export_computes_what_tensorflow_computes_on_bodies_shared_by_points(layer_norm, pooled):
+    from training.graph_model import ContactGraphNet, GraphConfig, to_onnx
+
+    rng = np.random.default_rng(3)
+    config = GraphConfig(in_channels=5, width=8, rounds=3, layer_norm=layer_norm, pooled=pooled)
+    net = _random_net(config, rng)
+    points, ends, dynamic = _shared_body_step(config.in_channels, rng)
+    expected = np.asarray(net(points, ends, dynamic))
+    for incidence in ("matmul", "scatter"):  # every way of summing per body is the same network
+        other = ContactGraphNet(config, net.weights(), incidence=incidence)
+        np.testing.assert_allclose(np.asarray(other(points, ends, dynamic)), expected, atol=1e-5)
+    session = ort.InferenceSession(to_onnx(net, incidence="scatter"), providers=["CPUExecutionProvider"])
+    got = session.run(["impulses"], {"points": points, "ends": ends, "dynamic": dynamic})[0]
+    np.testing.assert_allclose(got, expected, atol=1e-4)
+
+
+def test_a_scatter_export_sums_by_scatter_adds_with_no_one_hot_matrices_or_sorts():
+    import onnx
+
+    from training.graph_model import GraphConfig, to_onnx
+
+    config = GraphConfig(in_channels=5, width=8, rounds=3, layer_norm=True)
+    graph = onnx.load_from_string(to_onnx(_random_net(config, np.random.default_rng(0)), incidence="scatter")).graph
+    ops = [n.op_type for n in graph.node]
+    scatters = [n for n in graph.node if n.op_type == "ScatterND"]
+    assert len(scatters) == 2 * config.rounds  # one for body A's messages, one for body B's, per round
+    assert all(onnx.helper.get_node_attr_value(n, "reduction") == b"add" for n in scatters)
+    # OneHot builds the (P, B) matrices of "matmul"; TopK, Unique and NonZero are tf2onnx's segment sums.
+    assert not {"OneHot", "TopK", "Unique", "NonZero"} & set(ops)
+    default = onnx.load_from_string(to_onnx(_random_net(config, np.random.default_rng(0)))).graph
+    assert "OneHot" in {n.op_type for n in default.node}  # the default export is still the matmul one
+
+
+def test_an_unknown_way_of_summing_per_body_is_refused():
+    from training.graph_model import ContactGraphNet, GraphConfig, to_onnx
+
+    config = GraphConfig(in_channels=5, width=8, rounds=1)
+    with pytest.raises(ValueError, match="incidence"):
+        ContactGraphNet(config, incidence="sparse")
+    with pytest.raises(ValueError, match="opset 16"):
+        to_onnx(ContactGraphNet(config), opset=15, incidence="scatter")
