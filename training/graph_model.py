@@ -206,12 +206,14 @@ def config_to_dict(c: GraphConfig) -> dict[str, Any]:
     return dataclasses.asdict(c)
 
 
-def to_onnx(net: ContactGraphNet, opset: int = 17, incidence: str = "matmul") -> bytes:
+def to_onnx(net: ContactGraphNet, opset: int = 17, incidence: str = "scatter") -> bytes:
     """The network as ONNX: inputs "points", "ends", "dynamic", output "impulses".
-    `incidence` picks how the exported graph sums per body (ContactGraphNet): "matmul",
-    one-hot (P, B) matrices, which ONNX Runtime runs faster than tf2onnx's sort-based
-    segment sums; "scatter", ScatterND adds (opset 16 or later), whose cost does not grow
-    with the bodies. training.train_graph checks the export against `net`."""
+    `incidence` picks how the exported graph sums per body (ContactGraphNet): "scatter"
+    (the default since round 2's eight-round default), ScatterND adds (opset 16 or later),
+    whose cost does not grow with the bodies and which ran the default 2x faster than
+    "matmul" even on the thesis world's steps (docs/performance.md); "matmul", one-hot (P, B)
+    matrices, what every model before it was exported with. training.train_graph checks
+    the export against `net`."""
     if incidence == "scatter" and opset < 16:
         raise ValueError(f"a scatter export needs opset 16 or later (ScatterND's reduction), not {opset}")
     import logging

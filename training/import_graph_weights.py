@@ -60,7 +60,8 @@ def import_weights(weights_path: Path, probe_path: Path, out_dir: Path, name: st
         name=name, kind="graph", onnx_file=onnx_path.name, gridspec=spec, fixed_grid=False,
         input_name="points", output_name="impulses", combine="residual", parameters=params,
         architecture={"config": config_to_dict(config), "parameters": {"total": params, "trainable": params},
-                      "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "tensorflow": net.tf.__version__},
+                      "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "onnx_incidence": "scatter",
+                      "tensorflow": net.tf.__version__},
         training={"trained_with": "training.train_graph_jax", "jax": probe["jax"], "device": probe["device"],
                   "train": probe["train"], "val": probe["val"], "train_steps": probe["train_steps"],
                   "train_points": probe["train_points"], "settings": {

@@ -13,8 +13,9 @@ shipped model further, this writes the .npz `--init` reads.
 tf2onnx names the weight tensors after the traced ops ("MatMul_9/ReadVariableOp:0"),
 not after the variables, so the mapping is found by experiment: a network of the card's
 configuration (architecture.config) with a distinct random value in every weight is
-exported the same way (training.graph_model.to_onnx), and each of its tensors is matched
-by value to the variable it came from. The shipped file's tensors of the same names are
+exported the same way (training.graph_model.to_onnx, with the shipped file's way of summing
+per body: one-hot matmuls for the models exported before the scatter export, ScatterND
+adds since), and each of its tensors is matched by value to the variable it came from. The shipped file's tensors of the same names are
 then that model's weights. Finally the recovered network is run against the shipped
 ONNX file on a random step; the largest difference must be under 1e-4 (normalized units),
 or nothing is written.
@@ -45,14 +46,22 @@ def _initializers(onnx_bytes: bytes) -> dict[str, np.ndarray]:
     return {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
 
 
-def tensor_names(config) -> dict[str, str]:
+def exported_incidence(onnx_bytes: bytes) -> str:
+    """How an exported contact-graph network sums per body: "matmul" (one-hot matrices) or "scatter"."""
+    import onnx
+
+    ops = {n.op_type for n in onnx.load_from_string(onnx_bytes).graph.node}
+    return "scatter" if "ScatterND" in ops else "matmul"
+
+
+def tensor_names(config, incidence: str = "scatter") -> dict[str, str]:
     """{weight key ("edge0/kernel", ...): ONNX tensor name} for a network of `config`,
-    found by exporting one with distinct random weights."""
+    found by exporting one with distinct random weights the `incidence` way."""
     from training.graph_model import ContactGraphNet, init_weights, to_onnx
 
     rng = np.random.default_rng(0)
     probe = {k: rng.standard_normal(v.shape).astype(np.float32) for k, v in init_weights(config).items()}
-    exported = _initializers(to_onnx(ContactGraphNet(config, probe)))
+    exported = _initializers(to_onnx(ContactGraphNet(config, probe), incidence=incidence))
     names = {}
     for key, value in probe.items():
         hits = [n for n, t in exported.items() if t.shape == value.shape and np.array_equal(t, value)]
@@ -76,7 +85,7 @@ def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
     config = GraphConfig(**card.architecture.get("config", {}))
     onnx_bytes = card.onnx_path(card_path).read_bytes()
     shipped = _initializers(onnx_bytes)
-    names = tensor_names(config)
+    names = tensor_names(config, exported_incidence(onnx_bytes))
     missing = sorted(n for n in names.values() if n not in shipped)
     if missing:
         raise RecoveryError(f"{card_path}: the ONNX file lacks {missing[:3]}...: it was exported by other code "
@@ -90,7 +99,7 @@ def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
     dynamic = (np.arange(12) < 10).astype(np.float32)[:, None]
     session = ort.InferenceSession(onnx_bytes, providers=["CPUExecutionProvider"])
     onnx_out = session.run(None, {"points": points, "ends": ends, "dynamic": dynamic})[0]
-    tf_out = np.asarray(ContactGraphNet(config, weights, incidence="matmul")(points, ends, dynamic))
+    tf_out = np.asarray(ContactGraphNet(config, weights)(points, ends, dynamic))
     return weights, float(np.max(np.abs(onnx_out - tf_out)))
 
 

@@ -699,7 +699,8 @@ class _CardParts:
             name=name, kind="graph", onnx_file=onnx_file, gridspec=self.spec, fixed_grid=False,
             input_name="points", output_name="impulses", combine=args.combine, parameters=params,
             architecture={"config": config_to_dict(net.config), "parameters": {"total": params, "trainable": params},
-                          "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "tensorflow": net.tf.__version__},
+                          "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "onnx_incidence": "scatter",
+                          "tensorflow": net.tf.__version__},
             training={"train": [{"path": s, "steps_used": len(g), "points": len(g.targets)}
                                 for s, g in zip(self.sources, self.train)],
                       "val": [{"path": s, "steps_used": len(g), "points": len(g.targets)}

@@ -685,7 +685,9 @@ def test_a_scatter_export_sums_by_scatter_adds_with_no_one_hot_matrices_or_sorts
     # OneHot builds the (P, B) matrices of "matmul"; TopK, Unique and NonZero are tf2onnx's segment sums.
     assert not {"OneHot", "TopK", "Unique", "NonZero"} & set(ops)
     default = onnx.load_from_string(to_onnx(_random_net(config, np.random.default_rng(0)))).graph
-    assert "OneHot" in {n.op_type for n in default.node}  # the default export is still the matmul one
+    assert sorted(n.op_type for n in default.node) == sorted(ops)  # the scatter export is the default
+    matmul = onnx.load_from_string(to_onnx(_random_net(config, np.random.default_rng(0)), incidence="matmul")).graph
+    assert "OneHot" in {n.op_type for n in matmul.node}  # what the models before it were exported with
 
 
 def test_an_unknown_way_of_summing_per_body_is_refused():
