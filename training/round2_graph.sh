@@ -86,6 +86,8 @@
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
 #                              (--layer-norm): on the GPU it trained eight rounds faster and let
 #                              sixteen train; does it help the default's shape on two cores?
+#   graph-projected-max-1-799-r8-ln  the default's second stage from graph-mse-1-799-r8-ln's
+#                              weights (with a -t1 card)
 #   graph-projected-max-1-799-r8-long, -r8-long-e2  the default's two long stages (-long, -long-e2)
 #                              step for step from graph-projected-max-1-799-r8's weights
 #   graph-projected-max-1-799-w128-r8-gpu  the same from the GPU probe's width-128, 8-round
@@ -239,6 +241,11 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
                 --init runs/graph-cache/graph-mse-1-799-r8.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-r8-ln)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --layer-norm --max-steps-per-file 3000 --epochs 2 \
+                --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-r8-ln.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-w128-r8-gpu)
             # From the GPU probe's weights (training/device_graph_probe.sh), recovered from the shipped
