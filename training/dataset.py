@@ -26,7 +26,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from simclient.engine import BODY_DTYPE, CONTACT_DTYPE
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 
 SCHEMA_VERSION = 1
 

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact import dispatch
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 from simclient import seeds as seed_ranges
-from simclient.engine import BODY_DTYPE, CONTACT_DTYPE
 from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_from_dict, spec_to_dict
 from training.dataset import COMPRESSIONS, STEP_DTYPE, Writer
 
