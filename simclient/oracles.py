@@ -63,9 +63,14 @@ start's value lies (docs/results.md). Not servable: each solves the step first.
 
 from __future__ import annotations
 
+from typing import Callable, NamedTuple
+
 import numpy as np
 
-from deepcontact.kinematics import points_at_rest
+from deepcontact.gridspec import GridSpec
+from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of, contact_velocities,
+                                    nearest_admissible, points_at_rest)
+from deepcontact.transfer import plan
 from simclient.provider import (SWITCH_IMPULSE, Provider, ReadsFriction, as_warm_start, at_friction_cone,
                                 persisting_rows, point_friction)
 
@@ -92,7 +97,11 @@ NOISY_SMALL = 1.0
 
 
 class OracleMix(ReadsFriction):
-    """The oracle's impulses where they say most, builtin elsewhere (see the module docstring)."""
+    """The oracle's impulses where they say most, builtin elsewhere (see the module docstring).
+
+    A step is served in two stages: the step's solution (`_solution`: from zero, or from
+    Box2D's warm start for the near- variants), then the variant's mix of it with Box2D's
+    warm start (`_MIXES`, one small function each)."""
 
     def __init__(self, variant: str):
         self.variant = variant
@@ -108,98 +117,153 @@ class OracleMix(ReadsFriction):
                 raise ValueError(f"oracle:{kind}@... needs {_ORACLE_PARAMETERS[kind]}, got {variant!r}")
         elif variant not in ORACLES:
             raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
+        self.mix = self.kind.removeprefix("near-")
+        if self.mix not in _MIXES:
+            raise ValueError(f"oracle:{variant} is not a mix of this step's solution (simclient.warmstarts.make_provider "
+                             "serves it with PreviousOracle)")
         self._rng = np.random.default_rng(0)  # a fresh provider per world: the same noise every run
 
     def warm_start(self, engine, bodies, points, step):
         if len(points) == 0:
             return None  # nothing to warm-start
         builtin = points["builtin"].astype(np.float64)
+        solved = _Solved(engine, bodies, points, builtin, self._solution(engine, builtin))
+        return as_warm_start(_MIXES[self.mix](self, solved))
+
+    def _solution(self, engine, builtin: np.ndarray) -> np.ndarray:
+        """(P, 2) float64 N s: the step solved to convergence, from Box2D's warm start
+        `builtin` (P, 2) for the near- variants, else from zero."""
         if self.kind.startswith("near"):
             start = tuple(np.ascontiguousarray(builtin[:, k], np.float32) for k in (0, 1))
             exact = engine.oracle(start=start).astype(np.float64)
-            exact = np.where(np.isnan(exact), builtin, exact)  # NaN: outside every awake island
-        else:
-            exact = np.nan_to_num(engine.oracle()).astype(np.float64)
-        new = ~builtin.any(axis=1)
-        correction = np.abs(exact[:, 0] - builtin[:, 0])
-        v = self.kind.removeprefix("near-")
-        if v in ("near", "copy"):
-            warm = exact
-        elif v == "persisting":
-            warm = np.where(new[:, None], 0.0, exact)
-        elif v == "new":
-            warm = np.where(new[:, None], exact, builtin)
-        elif v in ("normal", "tangent"):
-            warm = builtin.copy()
-            col = 0 if v == "normal" else 1
-            warm[:, col] = exact[:, col]
-        elif v == "heavy":
-            heavy = exact[:, 0] >= np.median(exact[:, 0])
-            warm = np.where(heavy[:, None], exact, builtin)
-        elif v == "half":
-            warm = builtin + 0.5 * (exact - builtin)
-        elif v == "small":
-            warm = np.where((correction <= self.value)[:, None], exact, builtin)
-        elif v == "big":
-            warm = np.where((correction > self.value)[:, None], exact, builtin)
-        elif v in ("noisy", "relnoisy"):
-            noise = self._rng.normal(0.0, self.value, exact.shape)
-            if v == "relnoisy":
-                noise *= np.abs(exact - builtin)
-            warm = np.where((correction <= NOISY_SMALL)[:, None], exact + noise, builtin)
-        elif v in ("settled", "moving"):
-            at_rest = points_at_rest(bodies, points)
-            warm = np.where((at_rest if v == "settled" else ~at_rest)[:, None], exact, builtin)
-        elif v in ("release", "switch"):
-            pressing, will_press = builtin[:, 0] > SWITCH_IMPULSE, exact[:, 0] > SWITCH_IMPULSE
-            if v == "release":
-                warm = np.where((pressing & ~will_press)[:, None], 0.0, builtin)
-            else:
-                warm = np.where((pressing != will_press)[:, None], exact, builtin)
-        elif v in ("cone", "inside"):
-            mu = point_friction(self._friction, points)
-            cone = at_friction_cone(builtin, mu) | at_friction_cone(exact, mu)
-            warm = np.where((cone if v == "cone" else ~cone)[:, None], exact, builtin)
-        elif v in ("admissible", "admissible-open", "admissible-separating", "admissible-abs", "admissible-moving",
-                   "admissible-settled"):
-            from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of,
-                                                contact_velocities, nearest_admissible)
+            return np.where(np.isnan(exact), builtin, exact)  # NaN: outside every awake island
+        return np.nan_to_num(engine.oracle()).astype(np.float64)
 
-            if v in ("admissible-moving", "admissible-settled"):
-                moving = bodies_moving(bodies)
-                moves = body_space_part_of(bodies, points, exact - builtin, moving if v == "admissible-moving" else ~moving)
-            else:
-                moves = body_space_part(bodies, points, exact - builtin)
-            released = None
-            if v == "admissible-open":
-                released = exact[:, 0] <= SWITCH_IMPULSE
-            elif v == "admissible-separating":
-                physics = Physics(engine.config.dt, tuple(engine.world.gravity))
-                released = contact_velocities(bodies, points, builtin + moves, physics)[:, 0] > SEPARATING_SPEED
-            if self.value:  # oracle:near-admissible@R, oracle:near-admissible-abs@S
-                size = 1.0 if v == "admissible-abs" else np.sqrt(np.mean(moves ** 2))
-                moves = body_space_part(bodies, points, moves + self._rng.normal(0.0, self.value * size, moves.shape))
-            warm = nearest_admissible(bodies, points, builtin + moves, point_friction(self._friction, points), released)
-        elif v in ("body-space", "self-stress"):
-            from deepcontact.kinematics import body_space_part
 
-            moves = body_space_part(bodies, points, exact - builtin)
-            warm = builtin + (moves if v == "body-space" else exact - builtin - moves)
-            warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-        elif v == "some":
-            served = self._rng.random(len(points)) < self.value
-            warm = np.where(served[:, None], exact, builtin)
-        else:
-            from deepcontact.gridspec import GridSpec
-            from deepcontact.transfer import plan
+class _Solved(NamedTuple):
+    """A step and its solution, as a mix reads them."""
 
-            # A grid from the scenes' origin (their box's lower-left corner) over every point.
-            res = self.value
-            reach = np.ceil(points["point"].max(axis=0) / res) * res + res
-            spec = GridSpec.for_domain((0.0, 0.0), tuple(np.maximum(reach, res)), res, 2 * res)
-            pl = plan(points["point"], spec, outside="drop")
-            warm = builtin + pl.g2p(pl.p2g(exact - builtin)[0])[0]
-        return as_warm_start(warm)
+    engine: object
+    bodies: np.ndarray  # (B,) BODY_DTYPE
+    points: np.ndarray  # (P,) CONTACT_DTYPE
+    builtin: np.ndarray  # (P, 2) float64 N s, Box2D's warm start
+    exact: np.ndarray  # (P, 2) float64 N s, OracleMix._solution
+
+    @property
+    def new(self) -> np.ndarray:
+        """(P,) bool: points Box2D carries nothing into (new this step)."""
+        return ~self.builtin.any(axis=1)
+
+    @property
+    def correction(self) -> np.ndarray:
+        """(P,) N s: the size of the solution's change to Box2D's normal impulse."""
+        return np.abs(self.exact[:, 0] - self.builtin[:, 0])
+
+
+Mix = Callable[[OracleMix, _Solved], np.ndarray]  # -> (P, 2) float64 N s, the served impulses
+
+
+def _exact_where(where: Callable[[OracleMix, _Solved], np.ndarray]) -> Mix:
+    """The solution at the points `where` picks ((P,) bool), Box2D's warm start at the others."""
+    return lambda o, s: np.where(where(o, s)[:, None], s.exact, s.builtin)
+
+
+def _column(col: int) -> Mix:
+    def mix(o: OracleMix, s: _Solved) -> np.ndarray:
+        warm = s.builtin.copy()
+        warm[:, col] = s.exact[:, col]
+        return warm
+    return mix
+
+
+def _noisy(relative: bool) -> Mix:
+    def mix(o: OracleMix, s: _Solved) -> np.ndarray:
+        noise = o._rng.normal(0.0, o.value, s.exact.shape)
+        if relative:
+            noise *= np.abs(s.exact - s.builtin)
+        return np.where((s.correction <= NOISY_SMALL)[:, None], s.exact + noise, s.builtin)
+    return mix
+
+
+def _pressing(impulses: np.ndarray) -> np.ndarray:
+    return impulses[:, 0] > SWITCH_IMPULSE
+
+
+def _release(o: OracleMix, s: _Solved) -> np.ndarray:
+    let_go = _pressing(s.builtin) & ~_pressing(s.exact)
+    return np.where(let_go[:, None], 0.0, s.builtin)
+
+
+def _at_cone(o: OracleMix, s: _Solved) -> np.ndarray:
+    mu = point_friction(o._friction, s.points)
+    return at_friction_cone(s.builtin, mu) | at_friction_cone(s.exact, mu)
+
+
+def _admissible(o: OracleMix, s: _Solved) -> np.ndarray:
+    """Box2D's warm start moved by (part of) the solution's motion, then admitted inside the cones."""
+    b, p = s.bodies, s.points
+    if o.mix in ("admissible-moving", "admissible-settled"):
+        moving = bodies_moving(b)
+        moves = body_space_part_of(b, p, s.exact - s.builtin, moving if o.mix == "admissible-moving" else ~moving)
+    else:
+        moves = body_space_part(b, p, s.exact - s.builtin)
+    released = None
+    if o.mix == "admissible-open":
+        released = ~_pressing(s.exact)
+    elif o.mix == "admissible-separating":
+        physics = Physics(s.engine.config.dt, tuple(s.engine.world.gravity))
+        released = contact_velocities(b, p, s.builtin + moves, physics)[:, 0] > SEPARATING_SPEED
+    if o.value:  # oracle:near-admissible@R, oracle:near-admissible-abs@S
+        size = 1.0 if o.mix == "admissible-abs" else np.sqrt(np.mean(moves ** 2))
+        moves = body_space_part(b, p, moves + o._rng.normal(0.0, o.value * size, moves.shape))
+    return nearest_admissible(b, p, s.builtin + moves, point_friction(o._friction, p), released)
+
+
+def _part(body_space: bool) -> Mix:
+    """Box2D's warm start plus the body-space part of the correction, or the rest (a self-stress)."""
+    def mix(o: OracleMix, s: _Solved) -> np.ndarray:
+        moves = body_space_part(s.bodies, s.points, s.exact - s.builtin)
+        warm = s.builtin + (moves if body_space else s.exact - s.builtin - moves)
+        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+        return warm
+    return mix
+
+
+def _through_grid(o: OracleMix, s: _Solved) -> np.ndarray:
+    # A grid from the scenes' origin (their box's lower-left corner) over every point.
+    res = o.value
+    reach = np.ceil(s.points["point"].max(axis=0) / res) * res + res
+    spec = GridSpec.for_domain((0.0, 0.0), tuple(np.maximum(reach, res)), res, 2 * res)
+    pl = plan(s.points["point"], spec, outside="drop")
+    return s.builtin + pl.g2p(pl.p2g(s.exact - s.builtin)[0])[0]
+
+
+#: Each variant's mix, by its name without "near-" (the solution it starts from is _solution's).
+_MIXES: dict[str, Mix] = {
+    "near": lambda o, s: s.exact,
+    "persisting": lambda o, s: np.where(s.new[:, None], 0.0, s.exact),
+    "new": _exact_where(lambda o, s: s.new),
+    "normal": _column(0),
+    "tangent": _column(1),
+    "heavy": _exact_where(lambda o, s: s.exact[:, 0] >= np.median(s.exact[:, 0])),
+    "half": lambda o, s: s.builtin + 0.5 * (s.exact - s.builtin),
+    "grid": _through_grid,
+    "small": _exact_where(lambda o, s: s.correction <= o.value),
+    "big": _exact_where(lambda o, s: s.correction > o.value),
+    "noisy": _noisy(relative=False),
+    "relnoisy": _noisy(relative=True),
+    "some": _exact_where(lambda o, s: o._rng.random(len(s.points)) < o.value),
+    "settled": _exact_where(lambda o, s: points_at_rest(s.bodies, s.points)),
+    "moving": _exact_where(lambda o, s: ~points_at_rest(s.bodies, s.points)),
+    "body-space": _part(body_space=True),
+    "self-stress": _part(body_space=False),
+    "release": _release,
+    "switch": _exact_where(lambda o, s: _pressing(s.builtin) != _pressing(s.exact)),
+    "cone": _exact_where(_at_cone),
+    "inside": _exact_where(lambda o, s: ~_at_cone(o, s)),
+    **{v: _admissible for v in ("admissible", "admissible-open", "admissible-separating", "admissible-abs",
+                                "admissible-moving", "admissible-settled")},
+}
 
 
 class PreviousOracle(Provider):
