@@ -135,3 +135,37 @@ def test_near_cone_and_inside_split_the_points_by_whether_friction_is_at_its_con
     within = np.stack(inside.warm_start(Solved(), None, points, 0), axis=1)
     np.testing.assert_allclose(at_cone, [[1.0, 0.5], [1.0, 0.1], [0.9, 0.1], [0.3, 0.0]])
     np.testing.assert_allclose(within, [[1.0, 0.1], [0.4, 0.2], [1.0, 0.2], [0.0, 0.0]])
+
+
+def test_every_listed_oracle_variant_makes_a_provider_and_unknown_ones_are_refused():
+    from simclient.oracles import ORACLES
+
+    for variant in ORACLES:
+        name = "oracle:" + variant.split("@")[0] + ("@0.5" if "@" in variant else "")
+        assert make_provider(name).name == name
+    with pytest.raises(ValueError, match="unknown oracle variant"):
+        make_provider("oracle:nearest")
+
+
+def test_the_simple_mixes_take_the_solution_where_their_names_say():
+    class Solved:  # an engine whose step converges, from zero, to `exact`
+        exact = np.array([[2.0, 0.4], [0.5, 0.1], [1.2, -0.2]], np.float32)
+
+        def oracle(self, start=None):
+            return self.exact
+
+    points = np.zeros(3, dtype=[("builtin", "<f4", (2,))])
+    points["builtin"] = [[1.0, 0.2], [0.0, 0.0], [1.0, 0.0]]  # point 1 is new: Box2D carries nothing into it
+
+    def served(name):
+        return np.stack(make_provider(name).warm_start(Solved(), None, points, 0), axis=1)
+
+    exact, builtin = Solved.exact, points["builtin"]
+    np.testing.assert_allclose(served("oracle:persisting"), [exact[0], [0.0, 0.0], exact[2]])
+    np.testing.assert_allclose(served("oracle:new"), [builtin[0], exact[1], builtin[2]])
+    np.testing.assert_allclose(served("oracle:normal"), [[2.0, 0.2], [0.5, 0.0], [1.2, 0.0]])
+    np.testing.assert_allclose(served("oracle:tangent"), [[1.0, 0.4], [0.0, 0.1], [1.0, -0.2]])
+    np.testing.assert_allclose(served("oracle:half"), (exact + builtin) / 2, rtol=1e-6)
+    # corrections of the normal impulse: 1.0, 0.5, 0.2 N s
+    np.testing.assert_allclose(served("oracle:small@0.5"), [builtin[0], exact[1], exact[2]])
+    np.testing.assert_allclose(served("oracle:big@0.5"), [exact[0], builtin[1], builtin[2]])
