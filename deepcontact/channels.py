@@ -160,6 +160,8 @@ class Channel:
         nodes get 100, "more than one hundred times the mass of the bodies").
     needs: what a request must carry beyond bodies and points for this
         channel (names from NEEDS); the server refuses requests without it.
+    temporal: reads the previous step (Step.previous), so a point's value
+        depends on more than its own step's records.
     """
 
     name: str
@@ -169,6 +171,7 @@ class Channel:
     description: str = ""
     walls: bool = False
     needs: tuple[str, ...] = ()
+    temporal: bool = False
 
 
 def _field(name: str, component: int | None = None) -> Callable[[np.ndarray, Step], np.ndarray]:
@@ -270,9 +273,9 @@ _DEFINITIONS = (
             "asinh(jacobi_tangent / 1e-4 N s)", needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("last_correction_normal", "contacts", _derived("last_correction", 0), "N s",
             "what the solver added to the warm start at this point last step (builtin minus last step's "
-            "builtin), normal; 0 at new points", needs=("builtin", "point_keys")),
+            "builtin), normal; 0 at new points", needs=("builtin", "point_keys"), temporal=True),
     Channel("last_correction_tangent", "contacts", _derived("last_correction", 1), "N s",
-            "the same, tangent", needs=("builtin", "point_keys")),
+            "the same, tangent", needs=("builtin", "point_keys"), temporal=True),
     Channel("warm_start_normal", "contacts", _field("warm_start", 0), "N s", "warm start used, normal"),
     Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),
     Channel("impulse_normal", "contacts", _field("impulse", 0), "N s", "final solver impulse, normal"),
@@ -291,9 +294,9 @@ _DEFINITIONS = (
             "the oracle's impulse minus the builtin warm start, tangent"),
     # The previous step's contact points, at their own positions.
     Channel("previous_builtin_normal", "previous", _field("builtin", 0), "N s",
-            "last step's builtin warm start (the impulse of two steps ago), normal"),
+            "last step's builtin warm start (the impulse of two steps ago), normal", temporal=True),
     Channel("previous_builtin_tangent", "previous", _field("builtin", 1), "N s",
-            "last step's builtin warm start, tangent"),
+            "last step's builtin warm start, tangent", temporal=True),
 )
 
 #: Every channel by name (read-only).

@@ -34,6 +34,20 @@ def test_a_batch_is_the_disjoint_union_of_its_steps(graphs, tmp_path):
     assert again.inputs == graphs.inputs
 
 
+@pytest.mark.parametrize("extra", [(), ("last_correction_normal",)])
+def test_steps_read_many_at_a_time_give_each_steps_own_values_bit_for_bit(data, monkeypatch, extra):
+    from training import contact_graph
+
+    inputs = GRAPH_INPUTS + extra  # a temporal channel is read one step at a time
+    monkeypatch.setattr(contact_graph, "STEPS_AT_ONCE", 5)  # 12 steps: 5, 5 and 2 at a time
+    many = build_graph_set(data / "train.h5", inputs, max_steps=12)
+    monkeypatch.setattr(contact_graph, "STEPS_AT_ONCE", 1)
+    one = build_graph_set(data / "train.h5", inputs, max_steps=12)
+    for name in ("features", "targets", "ends", "dynamic", "point_offsets", "body_offsets", "builtin",
+                 "geometry", "masses", "inverse", "speed"):
+        np.testing.assert_array_equal(getattr(many, name), getattr(one, name), err_msg=name)
+
+
 def test_the_solver_loss_sees_no_error_in_the_exact_correction_and_decays_the_rest(graphs):
     import tensorflow as tf
 
