@@ -170,53 +170,53 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-def run(args: argparse.Namespace) -> int:
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+def _argument_problem(args: argparse.Namespace) -> str | None:
+    """The first thing wrong with the arguments, in a sentence, or None; sets args.omega
+    (its default depends on --order), args.sweeps (a sorted tuple) and args.inputs."""
     if args.out.suffix != ".onnx":
-        print(f"train-graph: --out must name a .onnx file, got {args.out}", file=sys.stderr)
-        return 2
+        return f"--out must name a .onnx file, got {args.out}"
     missing = [str(p) for p in (*args.train, *args.val, *([args.init] if args.init else [])) if not p.exists()]
     if missing:
-        print(f"train-graph: no such file: {', '.join(missing)}", file=sys.stderr)
-        return 2
+        return f"no such file: {', '.join(missing)}"
     if not args.harm_weight > 0:
-        print(f"train-graph: --harm-weight must be > 0, got {args.harm_weight}", file=sys.stderr)
-        return 2
+        return f"--harm-weight must be > 0, got {args.harm_weight}"
     if not args.self_stress_weight >= 0 or args.self_stress_iterations < 1:
-        print(f"train-graph: --self-stress-weight must be >= 0 and --self-stress-iterations >= 1, got "
-              f"{args.self_stress_weight} and {args.self_stress_iterations}", file=sys.stderr)
-        return 2
+        return (f"--self-stress-weight must be >= 0 and --self-stress-iterations >= 1, got "
+                f"{args.self_stress_weight} and {args.self_stress_iterations}")
     if args.order == "gauss-seidel" and args.loss not in BatchLoss.PROJECTED_LOSSES:
-        print(f"train-graph: --order gauss-seidel orders the sweeps of the {', '.join(BatchLoss.PROJECTED_LOSSES)} "
-              f"losses, not --loss {args.loss}", file=sys.stderr)
-        return 2
+        return (f"--order gauss-seidel orders the sweeps of the {', '.join(BatchLoss.PROJECTED_LOSSES)} "
+                f"losses, not --loss {args.loss}")
     if args.omega is None:
         args.omega = 1.0 if args.order == "gauss-seidel" else 0.5
     if not (0 < args.omega < 1 or (args.order == "gauss-seidel" and args.omega == 1)):
-        print(f"train-graph: --omega must lie between 0 and 1 (1 itself only for --order gauss-seidel), "
-              f"got {args.omega}", file=sys.stderr)
-        return 2
+        return (f"--omega must lie between 0 and 1 (1 itself only for --order gauss-seidel), "
+                f"got {args.omega}")
     if min(args.epochs, args.batch_size, args.width, args.rounds, args.patience) < 1:
-        print("train-graph: --epochs, --batch-size, --width, --rounds and --patience must be >= 1", file=sys.stderr)
-        return 2
+        return "--epochs, --batch-size, --width, --rounds and --patience must be >= 1"
     try:
         args.sweeps = tuple(sorted({int(k) for k in str(args.sweeps).split(",")}))
         if args.sweeps[0] < 0:
             raise ValueError
     except ValueError:
-        print(f"train-graph: --sweeps takes sweep counts >= 0 like 16,64,256, got {args.sweeps!r}", file=sys.stderr)
-        return 2
+        return f"--sweeps takes sweep counts >= 0 like 16,64,256, got {args.sweeps!r}"
     if args.loss == "solver-projected-sweeps" and len(args.sweeps) < 2:
-        print("train-graph: --loss solver-projected-sweeps measures Box2D's pace between two --sweeps counts; "
-              f"give two or more, got {args.sweeps}", file=sys.stderr)
-        return 2
+        return ("--loss solver-projected-sweeps measures Box2D's pace between two --sweeps counts; "
+                f"give two or more, got {args.sweeps}")
     extra = tuple(n for n in str(args.extra_inputs).split(",") if n)
     bad = [n for n in extra if n not in CHANNELS or CHANNELS[n].source != "contacts" or n in GRAPH_INPUTS]
     if bad or len(set(extra)) != len(extra):
-        print(f"train-graph: --extra-inputs takes contact-point channels not already read ({', '.join(GRAPH_INPUTS)}), "
-              f"each once; got {args.extra_inputs!r}", file=sys.stderr)
-        return 2
+        return (f"--extra-inputs takes contact-point channels not already read ({', '.join(GRAPH_INPUTS)}), "
+                f"each once; got {args.extra_inputs!r}")
     args.inputs = GRAPH_INPUTS + extra
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    problem = _argument_problem(args)
+    if problem:
+        print(f"train-graph: {problem}", file=sys.stderr)
+        return 2
     command = "deepcontact train-graph " + " ".join(shlex.quote(a) for a in sys.argv[2:])
     t0 = time.perf_counter()
     targets = TARGETS[getattr(args, "targets", "final")]
