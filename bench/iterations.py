@@ -75,27 +75,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def run(args: argparse.Namespace) -> int:
-    try:
-        spec = spec_from_args(args)
-        seeds = seed_ranges.parse_seeds(args.seeds)
-        names = [w.strip() for w in args.warm_starts.split(",") if w.strip()]
-        providers = {name: make_provider(name) for name in names}
-        dispatch.check_arguments(args)
-    except ValueError as exc:
-        print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
-        return 2
+def _read_arguments(args: argparse.Namespace):
+    """(spec, seeds, names, providers) of the command line, or ValueError saying what is wrong;
+    warns on stderr of seeds that models were fitted or stopped on."""
+    spec = spec_from_args(args)
+    seeds = seed_ranges.parse_seeds(args.seeds)
+    names = [w.strip() for w in args.warm_starts.split(",") if w.strip()]
+    providers = {name: make_provider(name) for name in names}
+    dispatch.check_arguments(args)
+    if any(p.uses_server for p in providers.values()) and args.server is None and args.ray not in (None, "local"):
+        raise ValueError("server: warm starts on a Ray cluster need --server, an address its workers can reach "
+                         "(e.g. dns:///server:50051)")
     # Choosing seeds (850-899) are held out from training and meant for comparing variants: no warning.
     seen = [s for s in seeds if seed_ranges.describe(s) in ("training", "validation")]
     if seen:
         print(f"warning: seeds {seed_ranges.as_ranges(seen)} are training or validation seeds (1-849): models were "
               "fitted or stopped on them, so results there are not held out (choose on 850-899, report on 900-999)",
               file=sys.stderr)
-    remote = [p for p in providers.values() if p.uses_server]
-    if remote and args.server is None and args.ray not in (None, "local"):
-        print("deepcontact bench iterations: server: warm starts on a Ray cluster need --server, an address its "
-              "workers can reach (e.g. dns:///server:50051)", file=sys.stderr)
+    return spec, seeds, names, providers
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        spec, seeds, names, providers = _read_arguments(args)
+    except ValueError as exc:
+        print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
         return 2
+    remote = [p for p in providers.values() if p.uses_server]
     args.out.mkdir(parents=True, exist_ok=True)
 
     server_proc = None
