@@ -18,7 +18,7 @@
 #   bash training/make_default_model.sh          (make default-model)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). Measured on 2-core machines (about 1 h 25 min for the default): docs/models.md. The other
+# (DEFAULT_ONLY=1). Measured on a clean clone of a 2-core machine (about 58 min for the default, 73 min in all): docs/models.md. The other
 # models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
 # they hold); run directories are always started afresh.
