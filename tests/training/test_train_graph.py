@@ -677,12 +677,15 @@ def test_a_scatter_export_computes_what_tensorflow_computes_on_bodies_shared_by_
     net = _random_net(config, rng)
     points, ends, dynamic = _shared_body_step(config.in_channels, rng)
     expected = np.asarray(net(points, ends, dynamic))
+    # Without norms random weights make outputs of up to about 70, where float32 sums taken
+    # in another order differ by a few 1e-5 of the value (how many depends on the kernels
+    # TensorFlow picks for the CPU), so the tolerance is relative as well.
     for incidence in ("matmul", "scatter"):  # every way of summing per body is the same network
         other = ContactGraphNet(config, net.weights(), incidence=incidence)
-        np.testing.assert_allclose(np.asarray(other(points, ends, dynamic)), expected, atol=1e-5)
+        np.testing.assert_allclose(np.asarray(other(points, ends, dynamic)), expected, rtol=2e-4, atol=1e-5)
     session = ort.InferenceSession(to_onnx(net, incidence="scatter"), providers=["CPUExecutionProvider"])
     got = session.run(["impulses"], {"points": points, "ends": ends, "dynamic": dynamic})[0]
-    np.testing.assert_allclose(got, expected, atol=1e-4)
+    np.testing.assert_allclose(got, expected, rtol=2e-4, atol=1e-4)
 
 
 def test_a_scatter_export_sums_by_scatter_adds_with_no_one_hot_matrices_or_sorts():
