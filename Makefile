@@ -26,14 +26,14 @@ help:
 	@echo "make proto         regenerate the gRPC stubs from proto/ (committed; a test checks them)"
 	@echo "make bench-engine  engine benchmark -> bench/results/engine.json"
 	@echo "make clean         remove caches of tests and builds (keeps .venv)"
-	@echo "make distclean     also remove .venv, the Box2D wheel cache and the compiled transfer kernels"
+	@echo "make distclean     also remove .venv, the Box2D wheel cache and the compiled kernels"
 
 $(VPY):
 	$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "deepcontact needs Python 3.11 (set PYTHON=...)"'
 	$(PYTHON) -m venv $(VENV)
 
-# The editable install also compiles deepcontact/_transfer.c (setup.py) in place.
-$(DEPS): requirements.lock pyproject.toml setup.py deepcontact/_transfer.c | $(VPY)
+# The editable install also compiles deepcontact/_transfer.c and _kinematics.c (setup.py) in place.
+$(DEPS): requirements.lock pyproject.toml setup.py deepcontact/_transfer.c deepcontact/_kinematics.c | $(VPY)
 	$(VPY) -m pip install --quiet --disable-pip-version-check -r requirements.lock
 	$(VPY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $@

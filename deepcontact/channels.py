@@ -27,7 +27,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_frame, contact_velocities, effective_masses
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_quantities
 from deepcontact.records import CONTACT_DTYPE
 
 __all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "NEEDS", "SOURCES", "Channel", "Source", "Step",
@@ -50,41 +50,26 @@ class Step:
     Derived arrays are computed once, when a channel first asks.
     """
 
-    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "_velocities", "_after_builtin", "_masses",
-                 "_frame", "_last_correction")
+    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "_quantities", "_last_correction")
 
     def __init__(self, bodies: np.ndarray | None, contacts: np.ndarray | None, previous: np.ndarray | None = None,
                  physics: Physics = Physics(), oracle: np.ndarray | None = None):
         self.bodies, self.contacts, self.previous = bodies, contacts, previous
         self.physics, self.oracle = physics, oracle
-        self._velocities = self._after_builtin = self._masses = self._frame = self._last_correction = None
+        self._quantities = self._last_correction = None
 
     def velocities(self) -> np.ndarray:
         """(P, 2) m/s: relative (normal, tangent) velocity after gravity."""
-        if self._velocities is None:
-            self._velocities = contact_velocities(self._bodies("contact velocities"), self.contacts,
-                                                  physics=self.physics, frame=self.frame())
-        return self._velocities
+        return self._contact_quantities("contact velocities")[0]
 
     def velocities_after_builtin(self) -> np.ndarray:
         """(P, 2) m/s: the same after Box2D's builtin warm start is applied: what the
         solver's first sweep sees when it warm-starts as Box2D does."""
-        if self._after_builtin is None:
-            self._after_builtin = contact_velocities(self._bodies("contact velocities"), self.contacts,
-                                                     self.contacts["builtin"], self.physics, self.frame())
-        return self._after_builtin
-
-    def frame(self):
-        """The contact points' ContactFrame (deepcontact.kinematics), shared by the quantities below."""
-        if self._frame is None:
-            self._frame = contact_frame(self._bodies("contact quantities"), self.contacts)
-        return self._frame
+        return self._contact_quantities("contact velocities")[1]
 
     def masses(self) -> np.ndarray:
         """(P, 2) kg: each point's effective mass along its normal and tangent."""
-        if self._masses is None:
-            self._masses = effective_masses(self._bodies("effective masses"), self.contacts, self.frame())
-        return self._masses
+        return self._contact_quantities("effective masses")[2]
 
     def jacobi(self) -> np.ndarray:
         """(P, 2) N s: one Jacobi step from the builtin warm start, -mass x velocity after it:
@@ -114,6 +99,13 @@ class Step:
         if self.oracle is None:
             raise ValueError("oracle channels need the oracle's impulses (data generated with --oracle)")
         return self.oracle
+
+    def _contact_quantities(self, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # One compiled pass gives all three (deepcontact.kinematics.contact_quantities):
+        # cheaper than any one of them was in NumPy.
+        if self._quantities is None:
+            self._quantities = contact_quantities(self._bodies(what), self.contacts, self.physics)
+        return self._quantities
 
     def _bodies(self, what: str) -> np.ndarray:
         if self.bodies is None:

@@ -23,8 +23,13 @@ of every shape the scenes build: circles and centred boxes).
 records (creation order, static bodies included) or any array laid out the
 same way, such as the server's decoded step (a static stand-in at row 0).
 Bodies that are not dynamic (type != 2) neither move nor take impulses.
-No Python loop over bodies or points: the impulses reach the bodies with one
-bincount per component.
+Velocities and effective masses are computed by deepcontact/_kinematics.c,
+built by `make setup`, straight from the records in one call: on a few hundred
+points NumPy's per-call overhead was most of the server's feature stage. It
+gives NumPy's numbers to the bit (tests/deepcontact/test_kinematics.py keeps
+the NumPy implementation as the reference), so what models were trained on
+is what they are served. The probes' dense linear algebra (contact_jacobian,
+body_space_part) stays in NumPy on a ContactFrame.
 """
 
 from __future__ import annotations
@@ -33,7 +38,33 @@ import dataclasses
 
 import numpy as np
 
+from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
+
+try:
+    from deepcontact import _kinematics as _compiled
+except ImportError as exc:  # pragma: no cover - a checkout that was never set up
+    raise ImportError(
+        "deepcontact's compiled kinematics (deepcontact/_kinematics.c) are not built: "
+        "run `make setup` (or `pip install -e .`)"
+    ) from exc
+
 BODY_DYNAMIC = 2
+
+#: The record fields the compiled kernel reads, by the offsets it was built with.
+_LAYOUT = (
+    (BODY_DTYPE, _compiled.BODY_SIZE, {"type": _compiled.BODY_TYPE, "position": _compiled.BODY_POSITION,
+                                       "velocity": _compiled.BODY_VELOCITY,
+                                       "angular_velocity": _compiled.BODY_ANGULAR_VELOCITY,
+                                       "mass": _compiled.BODY_MASS, "inertia": _compiled.BODY_INERTIA}),
+    (CONTACT_DTYPE, _compiled.POINT_SIZE, {"body_a": _compiled.POINT_BODY_A, "body_b": _compiled.POINT_BODY_B,
+                                           "point": _compiled.POINT_POINT, "normal": _compiled.POINT_NORMAL,
+                                           "builtin": _compiled.POINT_BUILTIN}),
+)
+for _dtype, _size, _offsets in _LAYOUT:
+    if _dtype.itemsize != _size or any(_dtype.fields[f][1] != o for f, o in _offsets.items()):
+        raise ImportError("deepcontact/_kinematics.c reads records laid out otherwise than deepcontact.records: "
+                          "rebuild it (`make setup`) after changing either")
+_EMPTY = np.zeros(0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,8 +128,44 @@ def contact_frame(bodies: np.ndarray, points: np.ndarray) -> ContactFrame:
                         np.stack([n[:, 1], -n[:, 0]], axis=1), p - centre[a], p - centre[b])
 
 
+def _records(array: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
+    """`array` as C-contiguous records of `dtype` (no copy when it already is)."""
+    if array.dtype == dtype and array.flags.c_contiguous:
+        return array
+    needed = {"bodies": _LAYOUT[0][2], "points": _LAYOUT[1][2]}[what]
+    missing = sorted(set(needed) - set(array.dtype.names or ()))
+    if missing:
+        raise ValueError(f"{what} lack the fields {missing}")
+    out = np.zeros(len(array), dtype)
+    for name in needed:
+        out[name] = array[name]
+    return out
+
+
+def _kinematics(bodies: np.ndarray, points: np.ndarray, physics: Physics, warm, velocities: bool,
+                warmed: bool, masses: bool) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """One call of the compiled kernel: the outputs asked for, (P, 2) float64 each, or None."""
+    bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
+    points = _records(np.asarray(points), CONTACT_DTYPE, "points")
+    n_points = len(points)
+    if warm is None:
+        mode, given = _compiled.WARM_NONE, _EMPTY
+    elif isinstance(warm, str):  # "builtin": the points' own field, read in place
+        mode, given = _compiled.WARM_BUILTIN, _EMPTY
+    else:
+        given = np.ascontiguousarray(warm, np.float64)
+        if given.shape != (n_points, 2):
+            raise ValueError(f"warm must be ({n_points}, 2), got {given.shape}")
+        mode = _compiled.WARM_GIVEN
+    out = [np.empty((n_points, 2)) if want else None for want in (velocities, warmed, masses)]
+    gx, gy = physics.gravity
+    _compiled.point_kinematics(bodies, len(bodies), points, n_points, mode, given, float(physics.dt), float(gx),
+                               float(gy), *(_EMPTY if o is None else o for o in out))
+    return out[0], out[1], out[2]
+
+
 def contact_velocities(bodies: np.ndarray, points: np.ndarray, warm: np.ndarray | None = None,
-                       physics: Physics = Physics(), frame: ContactFrame | None = None) -> np.ndarray:
+                       physics: Physics = Physics()) -> np.ndarray:
     """Relative (normal, tangent) velocity at each contact point, (P, 2) float64 m/s.
 
     bodies: (B,) BODY_DTYPE indexed by the points' body_a/body_b.
@@ -106,61 +173,31 @@ def contact_velocities(bodies: np.ndarray, points: np.ndarray, warm: np.ndarray 
     warm: optional (P, 2) (normal, tangent) impulses, N s, applied to the
         bodies first, as Box2D applies a warm start.
     physics: this step's gravity and time step, added to dynamic bodies first.
-    frame: contact_frame(bodies, points), when the caller already has it.
     """
-    n_points = len(points)
-    if n_points == 0:
-        return np.zeros((0, 2))
-    f = contact_frame(bodies, points) if frame is None else frame
-    a, b, dynamic, n, t, ra, rb = f.a, f.b, f.dynamic, f.n, f.t, f.ra, f.rb
-    v = bodies["velocity"].astype(np.float64)
-    v *= dynamic[:, None]
-    w = bodies["angular_velocity"].astype(np.float64)
-    w *= dynamic
-    if physics.dt:
-        v += np.multiply(physics.dt, physics.gravity) * dynamic[:, None]
-    if warm is not None:
-        warm = np.asarray(warm, np.float64)
-        if warm.shape != (n_points, 2):
-            raise ValueError(f"warm must be ({n_points}, 2), got {warm.shape}")
-        impulse = warm[:, :1] * n + warm[:, 1:] * t  # (P, 2) N s on B, its opposite on A
-        n_bodies = len(bodies)
-        idx = np.concatenate([b, a])
-        dv = np.stack([np.bincount(idx, np.concatenate([impulse[:, k], -impulse[:, k]]), n_bodies)
-                       for k in (0, 1)], axis=1)
-        dw = np.bincount(idx, np.concatenate([_cross(rb, impulse), -_cross(ra, impulse)]), n_bodies)
-        v += dv * f.inv_mass[:, None]
-        w += dw * f.inv_inertia
-    # Relative velocity at the point, v_B + w_B x r_B - v_A - w_A x r_A, written out per
-    # component: this runs on the server's every step.
-    wa, wb = w[a], w[b]
-    rel = v[b] - v[a]
-    rel[:, 0] += wa * ra[:, 1] - wb * rb[:, 1]
-    rel[:, 1] += wb * rb[:, 0] - wa * ra[:, 0]
-    out = np.empty((n_points, 2))
-    out[:, 0] = rel[:, 0] * n[:, 0] + rel[:, 1] * n[:, 1]
-    out[:, 1] = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
-    return out
+    before, after, _ = _kinematics(bodies, points, physics, warm, warm is None, warm is not None, False)
+    return before if warm is None else after
 
 
-def effective_masses(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame | None = None) -> np.ndarray:
+def effective_masses(bodies: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Each point's effective mass along its normal and its tangent, (P, 2) float64 kg.
 
     k = 1 / (1/m_A + 1/m_B + (r_A x d)^2 / I_A + (r_B x d)^2 / I_B) for the
     direction d (normal, then tangent): the impulse that changes the relative
     velocity along d by 1 m/s when this point acts alone, Box2D's normalMass
     and tangentMass. A point between two bodies that cannot move gets 0.
-    bodies, points, frame: as in contact_velocities.
+    bodies, points: as in contact_velocities.
     """
-    if len(points) == 0:
-        return np.zeros((0, 2))
-    f = contact_frame(bodies, points) if frame is None else frame
-    inv_m, inv_i = f.inv_mass, f.inv_inertia
-    out = np.empty((len(points), 2))
-    for k, d in enumerate((f.n, f.t)):  # two directions, not a loop over points
-        inverse = inv_m[f.a] + inv_m[f.b] + inv_i[f.a] * _cross(f.ra, d) ** 2 + inv_i[f.b] * _cross(f.rb, d) ** 2
-        out[:, k] = _inverse(inverse, inverse > 0)
-    return out
+    return _kinematics(bodies, points, Physics(), None, False, False, True)[2]
+
+
+def contact_quantities(bodies: np.ndarray, points: np.ndarray,
+                       physics: Physics = Physics()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the point channels read, in one pass: (velocities, velocities after the
+    points' builtin warm start, effective masses), each (P, 2) float64 (m/s, m/s, kg),
+    equal to contact_velocities(bodies, points, physics=physics),
+    contact_velocities(bodies, points, points["builtin"], physics) and
+    effective_masses(bodies, points)."""
+    return _kinematics(bodies, points, physics, "builtin", True, True, True)
 
 
 def contact_jacobian(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame | None = None):

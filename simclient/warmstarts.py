@@ -163,11 +163,10 @@ class LinearSolve(ReadsFriction):
         self.name = f"solve{'-active' if active else ''}@{iterations}"
 
     def warm_start(self, engine, bodies, points, step):
-        from deepcontact.kinematics import Physics, contact_frame, contact_velocities
+        from deepcontact.kinematics import Physics, contact_velocities
 
         if len(points) == 0:
             return None
-        frame = contact_frame(bodies, points)
         gravity = engine.world.gravity
         physics = Physics(engine.config.dt, (float(gravity[0]), float(gravity[1])))
         builtin = points["builtin"].astype(np.float64)
@@ -182,9 +181,9 @@ class LinearSolve(ReadsFriction):
             free[:, 1] = (free[:, 0] > 0) & ((np.abs(builtin[:, 1]) < CONE_SHARE * limit) | new)
 
         def delassus(x):  # A x on the free unknowns: the relative velocities impulses x alone cause, (P, 2) m/s
-            return contact_velocities(still, points, warm=x * free, frame=frame) * free
+            return contact_velocities(still, points, warm=x * free) * free
 
-        residual = -contact_velocities(bodies, points, warm=builtin, physics=physics, frame=frame) * free
+        residual = -contact_velocities(bodies, points, warm=builtin, physics=physics) * free
         correction = np.zeros_like(builtin)
         direction = residual.copy()
         rr = float((residual * residual).sum())

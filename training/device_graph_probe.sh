@@ -4,8 +4,8 @@
 # world and the scene family, 16 files read in parallel) and the validation files, then trains
 # contact-graph networks with JAX for SECONDS (training/train_graph_jax.py). Writes to $OUT:
 # probe.json, one NAME.weights.npz per network and log.txt. Carry .whl (the wheels: grpcio,
-# h5py, protobuf, ... and .whl/box2d/, the patched Box2D built for 3.12) and
-# deepcontact/_transfer.cpython-312-x86_64-linux-gnu.so.
+# h5py, protobuf, ... and .whl/box2d/, the patched Box2D built for 3.12),
+# deepcontact/_transfer.cpython-312-x86_64-linux-gnu.so and _kinematics.cpython-312-x86_64-linux-gnu.so.
 #
 #   SECONDS_TRAIN=330 CONFIGS="128x3 128x8 256x8" bash training/device_graph_probe.sh
 set -u

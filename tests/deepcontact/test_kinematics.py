@@ -159,3 +159,91 @@ def test_the_nearest_admissible_impulses_move_the_bodies_alike_and_keep_every_li
     start = lambda x: tuple(np.ascontiguousarray(x[:, k], np.float32) for k in (0, 1))  # noqa: E731
     assert engine.trial(*start(with_release)) <= 3 < engine.trial(*start(admitted)) < engine.trial(*start(motion))
     assert nearest_admissible(bodies, points[:0], exact[:0], mu[:0]).shape == (0, 2)
+
+
+# The NumPy implementation the compiled kernel (deepcontact/_kinematics.c) replaced: the
+# numbers every shipped model was trained on. The kernel must give them bit for bit.
+
+def _numpy_velocities(bodies, points, warm=None, physics=Physics()):
+    from deepcontact.kinematics import contact_frame
+
+    f = contact_frame(bodies, points)
+    a, b, dynamic, n, t, ra, rb = f.a, f.b, f.dynamic, f.n, f.t, f.ra, f.rb
+    v = bodies["velocity"].astype(np.float64)
+    v *= dynamic[:, None]
+    w = bodies["angular_velocity"].astype(np.float64)
+    w *= dynamic
+    if physics.dt:
+        v += np.multiply(physics.dt, physics.gravity) * dynamic[:, None]
+    if warm is not None:
+        warm = np.asarray(warm, np.float64)
+        impulse = warm[:, :1] * n + warm[:, 1:] * t
+        idx = np.concatenate([b, a])
+        dv = np.stack([np.bincount(idx, np.concatenate([impulse[:, k], -impulse[:, k]]), len(bodies))
+                       for k in (0, 1)], axis=1)
+        cross = lambda r, u: r[:, 0] * u[:, 1] - r[:, 1] * u[:, 0]  # noqa: E731
+        dw = np.bincount(idx, np.concatenate([cross(rb, impulse), -cross(ra, impulse)]), len(bodies))
+        v += dv * f.inv_mass[:, None]
+        w += dw * f.inv_inertia
+    wa, wb = w[a], w[b]
+    rel = v[b] - v[a]
+    rel[:, 0] += wa * ra[:, 1] - wb * rb[:, 1]
+    rel[:, 1] += wb * rb[:, 0] - wa * ra[:, 0]
+    return np.stack([rel[:, 0] * n[:, 0] + rel[:, 1] * n[:, 1], rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]], axis=1)
+
+
+def _numpy_masses(bodies, points):
+    from deepcontact.kinematics import contact_frame
+
+    f = contact_frame(bodies, points)
+    out = np.empty((len(points), 2))
+    for k, d in enumerate((f.n, f.t)):
+        ca, cb = f.ra[:, 0] * d[:, 1] - f.ra[:, 1] * d[:, 0], f.rb[:, 0] * d[:, 1] - f.rb[:, 1] * d[:, 0]
+        inverse = f.inv_mass[f.a] + f.inv_mass[f.b] + f.inv_inertia[f.a] * ca ** 2 + f.inv_inertia[f.b] * cb ** 2
+        ok = inverse > 0
+        out[:, k] = np.where(ok, 1.0 / np.where(ok, inverse, 1.0), 0.0)
+    return out
+
+
+def _bits(x):
+    return np.ascontiguousarray(x, np.float64).view(np.uint64)
+
+
+@pytest.mark.parametrize("spec,seed,steps", [(SceneSpec.thesis(), 901, 3), (SceneSpec.thesis(), 902, 150),
+                                             (SceneSpec(bodies=200, box_size=(25.0, 15.0), radius=(0.3, 0.5)),
+                                              903, 120)])
+def test_the_compiled_kernel_gives_the_numpy_implementations_numbers_bit_for_bit(spec, seed, steps):
+    from deepcontact.kinematics import contact_quantities, effective_masses
+
+    engine = settled_world(spec, seed, steps)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    assert len(points) > 0
+    random = np.random.default_rng(seed).normal(size=(len(points), 2))
+    for physics in (Physics(), Physics.thesis()):
+        for warm in (None, points["builtin"], random):
+            got = contact_velocities(bodies, points, warm, physics)
+            assert (_bits(got) == _bits(_numpy_velocities(bodies, points, warm, physics))).all()
+        quantities = contact_quantities(bodies, points, physics)
+        expected = (_numpy_velocities(bodies, points, None, physics),
+                    _numpy_velocities(bodies, points, points["builtin"], physics), _numpy_masses(bodies, points))
+        assert all((_bits(q) == _bits(e)).all() for q, e in zip(quantities, expected))
+    assert (_bits(effective_masses(bodies, points)) == _bits(_numpy_masses(bodies, points))).all()
+
+
+def test_records_of_another_layout_are_read_by_field_and_missing_fields_are_named():
+    engine = settled_world(SceneSpec.thesis(), 901, 100)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    fields = ["type", "position", "velocity", "angular_velocity", "mass", "inertia"]
+    narrow = np.zeros(len(bodies), [(f, BODY_DTYPE.fields[f][0]) for f in fields])
+    for f in fields:
+        narrow[f] = bodies[f]
+    every_other = np.repeat(points, 2)[::2]  # the same records, not contiguous
+    assert not every_other.flags.c_contiguous
+    assert np.array_equal(contact_velocities(narrow, every_other, points["builtin"]),
+                          contact_velocities(bodies, points, points["builtin"]))
+    with pytest.raises(ValueError, match="inertia"):
+        contact_velocities(narrow[["type", "position", "velocity", "angular_velocity", "mass"]], points)
+    with pytest.raises(ValueError, match=r"warm must be \(\d+, 2\)"):
+        contact_velocities(bodies, points, np.zeros((len(points), 3)))

@@ -1,0 +1,290 @@
+/* Compiled core of deepcontact.kinematics: the contact points' relative velocities
+ * and effective masses, read straight from the engine's records.
+ *
+ * deepcontact/kinematics.py owns the conventions and documents them; this is its
+ * arithmetic. In NumPy the same quantities took about a hundred calls per step
+ * (each a few microseconds on a few hundred points), the larger part of the
+ * server's feature stage; here one call makes one pass over the bodies and two
+ * over the points.
+ *
+ * Bit for bit what the NumPy implementation gave (tests/deepcontact/
+ * test_kinematics.py keeps it as the reference): float32 fields are widened to
+ * float64 before any arithmetic, every sum is taken in NumPy's order (the
+ * warm start's impulses reach the bodies as np.bincount added them: every
+ * point's share on body B first, in point order, then every share on body A),
+ * and -ffp-contract=off (setup.py) keeps a*b+c from being fused. The models
+ * were trained on these numbers, so serving them must not move a bit.
+ *
+ * Layout: `bodies` and `points` are C-contiguous arrays of BODY_DTYPE and
+ * CONTACT_DTYPE (deepcontact/records.py); the field offsets below are checked
+ * against those dtypes when kinematics.py imports this module. Outputs are
+ * (P, 2) float64, written in place. Body indices are checked before use.
+ *
+ * Build: setup.py (`make setup` runs it through `pip install -e .`).
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <stdint.h>
+#include <string.h>
+
+/* BODY_DTYPE (48 bytes) and CONTACT_DTYPE (64 bytes): byte offsets of the fields read. */
+enum {
+    BODY_SIZE = 48,
+    BODY_TYPE = 4,
+    BODY_POSITION = 8,
+    BODY_VELOCITY = 20,
+    BODY_ANGULAR_VELOCITY = 28,
+    BODY_MASS = 32,
+    BODY_INERTIA = 36,
+    POINT_SIZE = 64,
+    POINT_BODY_A = 8,
+    POINT_BODY_B = 12,
+    POINT_POINT = 16,
+    POINT_NORMAL = 24,
+    POINT_BUILTIN = 36,
+};
+enum { BODY_DYNAMIC = 2 };
+enum { WARM_NONE = 0, WARM_BUILTIN = 1, WARM_GIVEN = 2 };
+
+static inline double f32_at(const char *record, int offset)
+{
+    float x;
+    memcpy(&x, record + offset, sizeof x);
+    return (double)x;
+}
+
+static inline int32_t i32_at(const char *record, int offset)
+{
+    int32_t x;
+    memcpy(&x, record + offset, sizeof x);
+    return x;
+}
+
+/* 1/x where the body may take impulses and x > 0, else 0 (kinematics._inverse). */
+static inline double inverse_of(double x, int ok)
+{
+    return (ok && x > 0.0) ? 1.0 / x : 0.0;
+}
+
+/* Per-body scratch, grown as needed, never shrunk: 8 float64 a body. */
+static double *scratch = NULL;
+static Py_ssize_t scratch_bodies = 0;
+
+static double *body_scratch(Py_ssize_t n_bodies)
+{
+    if (n_bodies > scratch_bodies) {
+        double *p = PyMem_Realloc(scratch, (size_t)n_bodies * 8 * sizeof(double));
+        if (p == NULL) {
+            PyErr_NoMemory();
+            return NULL;
+        }
+        scratch = p;
+        scratch_bodies = n_bodies;
+    }
+    return scratch;
+}
+
+/* One point's frame: the body rows, normal, tangent and lever arms (m). */
+struct frame {
+    Py_ssize_t a, b;
+    double n0, n1, t0, t1, ra0, ra1, rb0, rb1;
+};
+
+static inline void frame_of(const char *point, const char *bodies, struct frame *f)
+{
+    f->a = i32_at(point, POINT_BODY_A);
+    f->b = i32_at(point, POINT_BODY_B);
+    const double p0 = f32_at(point, POINT_POINT), p1 = f32_at(point, POINT_POINT + 4);
+    f->n0 = f32_at(point, POINT_NORMAL);
+    f->n1 = f32_at(point, POINT_NORMAL + 4);
+    f->t0 = f->n1;
+    f->t1 = -f->n0;
+    const char *ba = bodies + f->a * BODY_SIZE, *bb = bodies + f->b * BODY_SIZE;
+    f->ra0 = p0 - f32_at(ba, BODY_POSITION);
+    f->ra1 = p1 - f32_at(ba, BODY_POSITION + 4);
+    f->rb0 = p0 - f32_at(bb, BODY_POSITION);
+    f->rb1 = p1 - f32_at(bb, BODY_POSITION + 4);
+}
+
+/* Relative (normal, tangent) velocity at a point from the bodies' (vx, vy, w) rows. */
+static inline void relative_velocity(const struct frame *f, const double *vx, const double *vy, const double *w,
+                                     double *out)
+{
+    const double wa = w[f->a], wb = w[f->b];
+    double rel0 = vx[f->b] - vx[f->a];
+    double rel1 = vy[f->b] - vy[f->a];
+    rel0 += wa * f->ra1 - wb * f->rb1;
+    rel1 += wb * f->rb0 - wa * f->ra0;
+    out[0] = rel0 * f->n0 + rel1 * f->n1;
+    out[1] = rel0 * f->t0 + rel1 * f->t1;
+}
+
+/* point_kinematics(bodies, n_bodies, points, n_points, warm_mode, warm, dt, gx, gy,
+ *                  velocities, warmed, masses) -> None
+ *
+ * bodies: n_bodies BODY_DTYPE records; points: n_points CONTACT_DTYPE records.
+ * warm_mode: WARM_NONE, WARM_BUILTIN (the points' builtin field) or WARM_GIVEN
+ *   (warm, (P, 2) float64 N s; otherwise pass an empty buffer).
+ * dt (s), gx, gy (m/s^2): this step's gravity, added to dynamic bodies first when dt != 0.
+ * velocities: (P, 2) float64 out, the relative velocity before any impulse, or an
+ *   empty buffer for none; warmed: the same after the warm start (needs warm_mode
+ *   != WARM_NONE), or empty; masses: (P, 2) float64 out, the effective masses, or empty.
+ */
+static PyObject *point_kinematics(PyObject *self, PyObject *args)
+{
+    Py_buffer bodies_buf, points_buf, warm_buf, vel_buf, warmed_buf, mass_buf;
+    Py_ssize_t n_bodies, n_points;
+    int warm_mode;
+    double dt, gx, gy;
+    if (!PyArg_ParseTuple(args, "y*ny*niy*dddw*w*w*", &bodies_buf, &n_bodies, &points_buf, &n_points, &warm_mode,
+                          &warm_buf, &dt, &gx, &gy, &vel_buf, &warmed_buf, &mass_buf))
+        return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t out_len = n_points * 2 * (Py_ssize_t)sizeof(double);
+    if (bodies_buf.len != n_bodies * BODY_SIZE || points_buf.len != n_points * POINT_SIZE) {
+        PyErr_SetString(PyExc_ValueError, "_kinematics: bodies or points are not whole records");
+        goto done;
+    }
+    if ((vel_buf.len && vel_buf.len != out_len) || (warmed_buf.len && warmed_buf.len != out_len) ||
+        (mass_buf.len && mass_buf.len != out_len) || (warm_mode == WARM_GIVEN && warm_buf.len != out_len)) {
+        PyErr_SetString(PyExc_ValueError, "_kinematics: an impulse or output buffer is not (P, 2) float64");
+        goto done;
+    }
+    if (warmed_buf.len && warm_mode == WARM_NONE) {
+        PyErr_SetString(PyExc_ValueError, "_kinematics: warmed velocities need a warm start");
+        goto done;
+    }
+    const char *bodies = bodies_buf.buf, *points = points_buf.buf;
+    for (Py_ssize_t i = 0; i < n_points; i++) {
+        const char *p = points + i * POINT_SIZE;
+        const int32_t a = i32_at(p, POINT_BODY_A), b = i32_at(p, POINT_BODY_B);
+        if (a < 0 || b < 0 || a >= n_bodies || b >= n_bodies) {
+            PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
+            goto done;
+        }
+    }
+    double *s = body_scratch(n_bodies > 0 ? n_bodies : 1);
+    if (s == NULL)
+        goto done;
+    /* Per body: velocity after gravity (vx, vy, w), inverse mass and inertia, and the
+     * warm start's impulse summed on it (dvx, dvy, dw; then its velocity after). */
+    double *vx = s, *vy = s + n_bodies, *w = s + 2 * n_bodies, *inv_m = s + 3 * n_bodies,
+           *inv_i = s + 4 * n_bodies;
+    for (Py_ssize_t k = 0; k < n_bodies; k++) {
+        const char *body = bodies + k * BODY_SIZE;
+        const int dynamic = i32_at(body, BODY_TYPE) == BODY_DYNAMIC;
+        const double on = dynamic ? 1.0 : 0.0;
+        vx[k] = f32_at(body, BODY_VELOCITY) * on;
+        vy[k] = f32_at(body, BODY_VELOCITY + 4) * on;
+        w[k] = f32_at(body, BODY_ANGULAR_VELOCITY) * on;
+        if (dt != 0.0) {
+            vx[k] += (dt * gx) * on;
+            vy[k] += (dt * gy) * on;
+        }
+        inv_m[k] = inverse_of(f32_at(body, BODY_MASS), dynamic);
+        inv_i[k] = inverse_of(f32_at(body, BODY_INERTIA), dynamic);
+    }
+    struct frame f;
+    double *vel = vel_buf.len ? vel_buf.buf : NULL, *warmed = warmed_buf.len ? warmed_buf.buf : NULL,
+           *mass = mass_buf.len ? mass_buf.buf : NULL;
+    for (Py_ssize_t i = 0; i < n_points; i++) {
+        if (!vel && !mass)
+            break;
+        frame_of(points + i * POINT_SIZE, bodies, &f);
+        if (vel)
+            relative_velocity(&f, vx, vy, w, vel + 2 * i);
+        if (mass) {
+            /* 1 / (1/m_A + 1/m_B + (r_A x d)^2 / I_A + (r_B x d)^2 / I_B), d = n then t. */
+            const double d[2][2] = {{f.n0, f.n1}, {f.t0, f.t1}};
+            for (int k = 0; k < 2; k++) {
+                const double ca = f.ra0 * d[k][1] - f.ra1 * d[k][0];
+                const double cb = f.rb0 * d[k][1] - f.rb1 * d[k][0];
+                const double inv = inv_m[f.a] + inv_m[f.b] + inv_i[f.a] * (ca * ca) + inv_i[f.b] * (cb * cb);
+                mass[2 * i + k] = inverse_of(inv, 1);
+            }
+        }
+    }
+    if (warmed) {
+        /* The warm start's impulse summed on each body (N s, N m s), then its velocity after it. */
+        double *dvx = s + 5 * n_bodies, *dvy = s + 6 * n_bodies, *dw = s + 7 * n_bodies;
+        memset(dvx, 0, (size_t)n_bodies * 3 * sizeof(double));
+        const double *given = warm_mode == WARM_GIVEN ? warm_buf.buf : NULL;
+        for (int side = 0; side < 2; side++) { /* B's shares, then A's, as np.bincount(concat(b, a)) */
+            for (Py_ssize_t i = 0; i < n_points; i++) {
+                const char *p = points + i * POINT_SIZE;
+                frame_of(p, bodies, &f);
+                const double jn = given ? given[2 * i] : f32_at(p, POINT_BUILTIN);
+                const double jt = given ? given[2 * i + 1] : f32_at(p, POINT_BUILTIN + 4);
+                const double i0 = jn * f.n0 + jt * f.t0, i1 = jn * f.n1 + jt * f.t1;
+                if (side == 0) {
+                    dvx[f.b] += i0;
+                    dvy[f.b] += i1;
+                    dw[f.b] += f.rb0 * i1 - f.rb1 * i0;
+                } else {
+                    dvx[f.a] += -i0;
+                    dvy[f.a] += -i1;
+                    dw[f.a] += -(f.ra0 * i1 - f.ra1 * i0);
+                }
+            }
+        }
+        for (Py_ssize_t k = 0; k < n_bodies; k++) {
+            dvx[k] = vx[k] + dvx[k] * inv_m[k];
+            dvy[k] = vy[k] + dvy[k] * inv_m[k];
+            dw[k] = w[k] + dw[k] * inv_i[k];
+        }
+        for (Py_ssize_t i = 0; i < n_points; i++) {
+            frame_of(points + i * POINT_SIZE, bodies, &f);
+            relative_velocity(&f, dvx, dvy, dw, warmed + 2 * i);
+        }
+    }
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&bodies_buf);
+    PyBuffer_Release(&points_buf);
+    PyBuffer_Release(&warm_buf);
+    PyBuffer_Release(&vel_buf);
+    PyBuffer_Release(&warmed_buf);
+    PyBuffer_Release(&mass_buf);
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"point_kinematics", point_kinematics, METH_VARARGS,
+     "Relative velocities (before and after a warm start) and effective masses at contact points (see the C "
+     "source)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "deepcontact._kinematics",
+    "Compiled core of deepcontact.kinematics (contact velocities and effective masses).", -1, methods,
+};
+
+PyMODINIT_FUNC PyInit__kinematics(void)
+{
+    PyObject *mod = PyModule_Create(&module);
+    if (mod == NULL)
+        return NULL;
+    const struct {
+        const char *name;
+        long value;
+    } constants[] = {
+        {"BODY_SIZE", BODY_SIZE},         {"BODY_TYPE", BODY_TYPE},
+        {"BODY_POSITION", BODY_POSITION}, {"BODY_VELOCITY", BODY_VELOCITY},
+        {"BODY_ANGULAR_VELOCITY", BODY_ANGULAR_VELOCITY},
+        {"BODY_MASS", BODY_MASS},         {"BODY_INERTIA", BODY_INERTIA},
+        {"POINT_SIZE", POINT_SIZE},       {"POINT_BODY_A", POINT_BODY_A},
+        {"POINT_BODY_B", POINT_BODY_B},   {"POINT_POINT", POINT_POINT},
+        {"POINT_NORMAL", POINT_NORMAL},   {"POINT_BUILTIN", POINT_BUILTIN},
+        {"WARM_NONE", WARM_NONE},         {"WARM_BUILTIN", WARM_BUILTIN},
+        {"WARM_GIVEN", WARM_GIVEN},
+    };
+    for (size_t k = 0; k < sizeof constants / sizeof constants[0]; k++) {
+        if (PyModule_AddIntConstant(mod, constants[k].name, constants[k].value)) {
+            Py_DECREF(mod);
+            return NULL;
+        }
+    }
+    return mod;
+}
