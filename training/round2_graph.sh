@@ -83,6 +83,11 @@
 #                              loss) on two cores
 #   graph-projected-max-1-799-r8  graph-projected-max-1-799's recipe from graph-mse-1-799-r8's
 #                              weights (with a -t1 card)
+#   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
+#                              the width that gained per state at three rounds, at the default's
+#                              eight; 6 epochs
+#   graph-projected-max-1-799-w64-r8  the default's second stage from graph-mse-1-799-w64-r8's
+#                              weights (with a -t1 card)
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
 #                              (--layer-norm): on the GPU it trained eight rounds faster and let
 #                              sixteen train; does it help the default's shape on two cores?
@@ -221,6 +226,14 @@ run() {
         graph-mse-1-799-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-r8 --loss mse --rounds 8 --epochs 6 --patience 3 ;;
+        graph-mse-1-799-w64-r8)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 8 --width 64 --epochs 6 --patience 3 ;;
+        graph-projected-max-1-799-w64-r8)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \
+                --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w64-r8.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-mse-1-799-r8-ln)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-r8-ln --loss mse --rounds 8 --layer-norm --epochs 6 --patience 3 ;;
