@@ -243,35 +243,28 @@ def _batches(gs: GraphSet, batch_steps: int, bucket: int, rng, scaling, stop: th
             out.put(padded_batch(gs, np.sort(order[k:k + batch_steps]), *scaling, bucket=bucket))
 
 
-def run(args: argparse.Namespace) -> int:
+def _scaling(train: GraphSet) -> tuple[dict, tuple[np.ndarray, ...]]:
+    """The training set's normalization (as train-graph computes it) and its arrays
+    (in_mean, in_std, out_mean, out_std), float32, as padded_batch takes them."""
     from training.train_graph import normalization
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        train = concatenate(read_sets(args.train, None, args.workers, tmp))
-        val = read_sets(args.val, VAL_STEPS, args.workers, tmp)
-    read_seconds = time.perf_counter() - t0
     norm = normalization([train])
-    in_mean = np.array([norm[n][0] for n in train.inputs], np.float32)
-    in_std = np.array([norm[n][1] for n in train.inputs], np.float32)
-    out_mean = np.array([norm[n][0] for n in train.target_names], np.float32)
-    out_std = np.array([norm[n][1] for n in train.target_names], np.float32)
-    scaling = (in_mean, in_std, out_mean, out_std)
-    print(f"read {len(train)} training steps ({len(train.targets)} points) and "
-          f"{sum(len(v) for v in val)} validation steps in {read_seconds:.0f} s", flush=True)
+    arrays = [np.array([norm[n][k] for n in names], np.float32)
+              for names in (train.inputs, train.target_names) for k in (0, 1)]
+    return norm, tuple(arrays)
 
-    probe = Probe(args.config, len(train.inputs), len(train.target_names), out_mean, out_std, args.lr, args.seed)
-    val_batches = [padded_batch(v, np.arange(k, min(k + 64, len(v))), *scaling)
-                   for v in val for k in range(0, len(v), 64)]
-    # The loss of no correction: Box2D's own warm start.
-    no_correction = float(sum(np.sum(np.square((0 - out_mean) / out_std - b[3]) * b[4][:, None]) for b in val_batches)
-                          / sum(b[4].sum() for b in val_batches))
-    history = [[] for _ in args.config]
-    best = [(np.inf, None, 0.0) for _ in args.config]
+
+def _train(probe: Probe, train: GraphSet, val_batches: list, scaling, args: argparse.Namespace):
+    """Train every network of `probe` for args.seconds on batches that feeder threads
+    draw from `train`, validating every args.val_every seconds. Returns (history per
+    network: [seconds, steps, train loss, validation loss] rows; best per network:
+    (validation loss, weights, seconds); Adam steps taken)."""
+    history = [[] for _ in probe.names]
+    best = [(np.inf, None, 0.0) for _ in probe.names]
     stop, ready = threading.Event(), queue.Queue(maxsize=32)
     feeders = [threading.Thread(target=_batches, daemon=True,
-                                args=(train, args.batch_steps, args.point_bucket, np.random.default_rng(args.seed + k), scaling, stop, ready))
+                                args=(train, args.batch_steps, args.point_bucket, np.random.default_rng(args.seed + k),
+                                      scaling, stop, ready))
                for k in range(args.feeders)]
     for f in feeders:
         f.start()
@@ -295,6 +288,28 @@ def run(args: argparse.Namespace) -> int:
             if spent >= args.seconds:
                 break
     stop.set()
+    return history, best, steps
+
+
+def run(args: argparse.Namespace) -> int:
+    args.out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        train = concatenate(read_sets(args.train, None, args.workers, tmp))
+        val = read_sets(args.val, VAL_STEPS, args.workers, tmp)
+    read_seconds = time.perf_counter() - t0
+    norm, scaling = _scaling(train)
+    _, _, out_mean, out_std = scaling
+    print(f"read {len(train)} training steps ({len(train.targets)} points) and "
+          f"{sum(len(v) for v in val)} validation steps in {read_seconds:.0f} s", flush=True)
+
+    probe = Probe(args.config, len(train.inputs), len(train.target_names), out_mean, out_std, args.lr, args.seed)
+    val_batches = [padded_batch(v, np.arange(k, min(k + 64, len(v))), *scaling)
+                   for v in val for k in range(0, len(v), 64)]
+    # The loss of no correction: Box2D's own warm start.
+    no_correction = float(sum(np.sum(np.square((0 - out_mean) / out_std - b[3]) * b[4][:, None]) for b in val_batches)
+                          / sum(b[4].sum() for b in val_batches))
+    history, best, steps = _train(probe, train, val_batches, scaling, args)
     for k, name in enumerate(probe.names):
         _save_npz(args.out / f"{name}.weights.npz", best[k][1])
     report = {
