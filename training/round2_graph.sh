@@ -85,7 +85,8 @@
 #                              weights (with a -t1 card)
 #   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
 #                              the width that gained per state at three rounds, at the default's
-#                              eight; 6 epochs
+#                              eight; 6 epochs, 20-24 min each on two AVX2 cores (stopped after
+#                              3 once: docs/results.md, "Not done in round 2")
 #   graph-projected-max-1-799-w64-r8  the default's second stage from graph-mse-1-799-w64-r8's
 #                              weights (with a -t1 card)
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
