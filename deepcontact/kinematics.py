@@ -144,13 +144,18 @@ def _records(array: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
 
 def _kinematics(bodies: np.ndarray, points: np.ndarray, physics: Physics, warm, velocities: bool,
                 warmed: bool, masses: bool) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
-    """One call of the compiled kernel: the outputs asked for, (P, 2) float64 each, or None."""
+    """One call of the compiled kernel: the outputs asked for, (P, 2) float64 each, or None.
+
+    warm: None, (P, 2) impulses (N s), or "builtin" for the points' own builtin field,
+    read in place."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
     points = _records(np.asarray(points), CONTACT_DTYPE, "points")
     n_points = len(points)
     if warm is None:
         mode, given = _compiled.WARM_NONE, _EMPTY
-    elif isinstance(warm, str):  # "builtin": the points' own field, read in place
+    elif isinstance(warm, str):
+        if warm != "builtin":
+            raise ValueError(f"warm must be impulses or 'builtin', got {warm!r}")
         mode, given = _compiled.WARM_BUILTIN, _EMPTY
     else:
         given = np.ascontiguousarray(warm, np.float64)
