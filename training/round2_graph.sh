@@ -83,6 +83,10 @@
 #                              loss) on two cores
 #   graph-projected-max-1-799-r8  graph-projected-max-1-799's recipe from graph-mse-1-799-r8's
 #                              weights (with a -t1 card)
+#   graph-mse-1-799-r8-e9      3 more epochs of graph-mse-1-799-r8 from its weights (a new cosine
+#                              schedule at half the peak rate; `python -m training.recover_weights
+#                              models/graph-mse-1-799-r8.json` first in a fresh clone)
+#   graph-projected-max-1-799-r8-e9  the default's second stage from graph-mse-1-799-r8-e9's weights
 #   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
 #                              the width that gained per state at three rounds, at the default's
 #                              eight; 6 epochs, 20-24 min each on two AVX2 cores (stopped after
@@ -227,6 +231,15 @@ run() {
         graph-mse-1-799-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-r8 --loss mse --rounds 8 --epochs 6 --patience 3 ;;
+        graph-mse-1-799-r8-e9)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 8 --epochs 3 --patience 3 --lr 1e-3 \
+                --init runs/graph-cache/graph-mse-1-799-r8.weights.npz ;;
+        graph-projected-max-1-799-r8-e9)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-r8-e9.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-mse-1-799-w64-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse --rounds 8 --width 64 --epochs 6 --patience 3 ;;
