@@ -405,6 +405,18 @@ def series_styles(names: list[str]) -> dict[str, dict]:
     return styles
 
 
+def legend_label(name: str, width: int = 60) -> str:
+    """A warm start's name as a figure's legend shows it: a composite that prices several
+    (shadow:W1+W2+..., price:...) by its mode, its first warm start and how many more, since its
+    line is one trajectory and the full name (hundreds of characters) would cover the plot;
+    any other name past `width` characters cut with an ellipsis. Tables keep the full names."""
+    mode, _, rest = name.partition(":")
+    if mode in Pick.MODES and "+" in rest:
+        first, *more = rest.split("+")
+        name = f"{mode}:{first} (+{len(more)} more)"
+    return name if len(name) <= width else name[:width - 1] + "\u2026"
+
+
 def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: float, out: Path) -> None:
     import matplotlib
 
@@ -420,8 +432,8 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     style = series_styles(list(runs))
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     for name in runs:
-        ax1.plot(per_step(name, "contact_points"), label=name, **style[name])
-        ax2.plot(per_step(name, "velocity_iterations"), label=name, **style[name])
+        ax1.plot(per_step(name, "contact_points"), label=legend_label(name), **style[name])
+        ax2.plot(per_step(name, "velocity_iterations"), label=legend_label(name), **style[name])
     ax1.set(xlabel="step", ylabel="contact points", title="(a) contact points per step (mean over seeds)")
     ax2.set(xlabel="step", ylabel="velocity iterations", title="(b) iterations per step (mean over seeds)")
     ax2.legend(fontsize=7)
@@ -432,14 +444,14 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     for name in runs:
         its = np.array([i for r in runs[name] for i, n in zip(r["per_step"]["velocity_iterations"],
                                                                r["per_step"]["contact_points"]) if n > 0])
-        ax1.plot(k, (its[None, :] > k[:, None]).sum(axis=1) / len(runs[name]), label=name, **style[name])
+        ax1.plot(k, (its[None, :] > k[:, None]).sum(axis=1) / len(runs[name]), label=legend_label(name), **style[name])
         traces = [t for r in runs[name] for t, n in zip(r["per_step"]["residual_trace"], r["per_step"]["contact_points"])
                   if n > 0 and len(t)]
         if traces:  # none in a run without contacts: the panel stays empty
             # Finished steps repeat their last residual (thesis §8.2.1), so the median stays defined.
             padded = np.array([np.pad(t, (0, max_iterations - len(t)), mode="edge") for t in traces])
             median = np.median(padded, axis=0)
-            ax2.plot(np.arange(1, max_iterations + 1), median, label=name, **style[name])
+            ax2.plot(np.arange(1, max_iterations + 1), median, label=legend_label(name), **style[name])
             if median.max() > 0:  # the first steps of a short run may converge to no change at all
                 ax2.set_yscale("log")
     ax1.set(xlabel="iteration k", ylabel="steps still iterating (per simulation)",
@@ -453,7 +465,7 @@ def plot_figures(runs: dict[str, list[dict]], max_iterations: int, threshold: fl
     for ax, key in ((ax1, "mse_normal"), (ax2, "mse_tangent")):
         curves = {name: per_step(name, key) for name in runs}
         for name, curve in curves.items():
-            ax.plot(curve, label=name, **style[name])
+            ax.plot(curve, label=legend_label(name), **style[name])
         if any(np.nanmax(c, initial=0.0) > 0 for c in curves.values()):  # a short run may have no error at all
             ax.set_yscale("log")
     ax1.set(xlabel="step", ylabel="MSE (N s)^2", title="(a) warm start vs final impulse, normal")

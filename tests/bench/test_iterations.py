@@ -85,6 +85,18 @@ def test_every_series_of_a_figure_has_its_own_look_and_baselines_stay_grey():
     assert all(isinstance(styles[n]["color"], str) and styles[n]["ls"] != "-" for n in ("none", "copy", "server:bad"))
 
 
+def test_a_composite_of_many_warm_starts_is_named_short_in_the_legend():
+    from bench.iterations import legend_label
+
+    many = "shadow:server:default+" + "+".join(f"server:graph-variant-{i}" for i in range(5))
+    assert legend_label(many) == "shadow:server:default (+5 more)"
+    assert legend_label("price:server:a+server:b") == "price:server:a (+1 more)"
+    assert legend_label("split:server:default") == "split:server:default"  # one warm start: as it is
+    assert legend_label("server:default") == "server:default"
+    long = "server:" + "x" * 80
+    assert len(legend_label(long)) == 60 and legend_label(long).endswith("\u2026")
+
+
 def test_iteration_figures_are_the_same_in_process_on_workers_and_on_ray(tmp_path, ray_cluster):
     from bench.iterations import TIMING_FIELDS
     from server.process import ServerProcess
