@@ -6,9 +6,11 @@ For each world size, simulates the same seeds with `builtin` and with a served
 model (`server:MODEL`, one `deepcontact serve` process on loopback started
 here) and times every step's parts (simclient.simulate.StepRecord):
 
-    builtin:  collide + solve                                 (what Box2D alone does)
-    learned:  collide + export + round trip + inject + solve  (the round trip includes
-                                                               encoding and decoding)
+    builtin:     collide + solve                                 (what Box2D alone does)
+    learned:     collide + export + round trip + inject + solve  (the round trip includes
+                                                                  encoding and decoding)
+    in-process:  collide + export + predict + inject + solve     (the same model called in
+                                                                  this process, bench.inprocess)
 
 over steps with contacts (medians over all seeds' steps, ms). The break-even
 is what the learned warm start costs per step beyond Box2D's own work
@@ -16,7 +18,10 @@ is what the learned warm start costs per step beyond Box2D's own work
 iteration costs at that size (median over builtin's steps of solve time /
 velocity iterations): how many iterations per step it must save to pay for
 itself, beside how many it does save (builtin's mean iterations minus the
-model's). Sizes: `thesis` (100 bodies of 0.5 m in 15 x 15 m) and N, the
+model's). The in-process run gives the same warm starts without gRPC, so its
+overhead is what the model's own work (features, inference, combination) costs and
+the rest of the served overhead is the transport's; its break-even says whether a
+warm start run beside the solver would pay. Sizes: `thesis` (100 bodies of 0.5 m in 15 x 15 m) and N, the
 scene family at N bodies (radius 0.3-0.55 m, friction 0.2-0.8) in a square
 box growing with N so the density stays the thesis's (15 m per 100 bodies,
 times sqrt(N / 100)); the server's grids grow with the box.
@@ -58,6 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=250, help="steps per simulation (default 250)")
     parser.add_argument("--deadline-ms", type=float, default=1000.0,
                         help="per-step deadline (default 1000: every step is served and timed)")
+    parser.add_argument("--in-process", action=argparse.BooleanOptionalAction, default=True,
+                        help="also simulate with the model called in this process, no gRPC (default on)")
     parser.add_argument("--out", type=Path, default=Path("bench/results/walltime"),
                         help="output folder (default bench/results/walltime)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -96,14 +103,25 @@ def _first_round_trip(run: dict) -> float:
     return next(lat for lat in run["per_step"]["latency_ms"] if lat is not None)
 
 
-def summarize_size(builtin: list[dict], learned: list[dict]) -> dict:
-    """One size's row from builtin's and the model's runs on the same seeds."""
-    b = {k: np.concatenate([step_times(r, False)[k] for r in builtin]) for k in step_times(builtin[0], False)}
-    m = {k: np.concatenate([step_times(r, True)[k] for r in learned]) for k in step_times(learned[0], True)}
+def _server_inference_ms(runs: list[dict]) -> float | None:
+    """Median inference time (ms) the server reported over the served steps, None without any."""
+    times = [t["inference"] for r in runs for t in r["per_step"]["server_us"] if t]
+    return 1e-3 * float(np.median(times)) if times else None
+
+
+def _pooled(runs: list[dict], learned: bool) -> dict[str, np.ndarray]:
+    """step_times of several simulations, their steps end to end."""
+    return {k: np.concatenate([step_times(r, learned)[k] for r in runs]) for k in step_times(runs[0], learned)}
+
+
+def summarize_size(builtin: list[dict], learned: list[dict], in_process: list[dict] | None = None) -> dict:
+    """One size's row from builtin's, the served model's and (optionally) the in-process model's
+    runs on the same seeds."""
+    b, m = _pooled(builtin, False), _pooled(learned, True)
     per_iteration = float(np.median(b["solve_ms"] / np.maximum(b["velocity_iterations"], 1)))
     overhead = float(np.median(m["overhead_ms"]))
     saved = float(b["velocity_iterations"].mean() - m["velocity_iterations"].mean())
-    return {
+    row = {
         "steps_with_contacts": int(len(b["step_ms"])),
         "median_contact_points": float(np.median(b["contact_points"])),
         "builtin": {"step_ms": float(np.median(b["step_ms"])), "solve_ms": float(np.median(b["solve_ms"])),
@@ -116,11 +134,26 @@ def summarize_size(builtin: list[dict], learned: list[dict]) -> dict:
                     "mean_iterations": float(m["velocity_iterations"].mean()),
                     "mean_step_ms": float(m["step_ms"].mean()),
                     "fallback_steps": int(sum(r["summary"]["fallback_steps"] for r in learned)),
-                    "first_round_trip_ms": float(np.median([_first_round_trip(r) for r in learned]))},
+                    "first_round_trip_ms": float(np.median([_first_round_trip(r) for r in learned])),
+                    "server_inference_ms": _server_inference_ms(learned)},
         "ms_per_iteration": per_iteration,
         "break_even_iterations": overhead / per_iteration if per_iteration > 0 else None,
         "saved_iterations": saved,
     }
+    if in_process:
+        p = _pooled(in_process, True)
+        own = float(np.median(p["overhead_ms"]))
+        row["in_process"] = {
+            "step_ms": float(np.median(p["step_ms"])), "solve_ms": float(np.median(p["solve_ms"])),
+            "predict_ms": float(np.median(p["provider_ms"])), "overhead_ms": own,
+            "mean_iterations": float(p["velocity_iterations"].mean()),
+            "break_even_iterations": own / per_iteration if per_iteration > 0 else None,
+            "saved_iterations": float(b["velocity_iterations"].mean() - p["velocity_iterations"].mean())}
+        stages = [st for r in in_process for st in r.get("stages", ())]
+        for stage, key in (("p2g", "p2g_ms"), ("inference", "inference_ms"), ("g2p", "g2p_ms")):
+            times = [st[stage] for st in stages if stage in st]
+            row["in_process"][key] = 1e3 * float(np.median(times)) if times else None
+    return row
 
 
 def run(args: argparse.Namespace) -> int:
@@ -153,9 +186,15 @@ def run(args: argparse.Namespace) -> int:
             return 2
         from tqdm import tqdm
 
-        bar = tqdm(total=2 * len(specs) * len(seeds), unit="sim", disable=args.quiet, file=sys.stderr)
+        arms = 3 if args.in_process else 2
+        bar = tqdm(total=arms * len(specs) * len(seeds), unit="sim", disable=args.quiet, file=sys.stderr)
         for spec in specs:
             runs = {"builtin": [], "learned": []}
+            local = None
+            if args.in_process:
+                from bench.inprocess import InProcess
+
+                local, runs["in_process"] = InProcess.load(args.models, args.model, spec), []
             for seed in seeds:
                 runs["builtin"].append(run_simulation(spec, seed, make_provider("builtin")))
                 bar.update()
@@ -166,6 +205,10 @@ def run(args: argparse.Namespace) -> int:
                 finally:
                     client.close()
                 bar.update()
+                if local is not None:
+                    runs["in_process"].append(run_simulation(spec, seed, local))
+                    runs["in_process"][-1]["stages"] = local.stages
+                    bar.update()
             rows[spec.name] = {"bodies": spec.bodies, "box_size": list(spec.box_size), **summarize_size(**runs)}
         bar.close()
     finally:
@@ -198,7 +241,27 @@ def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
                      f"{m['first_round_trip_ms']:.2f} | "
                      f"{m['overhead_ms']:.2f} | {r['ms_per_iteration']:.4f} | {be} | {r['saved_iterations']:.0f} | "
                      f"{m['fallback_steps']} |")
+    local = {name: r["in_process"] for name, r in rows.items() if "in_process" in r}
+    if local:
+        lines += ["", f"The same model called in this process (in-process:{model}, bench.inprocess): no gRPC, "
+                      "no encoding or decoding.", "",
+                  "| world | builtin step | in-process step | predict | p2g (graph: features) | inference "
+                  "| g2p (graph: combination) | overhead | served inference | served overhead "
+                  "| break-even iterations | saved iterations |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for name, p in local.items():
+            r = rows[name]
+            be = "–" if p["break_even_iterations"] is None else f"{p['break_even_iterations']:.0f}"
+            stages = " | ".join(_ms(p[k]) for k in ("p2g_ms", "inference_ms", "g2p_ms"))
+            lines.append(f"| {name} | {r['builtin']['step_ms']:.2f} | {p['step_ms']:.2f} | {p['predict_ms']:.2f} | "
+                         f"{stages} | {p['overhead_ms']:.2f} | {_ms(r['learned']['server_inference_ms'])} | "
+                         f"{r['learned']['overhead_ms']:.2f} | {be} | "
+                         f"{p['saved_iterations']:.0f} |")
     return "\n".join(lines) + "\n"
+
+
+def _ms(value: float | None) -> str:
+    return "–" if value is None else f"{value:.2f}"
 
 
 def plot(rows: dict, model: str, path: Path) -> None:
@@ -215,6 +278,12 @@ def plot(rows: dict, model: str, path: Path) -> None:
               label=f"server:{model}")
     ax.loglog(bodies, [rows[n]["learned"]["overhead_ms"] for n in order], "s:", color="tab:blue", lw=0.8,
               label=f"server:{model}: export + round trip + inject")
+    local = [n for n in order if "in_process" in rows[n]]
+    if local:
+        ax.loglog([rows[n]["bodies"] for n in local], [rows[n]["in_process"]["step_ms"] for n in local], "^-",
+                  color="tab:green", label=f"in-process:{model}")
+        ax.loglog([rows[n]["bodies"] for n in local], [rows[n]["in_process"]["overhead_ms"] for n in local], "^:",
+                  color="tab:green", lw=0.8, label=f"in-process:{model}: export + predict + inject")
     for n in order:
         if n == "thesis":
             ax.annotate("thesis", (rows[n]["bodies"], rows[n]["builtin"]["step_ms"]), fontsize=7,

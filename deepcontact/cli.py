@@ -38,7 +38,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
     (("bench", "surrogate"), "bench.surrogate", "does the training loss's score of a step follow the iterations a model saves there?"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
-    (("bench", "walltime"), "bench.walltime", "whole step time with builtin and a served model, and the break-even, per world size"),
+    (("bench", "walltime"), "bench.walltime", "whole step time with builtin, a served model and the same model in process, and the break-even, per world size"),
 ]
 
 

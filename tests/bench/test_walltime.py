@@ -19,7 +19,7 @@ def test_family_worlds_keep_the_thesis_density_as_they_grow():
         scene_for("huge", 250)
 
 
-def test_bench_walltime_times_both_warm_starts_on_every_size(tmp_path):
+def test_bench_walltime_times_builtin_the_served_and_the_in_process_model_on_every_size(tmp_path):
     models = tmp_path / "models"
     models.mkdir()
     write_conv_model(models, "tiny")
@@ -35,7 +35,13 @@ def test_bench_walltime_times_both_warm_starts_on_every_size(tmp_path):
     # Builtin's step is Box2D's own work; the learned one adds the round trip.
     assert thesis["learned"]["step_ms"] > thesis["learned"]["solve_ms"] + thesis["learned"]["collide_ms"]
     assert thesis["break_even_iterations"] == pytest.approx(thesis["learned"]["overhead_ms"] / thesis["ms_per_iteration"])
-    assert "| family-40 | 40 |" in (out / "walltime.md").read_text()
+    # The same model called in process: the served warm starts without the round trip.
+    local = thesis["in_process"]
+    assert local["mean_iterations"] == thesis["learned"]["mean_iterations"]  # the same trajectory
+    assert local["predict_ms"] > 0 and local["inference_ms"] > 0
+    assert local["break_even_iterations"] == pytest.approx(local["overhead_ms"] / thesis["ms_per_iteration"])
+    table = (out / "walltime.md").read_text()
+    assert "| family-40 | 40 |" in table and "in-process:tiny" in table
     assert (out / "walltime.png").stat().st_size > 10_000
 
 
@@ -43,3 +49,11 @@ def test_bench_walltime_refuses_an_unknown_model(tmp_path, model_dir, capsys):
     assert main(["bench", "walltime", "--sizes", "thesis", "--seeds", "901", "--models", str(model_dir),
                  "--model", "nope", "--out", str(tmp_path), "--quiet"]) == 2
     assert "no model 'nope'" in capsys.readouterr().err
+
+
+def test_bench_walltime_can_leave_the_in_process_run_out(tmp_path, model_dir):
+    assert main(["bench", "walltime", "--sizes", "thesis", "--seeds", "901", "--steps", "30", "--no-in-process",
+                 "--models", str(model_dir), "--model", "tiny", "--out", str(tmp_path), "--quiet"]) == 0
+    result = json.loads((tmp_path / "walltime.json").read_text())
+    assert "in_process" not in result["sizes"]["thesis"]
+    assert "in-process" not in (tmp_path / "walltime.md").read_text()

@@ -1,0 +1,69 @@
+"""A served model called in the simulation's own process: the server's work on a step
+without gRPC, the request's encoding or the reply's decoding.
+
+    provider = InProcess.load(Path("models"), "default", spec)   # spec: simclient.scene.SceneSpec
+    run_simulation(spec, seed, provider)                          # no server, no client
+
+The simulation serves every step with the same predictor the server would load for
+the model (`server.predictors.load_model`, one ONNX Runtime thread) and hands it what
+a stream hands it: the step's bodies and points as the engine exports them (the
+records the wire carries, float32 already), the world the stream declares, passed
+through the wire once as the server decodes it (its time step and gravity are
+float32 there), and the last step's points for temporal channels. So the warm start
+is the served one to the bit, and a simulation takes the served trajectory. What it measures is what a round trip costs beyond the model's own work:
+`bench walltime` times a simulation this way beside the served one.
+
+It lives in bench/, above both simclient and server, because it composes the two;
+the simulation client itself never imports the server.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact import wire
+from server.predictors import Predictor, World, load_model
+from simclient.provider import Provider, as_warm_start
+from simclient.scene import SceneSpec
+
+
+class InProcess(Provider):
+    """The predictor of one model card, asked in process at every step with points."""
+
+    def __init__(self, predictor: Predictor, world: World):
+        self.predictor, self.world = predictor, world
+        self.name = f"in-process:{predictor.name}"
+        self._points: np.ndarray | None = None  # the last step with points: temporal channels' previous
+        #: per step with points, the predictor's stage times (s): for a graph model p2g is the
+        #: point features and g2p the combination, as in the server's timings
+        self.stages: list[dict[str, float]] = []
+
+    @classmethod
+    def load(cls, models: Path, model: str, spec: SceneSpec) -> "InProcess":
+        """The card `models/MODEL.json` (an alias card serves its target) for the world of `spec`.
+        FileNotFoundError names the models there when there is no such card."""
+        path = Path(models) / f"{model}.json"
+        if not path.exists():
+            known = sorted(p.stem for p in Path(models).glob("*.json"))
+            raise FileNotFoundError(f"no model {model!r} in {models}; there are {', '.join(known) or 'none'}")
+        # The world as a stream declares it: the wire carries the step's time and gravity as
+        # float32, and the server's channels see them so.
+        declared = wire.encode_world(*spec.domain, spec.walls(), spec.physics)
+        lower, upper, _edges = wire.decode_world(declared)
+        return cls(load_model(path), World((lower, upper), wire.decode_physics(declared)))
+
+    def prepare(self, engine) -> None:
+        super().prepare(engine)
+        self._points, self.stages = None, []
+        self.predictor.warm_up(self.world.domain)  # as the server does when a stream declares its world
+
+    def warm_start(self, engine, bodies: np.ndarray, points: np.ndarray, step: int):
+        """(normal (P,), tangent (P,)) float32 N s, the model's warm start for this step; None without points."""
+        if len(points) == 0:
+            return None  # the simulation sends no such step, so it is no temporal channel's previous
+        impulses, stages = self.predictor.predict(bodies, points, self.world, step, self._points)
+        self._points = points
+        self.stages.append(stages)
+        return as_warm_start(impulses)
