@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     print("| model | rounds | points | bodies | inference median ms |\n|---|---|---|---|---|")
     for r in rows:
         shown = r["model"] if r["model"] == r["served"] else f"{r['model']} ({r['served']})"
-        print(f"| {shown} | {r['rounds']} | {r['points']} | {r['bodies']} | {r['median_ms']:.2f} |")
+        print(f"| {shown} | {'–' if r['rounds'] is None else r['rounds']} | {r['points']} | {r['bodies']} | {r['median_ms']:.2f} |")
     if args.json:
         write_json_atomic(args.json, {"repeats": args.repeats, "seed": args.seed, "rows": rows})
         print(f"wrote {args.json}")

@@ -154,6 +154,10 @@ class Channel:
         channel (names from NEEDS); the server refuses requests without it.
     temporal: reads the previous step (Step.previous), so a point's value
         depends on more than its own step's records.
+    mirror: the value's sign when the world is reflected left to right (x -> -x):
+        -1 for x components, angles and angular velocities, and tangent
+        components (Box2D's tangent is (n_y, -n_x), which the reflection turns
+        into minus the reflected tangent); 1 otherwise.
     """
 
     name: str
@@ -164,6 +168,7 @@ class Channel:
     walls: bool = False
     needs: tuple[str, ...] = ()
     temporal: bool = False
+    mirror: int = 1
 
 
 def _field(name: str, component: int | None = None) -> Callable[[np.ndarray, Step], np.ndarray]:
@@ -215,33 +220,33 @@ SOURCES: Mapping[str, Source] = MappingProxyType({
 _DEFINITIONS = (
     # Bodies (dynamic only), at the body's position.
     Channel("mass", "bodies", _field("mass"), "kg", "body mass; static box edges get GridSpec.wall_mass", walls=True),
-    Channel("vx", "bodies", _field("velocity", 0), "m/s", "linear velocity, x"),
+    Channel("vx", "bodies", _field("velocity", 0), "m/s", "linear velocity, x", mirror=-1),
     Channel("vy", "bodies", _field("velocity", 1), "m/s", "linear velocity, y"),
-    Channel("omega", "bodies", _field("angular_velocity"), "rad/s", "angular velocity"),
-    Channel("angle", "bodies", _field("angle"), "rad", "body angle"),
+    Channel("omega", "bodies", _field("angular_velocity"), "rad/s", "angular velocity", mirror=-1),
+    Channel("angle", "bodies", _field("angle"), "rad", "body angle", mirror=-1),
     Channel("inertia", "bodies", _field("inertia"), "kg m^2", "rotational inertia about the centre of mass"),
     Channel("radius", "bodies", _field("radius"), "m", "shape radius"),
     # Contact points, at the world contact point.
-    Channel("normal_x", "contacts", _field("normal", 0), "1", "contact normal (A to B), x"),
+    Channel("normal_x", "contacts", _field("normal", 0), "1", "contact normal (A to B), x", mirror=-1),
     Channel("normal_y", "contacts", _field("normal", 1), "1", "contact normal (A to B), y"),
     Channel("separation", "contacts", _field("separation"), "m", "signed separation (negative: penetration)",
             needs=("point_separation",)),
     Channel("builtin_normal", "contacts", _field("builtin", 0), "N s", "engine's built-in warm start, normal",
             needs=("builtin",)),
     Channel("builtin_tangent", "contacts", _field("builtin", 1), "N s", "engine's built-in warm start, tangent",
-            needs=("builtin",)),
+            needs=("builtin",), mirror=-1),
     Channel("new_point", "contacts", _new_point, "1", "1 for a point new this step (no builtin warm start), else 0",
             needs=("builtin",)),
     Channel("vn", "contacts", _derived("velocities", 0), "m/s",
             "relative normal velocity after this step's gravity (> 0 separates)", needs=_VELOCITY),
     Channel("vt", "contacts", _derived("velocities", 1), "m/s", "relative tangent velocity after gravity",
-            needs=_VELOCITY),
+            needs=_VELOCITY, mirror=-1),
     Channel("vn_builtin", "contacts", _derived("velocities_after_builtin", 0), "m/s",
             "relative normal velocity after gravity and the builtin warm start: the solver's first residual",
             needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("vt_builtin", "contacts", _derived("velocities_after_builtin", 1), "m/s",
             "relative tangent velocity after gravity and the builtin warm start",
-            needs=_VELOCITY + ("body_inertia", "builtin")),
+            needs=_VELOCITY + ("body_inertia", "builtin"), mirror=-1),
     Channel("normal_mass", "contacts", _derived("masses", 0), "kg",
             "effective mass along the normal (Box2D's normalMass)", needs=("point_bodies", "body_inertia")),
     Channel("tangent_mass", "contacts", _derived("masses", 1), "kg",
@@ -251,44 +256,45 @@ _DEFINITIONS = (
             needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("jacobi_tangent", "contacts", _derived("jacobi", 1), "N s",
             "one Jacobi step from the builtin warm start: -tangent_mass x vt_builtin",
-            needs=_VELOCITY + ("body_inertia", "builtin")),
+            needs=_VELOCITY + ("body_inertia", "builtin"), mirror=-1),
     # The same four on a signed logarithmic scale: linear within the solver's tolerance (1e-4 N s,
     # about 1e-4 m/s at these masses), logarithmic beyond it. In a settled pile they are 1e-4 to
     # 1e-3 of their standard deviation, which a standardized input all but hides from the network.
     Channel("vn_builtin_asinh", "contacts", _asinh("velocities_after_builtin", 0, _FINE_VELOCITY), "1",
             "asinh(vn_builtin / 1e-4 m/s)", needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("vt_builtin_asinh", "contacts", _asinh("velocities_after_builtin", 1, _FINE_VELOCITY), "1",
-            "asinh(vt_builtin / 1e-4 m/s)", needs=_VELOCITY + ("body_inertia", "builtin")),
+            "asinh(vt_builtin / 1e-4 m/s)", needs=_VELOCITY + ("body_inertia", "builtin"), mirror=-1),
     Channel("jacobi_normal_asinh", "contacts", _asinh("jacobi", 0, _FINE_IMPULSE), "1",
             "asinh(jacobi_normal / 1e-4 N s)", needs=_VELOCITY + ("body_inertia", "builtin")),
     Channel("jacobi_tangent_asinh", "contacts", _asinh("jacobi", 1, _FINE_IMPULSE), "1",
-            "asinh(jacobi_tangent / 1e-4 N s)", needs=_VELOCITY + ("body_inertia", "builtin")),
+            "asinh(jacobi_tangent / 1e-4 N s)", needs=_VELOCITY + ("body_inertia", "builtin"), mirror=-1),
     Channel("last_correction_normal", "contacts", _derived("last_correction", 0), "N s",
             "what the solver added to the warm start at this point last step (builtin minus last step's "
             "builtin), normal; 0 at new points", needs=("builtin", "point_keys"), temporal=True),
     Channel("last_correction_tangent", "contacts", _derived("last_correction", 1), "N s",
-            "the same, tangent", needs=("builtin", "point_keys"), temporal=True),
+            "the same, tangent", needs=("builtin", "point_keys"), temporal=True, mirror=-1),
     Channel("warm_start_normal", "contacts", _field("warm_start", 0), "N s", "warm start used, normal"),
-    Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent"),
+    Channel("warm_start_tangent", "contacts", _field("warm_start", 1), "N s", "warm start used, tangent", mirror=-1),
     Channel("impulse_normal", "contacts", _field("impulse", 0), "N s", "final solver impulse, normal"),
-    Channel("impulse_tangent", "contacts", _field("impulse", 1), "N s", "final solver impulse, tangent"),
+    Channel("impulse_tangent", "contacts", _field("impulse", 1), "N s", "final solver impulse, tangent", mirror=-1),
     # Targets of residual models: what the solver adds to Box2D's own warm start.
     Channel("correction_normal", "contacts", lambda c, s: c["impulse"][:, 0] - c["builtin"][:, 0], "N s",
             "final impulse minus the builtin warm start, normal"),
     Channel("correction_tangent", "contacts", lambda c, s: c["impulse"][:, 1] - c["builtin"][:, 1], "N s",
-            "final impulse minus the builtin warm start, tangent"),
+            "final impulse minus the builtin warm start, tangent", mirror=-1),
     Channel("oracle_normal", "contacts", _derived("oracle_impulses", 0), "N s",
             "this step solved from zero to convergence (the oracle), normal"),
-    Channel("oracle_tangent", "contacts", _derived("oracle_impulses", 1), "N s", "the oracle's impulse, tangent"),
+    Channel("oracle_tangent", "contacts", _derived("oracle_impulses", 1), "N s", "the oracle's impulse, tangent",
+            mirror=-1),
     Channel("oracle_correction_normal", "contacts", _oracle_minus_builtin(0), "N s",
             "the oracle's impulse minus the builtin warm start, normal"),
     Channel("oracle_correction_tangent", "contacts", _oracle_minus_builtin(1), "N s",
-            "the oracle's impulse minus the builtin warm start, tangent"),
+            "the oracle's impulse minus the builtin warm start, tangent", mirror=-1),
     # The previous step's contact points, at their own positions.
     Channel("previous_builtin_normal", "previous", _field("builtin", 0), "N s",
             "last step's builtin warm start (the impulse of two steps ago), normal", temporal=True),
     Channel("previous_builtin_tangent", "previous", _field("builtin", 1), "N s",
-            "last step's builtin warm start, tangent", temporal=True),
+            "last step's builtin warm start, tangent", temporal=True, mirror=-1),
 )
 
 #: Every channel by name (read-only).
@@ -300,6 +306,11 @@ if len(CHANNELS) != len(_DEFINITIONS):  # pragma: no cover - a definition error
 DEFAULT_INPUTS = ("mass", "vx", "vy", "omega", "normal_x", "normal_y")
 #: Thesis §8.1 targets: normal and tangent impulse at the contact points.
 DEFAULT_TARGETS = ("impulse_normal", "impulse_tangent")
+
+
+def mirror_signs(names: Sequence[str]) -> np.ndarray:
+    """(C,) float32: each channel's sign under a left-right reflection of the world (Channel.mirror)."""
+    return np.array([CHANNELS[n].mirror for n in names], np.float32)
 
 
 def needs(names: Sequence[str]) -> tuple[str, ...]:

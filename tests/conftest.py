@@ -7,6 +7,7 @@ import secrets
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from hypothesis import settings
 
@@ -54,11 +55,24 @@ def model_dir(tmp_path_factory):
     return folder
 
 
+def reflected(bodies: np.ndarray, contacts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(bodies (B,) BODY_DTYPE, contacts (P,) CONTACT_DTYPE) of the world reflected about
+    x = 0 (x -> -x; exact in float32): positions, velocities, points and normals mirrored,
+    angles, angular velocities and tangent impulses negated."""
+    bodies, contacts = bodies.copy(), contacts.copy()
+    for records, vectors in ((bodies, ("position", "velocity")), (contacts, ("point", "normal"))):
+        for field in vectors:
+            records[field][:, 0] *= -1
+    bodies["angle"] *= -1
+    bodies["angular_velocity"] *= -1
+    for field in ("builtin", "warm_start", "impulse"):  # the tangent (n_y, -n_x) turns into minus itself
+        contacts[field][:, 1] *= -1
+    return bodies, contacts
+
+
 @pytest.fixture(scope="session")
 def thesis_steps():
     """(world message, [(bodies, points)]) of a few settled thesis steps, with final impulses."""
-    import numpy as np
-
     from deepcontact import wire
     from simclient.scene import SceneSpec, settled_world
 

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deepcontact.channels import CHANNELS, NEEDS, SOURCES, Step, channel_values, needs, particle_positions
+from deepcontact.channels import (CHANNELS, NEEDS, SOURCES, Step, channel_values, mirror_signs, needs,
+                                  particle_positions)
 from deepcontact.kinematics import Physics
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
+from tests.conftest import reflected
 
 
 def two_bodies_on_the_floor():
@@ -108,3 +110,26 @@ def test_asinh_channels_resolve_velocities_near_the_solvers_tolerance():
     # 2e-4 m/s and 0.098 m/s are 2e-3 apart linearly and under a factor of 4 apart on this scale;
     # the sign stays (the disc at rest is pushed apart, the new one falls in).
     assert fine[0, 1] == pytest.approx(np.arcsinh(2.0), rel=1e-3) and fine[1, 1] < -np.arcsinh(900.0)
+
+
+def test_each_channel_changes_sign_under_a_reflection_as_its_mirror_says():
+    from simclient.scene import SceneSpec, build_world
+
+    spec = SceneSpec.thesis()
+    engine = build_world(spec, 901)
+    for _ in range(80):  # a pile, with persisting points and friction
+        engine.step()
+    engine.collide()
+    before = engine.contacts()
+    engine.solve()
+    engine.collide()
+    bodies, contacts = engine.bodies(), engine.contacts()
+    contacts["impulse"] = contacts["builtin"] * 0.5  # recorded data carries it; any values do here
+    step = Step(bodies, contacts, before, spec.physics)
+    mirror = Step(*reflected(bodies, contacts), reflected(bodies, before)[1], spec.physics)
+    assert len(contacts) > 20 and np.abs(contacts["builtin"][:, 1]).max() > 1e-3
+    for source in SOURCES:
+        names = [n for n, c in CHANNELS.items() if c.source == source and not n.startswith("oracle")]
+        got, want = channel_values(names, mirror), channel_values(names, step) * mirror_signs(names)
+        for i, name in enumerate(names):
+            np.testing.assert_allclose(got[:, i], want[:, i], rtol=1e-6, atol=1e-9, err_msg=name)

@@ -10,6 +10,7 @@ import pytest
 
 from deepcontact.modelcard import ModelCard, ModelCardError
 from training.card_variant import card_variant
+from tests.conftest import reflected
 from training.ensemble import agreed_mean, build_ensemble, main
 
 SHIPPED = Path(__file__).parents[2] / "models"
@@ -81,6 +82,31 @@ def test_an_agreeing_ensemble_serves_the_mean_only_where_its_members_agree(folde
     assert not (folder / "none.onnx").exists()
 
 
+def test_a_mirrored_model_serves_the_mean_of_its_answers_to_the_step_and_to_its_mirror_image(
+        folder, tmp_path, thesis_steps):
+    from deepcontact import wire
+
+    build_ensemble([folder / f"{MEMBERS[0]}.json"], "mirrored", out_dir=tmp_path, mirror=True)
+    for suffix in (".json", ".onnx"):
+        shutil.copy(folder / f"{MEMBERS[0]}{suffix}", tmp_path)
+    world, steps = thesis_steps
+    lower, upper, _ = wire.decode_world(world)
+    # The same steps in the world reflected about x = 0, served by the member itself.
+    image_world = wire.encode_world((-upper[0], lower[1]), (-lower[0], upper[1]), physics=wire.decode_physics(world))
+    image = served(tmp_path, MEMBERS[0], image_world, [reflected(bodies, points) for bodies, points in steps])
+    plain, mirrored = (served(tmp_path, name, world, steps) for name in (MEMBERS[0], "mirrored"))
+    back = np.array([1.0, -1.0], np.float32)  # a tangent impulse changes sign under the reflection
+    differ = []
+    for k in range(len(steps)):
+        # Each answer is Box2D's warm start plus a correction: the mean of the two corrections.
+        np.testing.assert_allclose(mirrored[k], (plain[k] + image[k] * back) / 2, atol=2e-5)
+        differ.append(np.abs(plain[k] - image[k] * back).max())
+    assert max(differ) > 0.01  # the network is not symmetric by itself, so the mean is another answer
+    card = ModelCard.load(tmp_path / "mirrored.json")
+    assert card.architecture["config"]["mirror"] is True and card.commands[-1].endswith("--mirror")
+    assert card.parity_max_abs_error < 1e-4
+
+
 def test_the_ensembles_card_names_its_members_and_folds_their_normalization_into_the_graph(folder):
     card = ModelCard.load(folder / "both.json")
     members = [ModelCard.load(folder / f"{name}.json") for name in MEMBERS]
@@ -98,5 +124,5 @@ def test_an_ensemble_refuses_members_it_cannot_average(folder, tmp_path, capsys)
     with pytest.raises(ModelCardError, match="kind graph, combine residual"):
         build_ensemble([folder / f"{MEMBERS[0]}.json", tmp_path / "pressure.json"], "mixed")
     assert main([str(folder / f"{MEMBERS[0]}.json"), "--name", "alone"]) == 2
-    assert "at least two member cards" in capsys.readouterr().err
+    assert "at least two member cards, or one with --mirror" in capsys.readouterr().err
     assert not (folder / "alone.onnx").exists() and not (tmp_path / "mixed.onnx").exists()
