@@ -215,6 +215,13 @@ def one_world(steps: list[Step]) -> Step:
     return Step(bodies, contacts, None, steps[0].physics, oracle)
 
 
+#: Each point_geometry column's sign when the world is reflected left to right (x -> -x): the
+#: normal's and both lever arms' x change sign, and Box2D's tangent (n_y, -n_x) becomes
+#: (n_y, n_x), its y component's sign changed (it is then minus the reflected tangent, which is
+#: why tangent channels have Channel.mirror -1).
+MIRROR_GEOMETRY = np.array([-1, 1, 1, -1, -1, 1, -1, 1], np.float32)
+
+
 def point_geometry(bodies: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(P, 8) float32: normal, tangent (Box2D's (n_y, -n_x)), point - centre of A, point - centre of B (m)."""
     n = points["normal"].astype(np.float64)

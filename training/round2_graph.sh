@@ -89,6 +89,8 @@
 #   graph-projected-max-1-799-r8-e9  the default's second stage from graph-mse-1-799-r8-e9's weights
 #   graph-projected-max-1-799-r8-s6k  the default's second stage on twice the steps of each file
 #                              (6,000), seen once instead of twice: the same compute, more states
+#   graph-projected-max-1-799-r8-reflect  the default's second stage with half its steps reflected
+#                              left to right (--mirror-augment): the worlds' symmetry as more states
 #   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
 #                              the width that gained per state at three rounds, at the default's
 #                              eight; 6 epochs, 20-24 min each on two AVX2 cores (stopped after
@@ -276,6 +278,11 @@ run() {
             variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
                 --init runs/graph-cache/graph-mse-1-799-r8.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-r8-reflect)
+            # The default's stopping-rule stage with half its steps reflected left to right.
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --mirror-augment --init runs/graph-cache/graph-mse-1-799-r8.weights.npz ;;
         graph-projected-max-1-799-r8-ln)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --layer-norm --max-steps-per-file 3000 --epochs 2 \

@@ -36,8 +36,8 @@ from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard
 from training import machine
-from deepcontact.channels import CHANNELS
-from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, GraphSet, build_graph_set
+from deepcontact.channels import CHANNELS, mirror_signs
+from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set
 from training.grids import GridDataError
 
 # What the correction is measured to: the solver's own end of the recorded step (Box2D's warm
@@ -153,6 +153,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 0.5 for jacobi, 1 for gauss-seidel, as Box2D)")
     parser.add_argument("--tangent-weight", type=float, default=1.0,
                         help="weight of the tangent component in the loss (default %(default)s)")
+    parser.add_argument("--mirror-augment", action="store_true",
+                        help="reflect each training step left to right with probability 1/2 (every input and "
+                             "target channel times its sign under the reflection, the solver's geometry "
+                             "reflected): the worlds are symmetric, the network is not built to be")
     parser.add_argument("--max-steps-per-file", type=int, metavar="N", help="use at most N steps of each file")
     parser.add_argument("--max-val-steps", type=int, metavar="N", help="use at most N steps of each validation file")
     parser.add_argument("--cache", type=Path, default=Path("runs/graph-cache"),
@@ -289,17 +293,23 @@ class Scaling:
     def of(cls, spec: GridSpec) -> "Scaling":
         return cls(*spec.normalization_arrays(spec.inputs), *spec.normalization_arrays(spec.targets))
 
-    def batch(self, gs: GraphSet, steps, *, colour: bool = False) -> tuple:
+    def batch(self, gs: GraphSet, steps, *, colour: bool = False, reflect: np.ndarray | None = None) -> tuple:
         """Steps of gs as one normalized batch: points (P, F), ends (P, 2), dynamic (B, 1),
         targets (P, T), geometry (P, 8), masses (P, 2), inverse (B, 2), step_of (P,) int32
         (each point's step within the batch), colour (P,) int32 (training.graph_loss.colour_points
-        with `colour`, for --order gauss-seidel; else 0), speed (B,) m/s."""
+        with `colour`, for --order gauss-seidel; else 0), speed (B,) m/s.
+        reflect: (S,) bool per step, those steps reflected left to right (--mirror-augment)."""
         from training.graph_loss import colour_points
 
         f, t, e, d = gs.batch(steps)
         counts = np.diff(gs.point_offsets)[np.asarray(steps)]
         step_of = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
         geometry, masses, inverse = gs.solver_batch(steps)
+        if reflect is not None and np.any(reflect):
+            at = np.asarray(reflect, bool)[step_of]  # (P,) the points of reflected steps
+            f[at] *= mirror_signs(gs.inputs)
+            t[at] *= mirror_signs(gs.target_names)
+            geometry[at] *= MIRROR_GEOMETRY
         colours = colour_points(e, inverse) if colour else np.zeros(len(e), np.int32)
         return ((f - self.in_mean) / self.in_std, e, d, (t - self.out_mean) / self.out_std,
                 geometry, masses, inverse, step_of, colours, gs.body_speeds(steps))
@@ -627,6 +637,7 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     epoch's validation, the net holding that epoch's weights."""
     optimizer, train_step, val_step = _compiled_steps(net, batch_loss, args.lr)
     colour = getattr(args, "order", "jacobi") == "gauss-seidel"
+    mirror = getattr(args, "mirror_augment", False)
 
     def validate() -> float:
         total, count = 0.0, 0.0
@@ -650,8 +661,9 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
         for j in rng.permutation(len(batches)):  # loop over batches of steps
             i, _ = batches[j]
             steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False)
+            reflect = rng.random(len(steps)) < 0.5 if mirror else None
             optimizer.learning_rate.assign(args.lr * 0.5 * (1 + np.cos(np.pi * done / total_steps)))
-            losses.append(float(train_step(*scaling.batch(train[i], steps, colour=colour))))
+            losses.append(float(train_step(*scaling.batch(train[i], steps, colour=colour, reflect=reflect))))
             if not np.isfinite(losses[-1]):
                 raise TrainingDiverged(f"the training loss became {losses[-1]} in epoch {epoch}; nothing was "
                                        f"written (a smaller --lr, or --omega below 0.6 for the solver losses)")

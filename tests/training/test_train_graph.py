@@ -95,6 +95,36 @@ def test_projected_sweeps_keep_the_limits_and_leave_the_recorded_solution_nearly
     assert float(tf.reduce_max(tf.abs(kept))) < 0.01 < float(tf.reduce_max(tf.abs(moved)))
 
 
+def test_a_reflected_step_is_solved_as_the_reflection_of_the_step(graphs):
+    # --mirror-augment's reflection (Scaling.batch(reflect=...)) is the same problem seen in a
+    # mirror: the solver's sweeps from reflected impulses end at the reflected impulses.
+    import tensorflow as tf
+
+    from training.graph_loss import friction_bounds, projected_changes_after
+    from training.train_graph import Scaling
+
+    zero = (np.zeros(len(graphs.inputs), np.float32), np.ones(len(graphs.inputs), np.float32),
+            np.zeros(2, np.float32), np.ones(2, np.float32))
+    scaling = Scaling(*zero)  # no normalization: raw values in, raw values out
+    steps = np.arange(len(graphs))
+    column = {n: j for j, n in enumerate(graphs.inputs)}
+    swept = []
+    for reflect in (np.zeros(len(steps), bool), np.ones(len(steps), bool)):
+        features, ends, _, targets, geometry, masses, inverse, step_of, _, _ = scaling.batch(graphs, steps,
+                                                                                            reflect=reflect)
+        builtin = features[:, [column["builtin_normal"], column["builtin_tangent"]]]
+        v_free = features[:, [column["vn"], column["vt"]]]
+        mu = friction_bounds(tf.constant(builtin + targets), step_of)
+        swept.append(projected_changes_after(tf.constant(builtin), v_free, mu, ends, geometry, masses, inverse,
+                                             sweeps=(4,), omega=0.5)[0].numpy())
+        if reflect.all():
+            plain = scaling.batch(graphs, steps)
+            np.testing.assert_array_equal(targets[:, 1], -plain[3][:, 1])  # the tangent's sign changes
+            np.testing.assert_array_equal(features[:, column["normal_y"]], plain[0][:, column["normal_y"]])
+    assert np.abs(swept[0]).max() > 0.01  # Box2D's warm start is not where the sweeps end
+    np.testing.assert_allclose(swept[1], swept[0] * [1.0, -1.0], atol=1e-5)
+
+
 def test_the_self_stress_part_of_an_error_moves_no_body_and_leaves_a_body_motion_out(graphs):
     # The loss's split (TensorFlow, conjugate gradients) agrees with the engine-side one
     # (deepcontact.kinematics): a self-stress moves no body, and the impulses of a pure
