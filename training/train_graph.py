@@ -68,23 +68,36 @@ class WeightsMismatch(ValueError):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The command's arguments, in groups that --help lists apart."""
+    for title, add in (("data and outputs", _data_arguments), ("the network and what it serves", _network_arguments),
+                       ("the loss", _loss_arguments), ("the schedule", _schedule_arguments)):
+        add(parser.add_argument_group(title))
+
+
+def _data_arguments(parser) -> None:
+    """What to read, where to write, and how much of it."""
     parser.add_argument("--train", type=Path, action="append", required=True,
                         help="training data (HDF5 from `deepcontact generate`); repeat for several files")
     parser.add_argument("--val", type=Path, action="append", required=True, help="validation data; repeatable")
     parser.add_argument("--out", type=Path, required=True, help="ONNX file to write; the card goes beside it")
     parser.add_argument("--name", help="model name in the card (default: the --out file's stem)")
+    parser.add_argument("--max-steps-per-file", type=int, metavar="N", help="use at most N steps of each file")
+    parser.add_argument("--max-val-steps", type=int, metavar="N", help="use at most N steps of each validation file")
+    parser.add_argument("--cache", type=Path, default=Path("runs/graph-cache"),
+                        help="folder for the contact graphs read from the data files (default %(default)s)")
+    parser.add_argument("--checkpoints", type=Path, metavar="DIR",
+                        help="also write every epoch's network to DIR as NAME-eK.onnx with its card, a models "
+                             "folder that `deepcontact bench iterations --models DIR --warm-starts "
+                             "builtin,price:server:NAME-e1+server:NAME-e2+...` prices on Builtin's own states: "
+                             "the epochs compared in iterations, step by step (docs/models.md)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _network_arguments(parser) -> None:
+    """The network's shape and how its output is served."""
     parser.add_argument("--combine", choices=("residual", "new-points"), default="residual",
                         help="serve the correction at every point (residual, default) or at new points only; "
                              "the solver loss then scores what is served: Box2D's warm start at persisting points")
-    parser.add_argument("--targets", choices=tuple(TARGETS), default="final",
-                        help="final (default): the correction to the impulses the recorded solve ended at; "
-                             "oracle: to the step solved from zero to convergence (files from `generate --oracle`)")
-    parser.add_argument("--epochs", type=int, default=DEFAULTS["epochs"], help="maximum epochs (default %(default)s)")
-    parser.add_argument("--batch-size", type=int, default=DEFAULTS["batch_size"],
-                        help="steps per batch (default %(default)s)")
-    parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak learning rate (default %(default)s)")
-    parser.add_argument("--patience", type=int, default=DEFAULTS["patience"],
-                        help="stop after this many epochs without a better validation loss (default %(default)s)")
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s); with --init from a network with "
@@ -99,6 +112,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--layer-norm", action="store_true",
                         help="each round, and the decoder, reads the point states through a layer normalization "
                              "(pre-norm): what let sixteen rounds train on the GPU (docs/results.md)")
+
+
+def _loss_arguments(parser) -> None:
+    """What the network is trained to fit."""
+    parser.add_argument("--targets", choices=tuple(TARGETS), default="final",
+                        help="final (default): the correction to the impulses the recorded solve ended at; "
+                             "oracle: to the step solved from zero to convergence (files from `generate --oracle`)")
     parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving",
                                            "relative-moving", "solver", "solver-log",
                                            "solver-projected", "solver-projected-max", "solver-projected-sweeps"),
@@ -153,26 +173,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 0.5 for jacobi, 1 for gauss-seidel, as Box2D)")
     parser.add_argument("--tangent-weight", type=float, default=1.0,
                         help="weight of the tangent component in the loss (default %(default)s)")
-    parser.add_argument("--mirror-augment", action="store_true",
-                        help="reflect each training step left to right with probability 1/2 (every input and "
-                             "target channel times its sign under the reflection, the solver's geometry "
-                             "reflected): the worlds are symmetric, the network is not built to be")
-    parser.add_argument("--max-steps-per-file", type=int, metavar="N", help="use at most N steps of each file")
-    parser.add_argument("--max-val-steps", type=int, metavar="N", help="use at most N steps of each validation file")
-    parser.add_argument("--cache", type=Path, default=Path("runs/graph-cache"),
-                        help="folder for the contact graphs read from the data files (default %(default)s)")
+
+
+def _schedule_arguments(parser) -> None:
+    """The optimizer's schedule, its start and the training steps it sees."""
+    parser.add_argument("--epochs", type=int, default=DEFAULTS["epochs"], help="maximum epochs (default %(default)s)")
+    parser.add_argument("--batch-size", type=int, default=DEFAULTS["batch_size"],
+                        help="steps per batch (default %(default)s)")
+    parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak learning rate (default %(default)s)")
+    parser.add_argument("--patience", type=int, default=DEFAULTS["patience"],
+                        help="stop after this many epochs without a better validation loss (default %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="weights, step order and step sampling (default 0)")
     parser.add_argument("--init", type=Path, metavar="WEIGHTS",
                         help="start from these weights (the .weights.npz an earlier run left in --cache) instead of "
                              "random ones, for more epochs on a new schedule; same --width and --rounds, and the same "
                              "--train files, whose mean and std the weights were trained against")
-    parser.add_argument("--checkpoints", type=Path, metavar="DIR",
-                        help="also write every epoch's network to DIR as NAME-eK.onnx with its card, a models "
-                             "folder that `deepcontact bench iterations --models DIR --warm-starts "
-                             "builtin,price:server:NAME-e1+server:NAME-e2+...` prices on Builtin's own states: "
-                             "the epochs compared in iterations, step by step (docs/models.md)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
-
+    parser.add_argument("--mirror-augment", action="store_true",
+                        help="reflect each training step left to right with probability 1/2 (every input and "
+                             "target channel times its sign under the reflection, the solver's geometry "
+                             "reflected): the worlds are symmetric, the network is not built to be")
 
 def _argument_problem(args: argparse.Namespace) -> str | None:
     """The first thing wrong with the arguments, in a sentence, or None; sets args.omega
