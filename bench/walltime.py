@@ -19,10 +19,10 @@ iteration costs at that size (median over builtin's steps of solve time /
 velocity iterations): how many iterations per step it must save to pay for
 itself, beside how many it does save (builtin's mean iterations minus the
 model's). The in-process run gives the same warm starts without gRPC, so its
-overhead is what the model's own work (features, inference, combination) costs and
-the rest of the served overhead is the transport's; its break-even says whether a
-warm start run beside the solver would pay. Sizes: `thesis` (100 bodies of 0.5 m in 15 x 15 m) and N, the
-scene family at N bodies (radius 0.3-0.55 m, friction 0.2-0.8) in a square
+overhead is what the model's own work (features, inference, combination) costs
+and the rest of the served overhead is the transport's; its break-even says
+whether a warm start run beside the solver would pay. Sizes: `thesis` (100
+bodies of 0.5 m in 15 x 15 m) and N, the scene family at N bodies (radius 0.3-0.55 m, friction 0.2-0.8) in a square
 box growing with N so the density stays the thesis's (15 m per 100 bodies,
 times sqrt(N / 100)); the server's grids grow with the box.
 
