@@ -91,6 +91,11 @@
 #                              (6,000), seen once instead of twice: the same compute, more states
 #   graph-projected-max-1-799-r8-reflect  the default's second stage with half its steps reflected
 #                              left to right (--mirror-augment): the worlds' symmetry as more states
+#   graph-mse-1-799-r8-e9-reflect  graph-mse-1-799-r8-e9's recipe with half its steps reflected
+#                              left to right (--mirror-augment): the symmetry in the squared-error
+#                              stage, from the same weights as its control -e9
+#   graph-projected-max-1-799-r8-e9-reflect  the default's second stage from -e9-reflect's weights,
+#                              reflected too: the symmetry throughout, against -r8-e9
 #   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
 #                              the width that gained per state at three rounds, at the default's
 #                              eight; 6 epochs, 20-24 min each on two AVX2 cores (stopped after
@@ -283,6 +288,14 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
                 --mirror-augment --init runs/graph-cache/graph-mse-1-799-r8.weights.npz ;;
+        graph-mse-1-799-r8-e9-reflect)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 8 --epochs 3 --patience 3 --lr 1e-3 --mirror-augment \
+                --init runs/graph-cache/graph-mse-1-799-r8.weights.npz ;;
+        graph-projected-max-1-799-r8-e9-reflect)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --mirror-augment --init runs/graph-cache/graph-mse-1-799-r8-e9-reflect.weights.npz ;;
         graph-projected-max-1-799-r8-ln)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --layer-norm --max-steps-per-file 3000 --epochs 2 \
