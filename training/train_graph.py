@@ -112,6 +112,10 @@ def _network_arguments(parser) -> None:
     parser.add_argument("--layer-norm", action="store_true",
                         help="each round, and the decoder, reads the point states through a layer normalization "
                              "(pre-norm): what let sixteen rounds train on the GPU (docs/results.md)")
+    parser.add_argument("--symmetric", action="store_true",
+                        help="train the mean of the network's answer and its mirror image's (the step reflected "
+                             "left to right, answered, reflected back): the answer the loss scores is symmetric, "
+                             "at twice the network's cost; serve it so (`python -m training.ensemble CARD --mirror`)")
 
 
 def _loss_arguments(parser) -> None:
@@ -341,17 +345,21 @@ class BatchLoss:
     and solver-projected-max and relative-moving, per body for mse-moving.
 
     points (P, F) and y (P, T) are normalized (Scaling); `inputs` names the points'
-    columns. The solver losses score the error a served correction leaves, in N s."""
+    columns and `targets` y's. The solver losses score the error a served correction leaves,
+    in N s."""
 
     POINT_LOSSES = ("mse", "relative")
     PROJECTED_LOSSES = ("solver-projected", "solver-projected-max", "solver-projected-sweeps")
 
-    def __init__(self, net, args, scaling: Scaling, residual_scales: list[float], inputs: tuple[str, ...]):
+    def __init__(self, net, args, scaling: Scaling, residual_scales: list[float], inputs: tuple[str, ...],
+                 targets: tuple[str, ...] = GRAPH_TARGETS):
         import tensorflow as tf
 
         self.tf, self.net, self.args = tf, net, args
         self.out_mean, self.out_std = scaling.out_mean, scaling.out_std
         self.in_mean, self.in_std = scaling.in_mean, scaling.in_std
+        self.mirror_in = mirror_signs(inputs)
+        self.mirror_out = mirror_signs(targets)
         self.new_column = inputs.index("new_point")
         self.builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")]
         self.velocity_columns = [inputs.index("vn"), inputs.index("vt")]
@@ -360,8 +368,19 @@ class BatchLoss:
         # own warm start (no correction) leaves there on the training data, so each counts alike.
         self.scales = tf.constant(residual_scales, tf.float32)
 
-    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed):
+    def predict(self, points, ends, dynamic, step_of):
+        """The correction the loss scores, (P, T) normalized: the network's, or with --symmetric
+        the mean of it and its mirror image's (the reflection x -> -x of every channel, taken in
+        raw units, since the normalization's means do not change sign)."""
         pred = self.net(points, ends, dynamic, step_of)
+        if not getattr(self.args, "symmetric", False):
+            return pred
+        mirrored_in = ((points * self.in_std + self.in_mean) * self.mirror_in - self.in_mean) / self.in_std
+        answer = self.net(mirrored_in, ends, dynamic, step_of) * self.out_std + self.out_mean
+        return 0.5 * (pred + (answer * self.mirror_out - self.out_mean) / self.out_std)
+
+    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed):
+        pred = self.predict(points, ends, dynamic, step_of)
         if self.args.loss in self.POINT_LOSSES:
             return self._at_points(pred, y)
         if self.args.loss == "mse-self-stress":
@@ -573,7 +592,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
         net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)
     net.tf.random.set_seed(args.seed)
     residual_scales = _residual_scales(train, args) if args.loss in ("solver", "solver-projected") else [1.0]
-    batch_loss = BatchLoss(net, args, scaling, residual_scales, spec.inputs)
+    batch_loss = BatchLoss(net, args, scaling, residual_scales, spec.inputs, spec.targets)
     describe = _CardParts(spec, args, command=command, read_seconds=read_seconds, sources=sources,
                           val_sources=val_sources, train=train, val=val)
     checkpoint = None
@@ -743,6 +762,8 @@ class _CardParts:
                                                                    "max_val_steps")}
                                   | ({"extra_inputs": args.extra_inputs} if getattr(args, "extra_inputs", "") else {})
                                   | ({"layer_norm": True} if getattr(args, "layer_norm", False) else {})
+                                  | ({"symmetric": True} if getattr(args, "symmetric", False) else {})
+                                  | ({"mirror_augment": True} if getattr(args, "mirror_augment", False) else {})
                                   | ({"self_stress_weight": args.self_stress_weight,
                                       "self_stress_iterations": args.self_stress_iterations}
                                      if args.loss == "mse-self-stress" else {}),

@@ -125,6 +125,38 @@ def test_a_reflected_step_is_solved_as_the_reflection_of_the_step(graphs):
     np.testing.assert_allclose(swept[1], swept[0] * [1.0, -1.0], atol=1e-5)
 
 
+def test_a_symmetric_network_answers_a_reflected_step_with_the_reflection_of_its_answer(graphs):
+    # --symmetric scores the mean of the network's answer and its mirror image's, so the answer
+    # trained is the one `training.ensemble --mirror` serves: reflection-equivariant, whatever
+    # the weights and the normalization.
+    import argparse
+
+    from deepcontact.channels import mirror_signs
+    from training.graph_model import GraphConfig
+    from training.train_graph import BatchLoss, Scaling
+
+    rng = np.random.default_rng(5)
+    n_in, n_out = len(graphs.inputs), len(graphs.target_names)
+    scaling = Scaling(rng.normal(size=n_in).astype(np.float32), rng.uniform(0.5, 2, n_in).astype(np.float32),
+                      rng.normal(size=n_out).astype(np.float32), rng.uniform(0.5, 2, n_out).astype(np.float32))
+    net = _random_net(GraphConfig(in_channels=n_in, out_channels=n_out, width=8, rounds=2), rng)
+    steps = np.arange(len(graphs))
+    answers = {}
+    for symmetric in (False, True):
+        loss = BatchLoss(net, argparse.Namespace(loss="mse", tangent_weight=1.0, combine="residual",
+                                                 symmetric=symmetric),
+                         scaling, [], graphs.inputs, graphs.target_names)
+        for reflect in (False, True):
+            points, ends, dynamic, *_, step_of, _, _ = scaling.batch(graphs, steps,
+                                                                     reflect=np.full(len(steps), reflect))
+            normalized = np.asarray(loss.predict(points, ends, dynamic, step_of))
+            answers[symmetric, reflect] = normalized * scaling.out_std + scaling.out_mean  # (P, 2) N s
+    mirror = mirror_signs(graphs.target_names)
+    np.testing.assert_allclose(answers[True, True], answers[True, False] * mirror, rtol=1e-4, atol=1e-4)
+    # The network alone is not symmetric: the check above is not met by chance.
+    assert np.abs(answers[False, True] - answers[False, False] * mirror).max() > 0.1
+
+
 def test_the_self_stress_part_of_an_error_moves_no_body_and_leaves_a_body_motion_out(graphs):
     # The loss's split (TensorFlow, conjugate gradients) agrees with the engine-side one
     # (deepcontact.kinematics): a self-stress moves no body, and the impulses of a pure
@@ -521,15 +553,16 @@ def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins
     assert priced["trajectory"]["value"] == 1.0 and all(r["value"] > 0 for r in priced["over_builtin"])
 
 
-def test_the_max_loss_takes_other_norms_and_harm_weights_and_the_card_says_which(data, tmp_path, capsys):
+def test_the_max_loss_takes_other_norms_harm_weights_and_symmetry_and_the_card_says_which(data, tmp_path, capsys):
     out = tmp_path / "g.onnx"
     common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
               "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1", "--sweeps", "0,4",
               "--loss", "solver-projected-max", "--cache", str(tmp_path / "cache"), "--quiet"]
-    assert main(common + ["--norm", "2", "--harm-weight", "3"]) == 0
+    assert main(common + ["--norm", "2", "--harm-weight", "3", "--symmetric"]) == 0
     card = json.loads(out.with_suffix(".json").read_text())
     settings = card["training"]["settings"]
     assert settings["norm"] == 2 and settings["harm_weight"] == 3.0 and np.isfinite(card["validation"]["loss"])
+    assert settings["symmetric"] is True  # to be served mirrored, as it was trained
     assert main(common + ["--harm-weight", "0"]) == 2
     assert "--harm-weight" in capsys.readouterr().err
 
