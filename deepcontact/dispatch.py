@@ -242,6 +242,9 @@ class _Ray:
             if address == "local":
                 # No network at run time: no usage-stats reporter, no dashboard.
                 os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+                # Ray waits 30 s for its GCS to write its port file; on two cores busy with training,
+                # a start took longer (a CI run of 2026-11-27 failed so). A user's setting wins.
+                os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
                 ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
                          log_to_driver=False, logging_level=logging.WARNING)
             else:
