@@ -2,23 +2,26 @@
 # The shipped default and the thesis's models from nothing (make default-model): data,
 # training, ONNX export, cards, evaluation on the validation seeds.
 #
-#   models/graph-projected-max-1-799-r8.onnx + .json, -t1.json
+#   models/graph-projected-max-1-799-r8-e9-reflect-sym-mirror.onnx + .json
 #                         the contact-graph model (message passing over the contact points,
 #                         eight rounds) trained on 1,598 simulations of the thesis world and
-#                         the scene family: the squared error for 6 epochs, then the loss the
-#                         solver's stopping rule reads for 2 epochs (training/round2_graph.sh;
-#                         the second run starts from the first one's weights, so both are
-#                         rebuilt on the way)
-#   models/default.json   alias of graph-projected-max-1-799-r8, the variant chosen per state on
-#                         the choosing seeds (docs/results.md, "Eight rounds, then the stopping
-#                         rule: the default")
+#                         the scene family, served as the mean of its answer and its mirror
+#                         image's: the squared error for 6 epochs, 3 more with half the steps
+#                         reflected left to right, then 2 epochs of the loss the solver's
+#                         stopping rule reads, scored on that mean (training/round2_graph.sh;
+#                         each run starts from the last one's weights, so all three are
+#                         rebuilt on the way, with their own cards)
+#   models/default.json   alias of graph-projected-max-1-799-r8-e9-reflect-sym-mirror, the variant
+#                         chosen per state on the choosing seeds (docs/results.md, "The
+#                         symmetric default")
 #   models/pressure.onnx  + pressure.json, pressure-new-points.json   the thesis's kind of model
 #   models/residual.onnx  + residual.json, residual-new-points.json   Box2D's warm start + a correction
 #
 #   bash training/make_default_model.sh          (make default-model)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). Measured on a clean clone of a 2-core machine (about 58 min for the default, 73 min in all): docs/models.md. The other
+# (DEFAULT_ONLY=1). On a 2-core machine about 1 h 45 min for the default, about 2 h in all
+# (docs/models.md, "Since the default became ...-r8-e9-reflect-sym-mirror"). The other
 # models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
 # they hold); run directories are always started afresh.
@@ -42,18 +45,19 @@ CONFIG='{"l2": 0.0001}'
 RECIPE=(--loss grid --lr-schedule constant --config "$CONFIG" --batch-size 16 --seed 0 --quiet)
 
 SECONDS=0
-CHAIN=(graph-mse-1-799-r8 graph-projected-max-1-799-r8)
+CHAIN=(graph-mse-1-799-r8 graph-mse-1-799-r8-e9-reflect graph-projected-max-1-799-r8-e9-reflect-sym)
+DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror
 # The shipped files of the chain, kept before the runs overwrite them, so that each rebuild is
 # compared with what it replaced (below).
 SHIPPED=runs/shipped-models
 rm -rf "$SHIPPED" && mkdir -p "$SHIPPED"
-for name in "${CHAIN[@]}"; do cp "models/$name.json" "models/$name.onnx" "$SHIPPED/"; done
+for name in "${CHAIN[@]}" "$DEFAULT"; do cp "models/$name.json" "models/$name.onnx" "$SHIPPED/"; done
 # The default: the thesis world and the scene family, 799 simulations each, then the
 # training runs of its recipe, each from the last one's weights.
 TRAIN_SEEDS=1-799 bash training/round2_data.sh
 echo "round-2 data ready after ${SECONDS} s"
 TRAIN_SEEDS=1-799 bash training/round2_graph.sh "${CHAIN[@]}"
-echo "graph-projected-max-1-799-r8 trained after ${SECONDS} s"
+echo "$DEFAULT trained after ${SECONDS} s"
 # Same bytes only on a CPU with the same vector instructions as the one that trained them
 # (the cards' training.machine; docs/models.md): a difference is reported, not an error.
 for name in "${CHAIN[@]}"; do
@@ -61,8 +65,8 @@ for name in "${CHAIN[@]}"; do
 done
 
 tmp=models/.default.json.part
-printf '{\n  "name": "default",\n  "alias_of": "graph-projected-max-1-799-r8",\n  "why": "%s"\n}\n' \
-    "the variant with the fewest iterations on Builtin's states of the choosing seeds, closed loop level with the default before it (docs/results.md, Eight rounds, then the stopping rule: the default); rebuilt by make default-model" > "$tmp"
+printf '{\n  "name": "default",\n  "alias_of": "%s",\n  "why": "%s"\n}\n' "$DEFAULT" \
+    "the variant with the fewest iterations on Builtin's states of the choosing seeds and of every reporting world (docs/results.md, The symmetric default); rebuilt by make default-model" > "$tmp"
 mv "$tmp" models/default.json
 [ "${DEFAULT_ONLY:-0}" = 1 ] && { echo "done (default only) in ${SECONDS} s"; exit 0; }
 
@@ -88,5 +92,5 @@ echo "residual trained after ${SECONDS} s"
 
 "$DC" evaluate --model models/pressure.onnx --data "$VAL" --json runs/pressure/eval.json
 "$DC" evaluate --model models/residual.onnx --data "$VAL" --json runs/residual/eval.json
-ls -l models/pressure.onnx models/residual.onnx models/graph-projected-max-1-799-r8.onnx models/default.json
+ls -l models/pressure.onnx models/residual.onnx "models/$DEFAULT.onnx" models/default.json
 echo "done in ${SECONDS} s"
