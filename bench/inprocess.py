@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact import wire
+from deepcontact.modelcard import unknown_model
 from server.predictors import Predictor, World, load_model
 from simclient.provider import Provider, as_warm_start
 from simclient.scene import SceneSpec
@@ -46,8 +47,7 @@ class InProcess(Provider):
         FileNotFoundError names the models there when there is no such card."""
         path = Path(models) / f"{model}.json"
         if not path.exists():
-            known = sorted(p.stem for p in Path(models).glob("*.json"))
-            raise FileNotFoundError(f"no model {model!r} in {models}; there are {', '.join(known) or 'none'}")
+            raise FileNotFoundError(f"{models}: {unknown_model(model, [p.stem for p in Path(models).glob('*.json')])}")
         # The world as a stream declares it: the wire carries the step's time and gravity as
         # float32, and the server's channels see them so.
         declared = wire.encode_world(*spec.domain, spec.walls(), spec.physics)

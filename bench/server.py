@@ -24,6 +24,7 @@ import numpy as np
 
 from deepcontact import wire
 from deepcontact.io import write_json_atomic
+from deepcontact.modelcard import unknown_model
 from simclient.client import WarmStartClient
 
 
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     with WarmStartClient(server.address) as probe:
         names = [m.name for m in probe.list_models()]
     if args.model not in names:
-        print(f"deepcontact bench server: no model {args.model!r} in {args.models} (have {sorted(names)})",
+        print(f"deepcontact bench server: {args.models}: {unknown_model(args.model, names)}",
               file=sys.stderr)
         server.stop()
         return 2

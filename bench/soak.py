@@ -35,6 +35,7 @@ import numpy as np
 from bench import load
 from bench.figures import save_figure
 from deepcontact.io import write_json_atomic
+from deepcontact.modelcard import unknown_model
 
 _STEPS_LINE = re.compile(r'^deepcontact_steps_total\{[^}]*\} ([0-9.e+]+)$', re.M)
 
@@ -155,8 +156,9 @@ def run(args: argparse.Namespace) -> int:
         from simclient.client import WarmStartClient
 
         with WarmStartClient(server.address) as probe:
-            if args.model not in [m.name for m in probe.list_models()]:
-                print(f"deepcontact bench soak: no model {args.model!r} in {args.models}", file=sys.stderr)
+            names = [m.name for m in probe.list_models()]
+            if args.model not in names:
+                print(f"deepcontact bench soak: {args.models}: {unknown_model(args.model, names)}", file=sys.stderr)
                 return 2
         with Sampler(server.proc.pid, metrics_port, args.sample_s) as sampler:
             level = load.run_level(server.address, args.model, args.clients, args.duration, replay=args.replay,

@@ -49,6 +49,7 @@ alias of an alias is refused, so the chain is one step and cannot loop.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import os
 from pathlib import Path
@@ -64,6 +65,25 @@ ALIAS_KEYS = frozenset({"name", "alias_of", "why"})
 
 class ModelCardError(ValueError):
     """A card that is missing, malformed or does not match its model."""
+
+
+#: Up to this many known names are listed whole; past it (models/ ships well over a hundred
+#: cards) only the closest ones, so that the message stays readable on one screen.
+LIST_ALL_UP_TO = 12
+
+
+def unknown_model(name: str, known: list[str] | tuple[str, ...] | set[str]) -> str:
+    """The end of an error message for a model name that is not among `known`:
+    "no model 'NAME'; ..." followed by every known name when there are few, else the
+    closest few (difflib) and how many there are."""
+    known = sorted(known)
+    if not known:
+        return f"no model {name!r}; there is none"
+    if len(known) <= LIST_ALL_UP_TO:
+        return f"no model {name!r}; there are {', '.join(known)}"
+    close = difflib.get_close_matches(name, known, n=5, cutoff=0.5)
+    hint = f"the closest: {', '.join(close)}" if close else f"none is close; e.g. {', '.join(known[:3])}, ..."
+    return f"no model {name!r} among {len(known)} ({hint})"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -27,6 +27,7 @@ import numpy as np
 
 from deepcontact import wire
 from deepcontact.io import write_json_atomic
+from deepcontact.modelcard import unknown_model
 from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_to_dict
 from simclient.provider import Provider
 from simclient.warmstarts import make_provider
@@ -270,7 +271,7 @@ def connect(target: str, model: str, *, connect_timeout: float, allow_fallback: 
     missing = [m for m in model.split("+") if m not in names]
     if missing:
         client.close()
-        raise ValueError(f"the server at {target} has no model {missing[0]!r}; it serves {', '.join(sorted(names))}")
+        raise ValueError(f"the server at {target} has {unknown_model(missing[0], names)}")
     return client
 
 

@@ -38,6 +38,6 @@ def test_the_default_called_in_process_takes_the_served_trajectory_step_for_step
     assert all(lat is None for lat in in_process["per_step"]["latency_ms"])  # no round trip to time
 
 
-def test_an_unknown_model_names_the_ones_there():
-    with pytest.raises(FileNotFoundError, match="no model 'nope' in .*default"):
-        InProcess.load(MODELS, "nope", SceneSpec.thesis())
+def test_an_unknown_model_names_the_closest_ones_there():
+    with pytest.raises(FileNotFoundError, match="no model 'defualt' among .*the closest: default"):
+        InProcess.load(MODELS, "defualt", SceneSpec.thesis())

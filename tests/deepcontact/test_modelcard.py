@@ -5,7 +5,7 @@ import json
 import pytest
 
 from deepcontact.gridspec import GridSpec
-from deepcontact.modelcard import ModelCard, ModelCardError
+from deepcontact.modelcard import LIST_ALL_UP_TO, ModelCard, ModelCardError, unknown_model
 
 
 def _card(folder, name="residual-new-points"):
@@ -38,3 +38,16 @@ def test_a_broken_alias_says_what_is_wrong(tmp_path):
     (tmp_path / "odd.json").write_text(json.dumps({"name": "odd", "alias_of": "residual-new-points", "kind": "x"}))
     with pytest.raises(ModelCardError, match="alias card holds"):
         ModelCard.load(tmp_path / "odd.json")
+
+
+def test_an_unknown_model_is_told_with_every_name_when_there_are_few():
+    assert unknown_model("nope", {"pressure", "default"}) == "no model 'nope'; there are default, pressure"
+    assert unknown_model("nope", []) == "no model 'nope'; there is none"
+
+
+def test_an_unknown_model_among_many_is_told_with_the_closest_names_only():
+    known = [f"graph-variant-{i}" for i in range(LIST_ALL_UP_TO + 100)] + ["default", "pressure"]
+    message = unknown_model("defualt", known)
+    assert message.startswith(f"no model 'defualt' among {len(known)} (the closest: default")
+    assert "graph-variant-50" not in message  # not the whole list
+    assert "none is close" in unknown_model("zzzzzzzz", known)
