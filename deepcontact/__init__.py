@@ -1,4 +1,4 @@
-"""deepcontact: warm-start Box2D's contact solver with a CNN served over gRPC.
+"""deepcontact: warm-start Box2D's contact solver with a neural network served over gRPC.
 
 Packages:
     deepcontact  the command line and what every part shares (grid spec, transfer)

@@ -45,7 +45,9 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="deepcontact",
-        description="Warm-start Box2D's contact solver with a CNN served over gRPC.",
+        description=("Warm-start Box2D's contact solver with a neural network served over gRPC: "
+                     "a message-passing network on the contact points (the default) or the thesis's "
+                     "CNN on grids."),
     )
     from deepcontact import __version__
 
