@@ -20,7 +20,7 @@
 #   bash training/make_default_model.sh          (make default-model)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). On 2 cores about 2 h 15 min for the default with AVX2, 1 h 20 min with
+# (DEFAULT_ONLY=1). On 2 cores about 2 h 17 min for the default with AVX2, 1 h 20 min with
 # AVX-512, and the grid models 15-30 min more (docs/models.md, "Since the default became
 # ...-r8-e9-reflect-sym-mirror"). The other
 # models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
