@@ -158,8 +158,7 @@ def summarize_size(builtin: list[dict], learned: list[dict], in_process: list[di
 
 def run(args: argparse.Namespace) -> int:
     from server.process import ServerProcess
-    from simclient.simulate import connect, run_simulation
-    from simclient.warmstarts import make_provider
+    from simclient.simulate import connect
 
     try:
         seeds = seed_ranges.parse_seeds(args.seeds)
@@ -189,26 +188,7 @@ def run(args: argparse.Namespace) -> int:
         arms = 3 if args.in_process else 2
         bar = tqdm(total=arms * len(specs) * len(seeds), unit="sim", disable=args.quiet, file=sys.stderr)
         for spec in specs:
-            runs = {"builtin": [], "learned": []}
-            local = None
-            if args.in_process:
-                from bench.inprocess import InProcess
-
-                local, runs["in_process"] = InProcess.load(args.models, args.model, spec), []
-            for seed in seeds:
-                runs["builtin"].append(run_simulation(spec, seed, make_provider("builtin")))
-                bar.update()
-                client = connect(server.address, args.model, connect_timeout=10.0, allow_fallback=False)
-                try:
-                    runs["learned"].append(run_simulation(spec, seed, make_provider(f"server:{args.model}"),
-                                                          client=client, deadline_ms=args.deadline_ms))
-                finally:
-                    client.close()
-                bar.update()
-                if local is not None:
-                    runs["in_process"].append(run_simulation(spec, seed, local))
-                    runs["in_process"][-1]["stages"] = local.stages
-                    bar.update()
+            runs = _simulate_size(spec, seeds, server.address, args, bar.update)
             rows[spec.name] = {"bodies": spec.bodies, "box_size": list(spec.box_size), **summarize_size(**runs)}
         bar.close()
     finally:
@@ -224,6 +204,36 @@ def run(args: argparse.Namespace) -> int:
     print(table)
     print(f"wrote {args.out}/walltime.json, walltime.md and walltime.png")
     return 0
+
+
+def _simulate_size(spec, seeds: list[int], address: str, args: argparse.Namespace, tick) -> dict[str, list[dict]]:
+    """Every seed of one world size (a SceneSpec) with each arm: Builtin, the served model (a
+    channel of its own per simulation) and, with --in-process, the model in this process.
+    Returns each arm's simulation results in seed order; `tick()` is called after each simulation."""
+    from simclient.simulate import connect, run_simulation
+    from simclient.warmstarts import make_provider
+
+    runs = {"builtin": [], "learned": []}
+    local = None
+    if args.in_process:
+        from bench.inprocess import InProcess
+
+        local, runs["in_process"] = InProcess.load(args.models, args.model, spec), []
+    for seed in seeds:
+        runs["builtin"].append(run_simulation(spec, seed, make_provider("builtin")))
+        tick()
+        client = connect(address, args.model, connect_timeout=10.0, allow_fallback=False)
+        try:
+            runs["learned"].append(run_simulation(spec, seed, make_provider(f"server:{args.model}"),
+                                                  client=client, deadline_ms=args.deadline_ms))
+        finally:
+            client.close()
+        tick()
+        if local is not None:
+            runs["in_process"].append(run_simulation(spec, seed, local))
+            runs["in_process"][-1]["stages"] = local.stages
+            tick()
+    return runs
 
 
 def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
