@@ -92,32 +92,11 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
         for opset in model.opset_import:
             opsets[opset.domain] = max(opsets.get(opset.domain, 0), opset.version)
         p = f"m{i}/"
-        model = compose.add_prefix(model, p)
-        in_mean, in_std = card.gridspec.normalization_arrays(inputs)
-        out_mean, out_std = card.gridspec.normalization_arrays(targets)
-        for name, value in (("in_mean", in_mean), ("in_std", in_std), ("out_mean", out_mean),
-                            ("out_std", out_std)):
-            initializers.append(numpy_helper.from_array(value.astype(np.float32), p + name))
-        if not mirror:
-            nodes += [
-                helper.make_node("Sub", ["points", p + "in_mean"], [p + "points_centred"]),
-                helper.make_node("Div", [p + "points_centred", p + "in_std"], [p + "points"]),
-                helper.make_node("Identity", ["ends"], [p + "ends"]),
-                helper.make_node("Identity", ["dynamic"], [p + "dynamic"]),
-                *model.graph.node,
-                helper.make_node("Mul", [p + card.output_name, p + "out_std"], [p + "scaled"]),
-                helper.make_node("Add", [p + "scaled", p + "out_mean"], [p + "correction"]),
-            ]
-            corrections.append(p + "correction")
-        else:
-            for name, value in (("mirror_in", mirror_signs(inputs)), ("mirror_out", mirror_signs(targets))):
-                initializers.append(numpy_helper.from_array(value, p + name))
-            nodes += [*_reflected_batch(p), *model.graph.node,
-                      helper.make_node("Mul", [p + card.output_name, p + "out_std"], [p + "scaled"]),
-                      helper.make_node("Add", [p + "scaled", p + "out_mean"], [p + "both"]),
-                      *_halves(p)]
-            corrections += [p + "correction", p + "reflected_back"]
-        initializers += model.graph.initializer
+        member_nodes, member_initializers, member_corrections = _member_graph(
+            compose.add_prefix(model, p), card, p, mirror)
+        nodes += member_nodes
+        initializers += member_initializers
+        corrections += member_corrections
     if agree is None:
         nodes.append(helper.make_node("Mean", corrections, ["impulses"]))
     else:
@@ -135,6 +114,37 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
     proto.ir_version = onnx.load(str(first.onnx_path(members[0][1]))).ir_version
     onnx.checker.check_model(proto)
     return proto
+
+
+def _member_graph(model, card: ModelCard, p: str, mirror: bool) -> tuple[list, list, list[str]]:
+    """One member's part of the ensemble: its nodes with their names prefixed by `p` (already
+    so in `model`), from the shared raw inputs through its own normalization to its
+    denormalized correction(s), N s; its initializers; the names of its corrections, one, or
+    two with `mirror` (its answer to the step and to the step reflected, reflected back)."""
+    from onnx import helper, numpy_helper
+
+    inputs, targets = card.gridspec.inputs, card.gridspec.targets
+    in_mean, in_std = card.gridspec.normalization_arrays(inputs)
+    out_mean, out_std = card.gridspec.normalization_arrays(targets)
+    initializers = [numpy_helper.from_array(value.astype(np.float32), p + name)
+                    for name, value in (("in_mean", in_mean), ("in_std", in_std),
+                                        ("out_mean", out_mean), ("out_std", out_std))]
+    denormalize = [helper.make_node("Mul", [p + card.output_name, p + "out_std"], [p + "scaled"]),
+                   helper.make_node("Add", [p + "scaled", p + "out_mean"],
+                                    [p + ("both" if mirror else "correction")])]
+    if not mirror:
+        nodes = [helper.make_node("Sub", ["points", p + "in_mean"], [p + "points_centred"]),
+                 helper.make_node("Div", [p + "points_centred", p + "in_std"], [p + "points"]),
+                 helper.make_node("Identity", ["ends"], [p + "ends"]),
+                 helper.make_node("Identity", ["dynamic"], [p + "dynamic"]),
+                 *model.graph.node, *denormalize]
+        corrections = [p + "correction"]
+    else:
+        initializers += [numpy_helper.from_array(value, p + name)
+                         for name, value in (("mirror_in", mirror_signs(inputs)), ("mirror_out", mirror_signs(targets)))]
+        nodes = [*_reflected_batch(p), *model.graph.node, *denormalize, *_halves(p)]
+        corrections = [p + "correction", p + "reflected_back"]
+    return nodes, initializers + list(model.graph.initializer), corrections
 
 
 def _reflected_batch(p: str) -> list:
