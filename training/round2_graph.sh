@@ -107,6 +107,14 @@
 #                              3 once: docs/results.md, "Not done in round 2")
 #   graph-projected-max-1-799-w64-r8  the default's second stage from graph-mse-1-799-w64-r8's
 #                              weights (with a -t1 card)
+#   graph-mse-1-799-r16-distill  distillation (train-graph --teacher): sixteen rounds grown from
+#                              graph-mse-1-799-r8-e9-reflect's weights, trained for 4 epochs on the
+#                              answers of the sixteen-round width-128 GPU network averaged with its
+#                              mirror image (built first as runs/teachers/graph-mse-1-799-w128-r16-ln-gpu-mirror)
+#                              at 12,000 steps of each 1-799 file, half of them reflected
+#   graph-mse-1-799-r16-grown  its control: the same on the recorded corrections
+#   graph-projected-max-1-799-r16-distill-sym, -r16-grown-sym  the default's symmetric second
+#                              stage from each (served as NAME-mirror)
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
 #                              (--layer-norm): on the GPU it trained eight rounds faster and let
 #                              sixteen train; does it help the default's shape on two cores?
@@ -267,6 +275,23 @@ run() {
             variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w64-r8.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-mse-1-799-r16-distill|graph-mse-1-799-r16-grown)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            local teach=()
+            if [ "$1" = graph-mse-1-799-r16-distill ]; then
+                local teacher=runs/teachers/graph-mse-1-799-w128-r16-ln-gpu-mirror.json
+                [ -f "$teacher" ] || "$PY" -m training.ensemble models/graph-mse-1-799-w128-r16-ln-gpu.json --mirror \
+                    --name graph-mse-1-799-w128-r16-ln-gpu-mirror --out-dir runs/teachers
+                teach=(--teacher "$teacher")
+            fi
+            variant "$1" --loss mse --rounds 16 --max-steps-per-file 12000 --epochs 4 --patience 3 --lr 1e-3 \
+                --mirror-augment --init runs/graph-cache/graph-mse-1-799-r8-e9-reflect.weights.npz "${teach[@]}" ;;
+        graph-projected-max-1-799-r16-distill-sym|graph-projected-max-1-799-r16-grown-sym)
+            local start=${1#graph-projected-max-1-799-}
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 16 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --symmetric --init "runs/graph-cache/graph-mse-1-799-${start%-sym}.weights.npz"
+            "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror" ;;
         graph-mse-1-799-r8-ln)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-r8-ln --loss mse --rounds 8 --layer-norm --epochs 6 --patience 3 ;;

@@ -13,7 +13,8 @@ normalization; a graph model ignores its geometry.
 
 The model predicts the correction to Box2D's warm start at each point
 (correction_normal, correction_tangent, N s; with --targets oracle the
-correction to the step solved from zero to convergence, oracle_correction_*);
+correction to the step solved from zero to convergence, oracle_correction_*;
+with --teacher CARD what another graph model answers there, training/teacher.py);
 --combine says how the server serves it (residual: everywhere; new-points: at
 new points only).
 """
@@ -39,6 +40,7 @@ from training import machine
 from deepcontact.channels import CHANNELS, mirror_signs
 from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set
 from training.grids import GridDataError
+from training.teacher import Teacher, taught
 
 # What the correction is measured to: the solver's own end of the recorded step (Box2D's warm
 # start, stopped at 1e-4 N s or 1000 sweeps), or the step solved from zero to 1e-6 N s
@@ -90,6 +92,11 @@ def _data_arguments(parser) -> None:
                              "folder that `deepcontact bench iterations --models DIR --warm-starts "
                              "builtin,price:server:NAME-e1+server:NAME-e2+...` prices on Builtin's own states: "
                              "the epochs compared in iterations, step by step (docs/models.md)")
+    parser.add_argument("--teacher", type=Path, metavar="CARD",
+                        help="train on what this graph model (its card, e.g. models/NAME.json) answers at each "
+                             "training and validation point instead of the recorded corrections: distillation "
+                             "(training/teacher.py). The normalization stays the recorded targets', so --init "
+                             "weights fit either way; the answers are kept in --cache")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -202,7 +209,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     (its default depends on --order), args.sweeps (a sorted tuple) and args.inputs."""
     if args.out.suffix != ".onnx":
         return f"--out must name a .onnx file, got {args.out}"
-    missing = [str(p) for p in (*args.train, *args.val, *([args.init] if args.init else [])) if not p.exists()]
+    given = (*args.train, *args.val, *(p for p in (args.init, getattr(args, "teacher", None)) if p))
+    missing = [str(p) for p in given if not p.exists()]
     if missing:
         return f"no such file: {', '.join(missing)}"
     if not args.harm_weight > 0:
@@ -247,18 +255,23 @@ def run(args: argparse.Namespace) -> int:
     command = "deepcontact train-graph " + " ".join(shlex.quote(a) for a in sys.argv[2:])
     t0 = time.perf_counter()
     targets = TARGETS[getattr(args, "targets", "final")]
+    sets = ((args.train, args.max_steps_per_file), (args.val, args.max_val_steps))
     try:
-        train = [_cached(p, args.max_steps_per_file, args.seed, args.cache, args.quiet, targets, args.inputs)
-                 for p in args.train]
-        val = [_cached(p, args.max_val_steps, args.seed, args.cache, args.quiet, targets, args.inputs)
-               for p in args.val]
-    except (GridDataError, ValueError) as exc:  # ValueError: --targets oracle on a file without the oracle
-        print(f"train-graph: {exc}", file=sys.stderr)
+        train, val = ([_cached(p, most, args.seed, args.cache, args.quiet, targets, args.inputs) for p in paths]
+                      for paths, most in sets)
+        recorded = train
+        if getattr(args, "teacher", None) is not None:
+            teacher = Teacher.load(args.teacher)
+            train, val = ([_taught(g, p, most, teacher, args) for g, p in zip(gs, paths)]
+                          for gs, (paths, most) in zip((train, val), sets))
+    except (GridDataError, ValueError) as exc:  # ValueError: --targets oracle on a file without the oracle,
+        print(f"train-graph: {exc}", file=sys.stderr)  # or a --teacher that cannot answer these steps
         return 2
     read_seconds = time.perf_counter() - t0
     try:
         card = fit(train, val, args, command=command, read_seconds=read_seconds,
-                   sources=[str(p) for p in args.train], val_sources=[str(p) for p in args.val])
+                   sources=[str(p) for p in args.train], val_sources=[str(p) for p in args.val],
+                   normalize_with=recorded)
     except TrainingDiverged as exc:
         print(f"train-graph: {exc}", file=sys.stderr)
         return 1
@@ -271,13 +284,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cached(path: Path, max_steps: int | None, seed: int, cache: Path, quiet: bool,
-            targets: tuple[str, ...] = GRAPH_TARGETS, inputs: tuple[str, ...] = GRAPH_INPUTS) -> GraphSet:
-    """The file's contact graphs, read once and kept as .npz under `cache`."""
+def _cache_name(path: Path, max_steps: int | None, seed: int, targets: tuple[str, ...],
+                inputs: tuple[str, ...]) -> str:
+    """STEM-KEY: which steps of which file, read with which channels, a cache file holds."""
     st = path.stat()
     key = json.dumps([CACHE_VERSION, str(path.resolve()), st.st_size, int(st.st_mtime), max_steps, seed,
                       inputs, targets])
-    target = cache / f"{path.stem}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
+    return f"{path.stem}-{hashlib.sha1(key.encode()).hexdigest()[:12]}"
+
+
+def _cached(path: Path, max_steps: int | None, seed: int, cache: Path, quiet: bool,
+            targets: tuple[str, ...] = GRAPH_TARGETS, inputs: tuple[str, ...] = GRAPH_INPUTS) -> GraphSet:
+    """The file's contact graphs, read once and kept as .npz under `cache`."""
+    target = cache / f"{_cache_name(path, max_steps, seed, targets, inputs)}.npz"
     if target.exists():
         return GraphSet.load(target)
     bar = None if quiet else _bar(None, f"graphs {path.name}")
@@ -288,6 +307,17 @@ def _cached(path: Path, max_steps: int | None, seed: int, cache: Path, quiet: bo
             bar.close()
     gs.save(target)
     return gs
+
+
+def _taught(gs: GraphSet, path: Path, max_steps: int | None, teacher: Teacher, args) -> GraphSet:
+    """gs with --teacher's answers as targets, kept under --cache beside gs's own file."""
+    name = _cache_name(path, max_steps, args.seed, gs.target_names, gs.inputs)
+    bar = None if args.quiet else _bar(len(gs), f"teacher on {path.name}")
+    try:
+        return taught(gs, teacher, Path(args.cache) / f"{name}-teacher-{teacher.digest}.npz", progress=bar)
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def normalization(train: list[GraphSet]) -> dict[str, tuple[float, float]]:
@@ -574,12 +604,14 @@ class Fitted:
 
 
 def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_seconds: float,
-        sources: list[str], val_sources: list[str]) -> ModelCard:
+        sources: list[str], val_sources: list[str], normalize_with: list[GraphSet] | None = None) -> ModelCard:
     """Train a ContactGraphNet on `train`, keep the epoch best on `val`, and write the
-    ONNX file and its card to args.out (see the module docstring)."""
+    ONNX file and its card to args.out (see the module docstring). The normalization is
+    `normalize_with`'s (default `train`'s): the recorded sets when a teacher answered `train`."""
     from training.graph_model import ContactGraphNet, GraphConfig
 
-    spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names, normalization=normalization(train))
+    spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names,
+                           normalization=normalization(normalize_with or train))
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
                          rounds=args.rounds, pooled=args.pooled,
@@ -768,6 +800,8 @@ class _CardParts:
                                       "self_stress_iterations": args.self_stress_iterations}
                                      if args.loss == "mse-self-stress" else {}),
                       "init": None if args.init is None else str(args.init),
+                      **({"teacher": Teacher.load(args.teacher).describe()}
+                         if getattr(args, "teacher", None) is not None else {}),
                       "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                       "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
                       "read_seconds": round(self.read_seconds, 1), "history": list(fitted.history),
