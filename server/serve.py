@@ -28,6 +28,7 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
+from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCardError
 from server import metrics
 from server.batching import MicroBatcher
@@ -162,24 +163,16 @@ class Server:
 
 def run(args: argparse.Namespace) -> int:
     # Arguments first: a refused command leaves the caller's logging as it was.
-    if not args.models.is_dir():
-        print(f"deepcontact serve: {args.models} is not a folder of models", file=sys.stderr)
-        return 2
-    if args.grace < 0 or args.fault_delay_ms < 0 or args.fault_every < 1:
-        print("deepcontact serve: --grace and --fault-delay-ms must be >= 0, --fault-every >= 1", file=sys.stderr)
-        return 2
-    if min(args.max_bodies, args.max_points, args.max_grid_nodes) < 1:
-        print("deepcontact serve: --max-bodies, --max-points and --max-grid-nodes must be >= 1", file=sys.stderr)
+    problem = _argument_problem(args)
+    if problem:
+        print(f"deepcontact serve: {problem}", file=sys.stderr)
         return 2
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter() if args.log_format == "json"
                          else logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
     credentials = None
-    if args.tls_cert or args.tls_key:
-        if not (args.tls_cert and args.tls_key):
-            print("deepcontact serve: --tls-cert and --tls-key go together", file=sys.stderr)
-            return 2
+    if args.tls_cert:
         credentials = grpc.ssl_server_credentials([(args.tls_key.read_bytes(), args.tls_cert.read_bytes())])
     try:
         server = Server(models=args.models, bind=args.bind, max_concurrent=args.max_concurrent,
@@ -196,13 +189,30 @@ def run(args: argparse.Namespace) -> int:
     if args.metrics_port:
         metrics.serve_metrics(args.metrics_port, host=server.host)
     if args.port_file:
-        tmp = args.port_file.with_name(f".{args.port_file.name}.part")
-        tmp.write_text(f"{server.port}\n")
-        os.replace(tmp, args.port_file)
+        write_bytes_atomic(args.port_file, f"{server.port}\n".encode())
     log.info("serving", extra={"address": server.address, "pid": os.getpid(),
                                "models": sorted(server.service.predictors), "tls": credentials is not None,
                                "batch_max": args.batch_max, "fault_delay_ms": args.fault_delay_ms})
+    _serve_until_signalled(server, args.grace)
+    _exit(0)
 
+
+def _argument_problem(args: argparse.Namespace) -> str | None:
+    """The first thing wrong with `deepcontact serve`'s arguments, in a sentence, or None."""
+    if not args.models.is_dir():
+        return f"{args.models} is not a folder of models"
+    if args.grace < 0 or args.fault_delay_ms < 0 or args.fault_every < 1:
+        return "--grace and --fault-delay-ms must be >= 0, --fault-every >= 1"
+    if min(args.max_bodies, args.max_points, args.max_grid_nodes) < 1:
+        return "--max-bodies, --max-points and --max-grid-nodes must be >= 1"
+    if bool(args.tls_cert) != bool(args.tls_key):
+        return "--tls-cert and --tls-key go together"
+    return None
+
+
+def _serve_until_signalled(server: "Server", grace: float) -> None:
+    """Block until SIGTERM or SIGINT, then drain for up to `grace` seconds; a second
+    signal exits at once."""
     stop = threading.Event()
 
     def on_signal(signum, _frame):
@@ -214,12 +224,11 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, on_signal)
     stop.wait()
-    log.info("shutting down", extra={"grace_s": args.grace})
-    if server.stop(args.grace):
+    log.info("shutting down", extra={"grace_s": grace})
+    if server.stop(grace):
         log.info("stopped")
     else:
         log.warning("stopped with RPCs that did not end after cancellation")
-    _exit(0)
 
 
 def _exit(code: int) -> None:

@@ -84,6 +84,20 @@ def test_past_the_concurrency_bound_clients_get_resource_exhausted_at_once(model
         server.stop()
 
 
+@pytest.mark.parametrize("extra, says", [
+    (["--models", "no-such-folder"], "not a folder of models"),
+    (["--grace", "-1"], "--grace"),
+    (["--max-points", "0"], "--max-points"),
+    (["--tls-cert", "cert.pem"], "--tls-cert and --tls-key go together"),
+])
+def test_serve_refuses_bad_arguments_before_it_binds_or_logs(model_dir, capsys, extra, says):
+    from deepcontact.cli import main
+
+    assert main(["serve", "--models", str(model_dir), "--bind", "127.0.0.1:0", *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("deepcontact serve: ") and says in err
+
+
 def test_sigterm_drains_and_exits_cleanly(model_dir, tmp_path, thesis_steps):
     port_file = tmp_path / "port"
     proc = subprocess.Popen([sys.executable, "-m", "deepcontact", "serve", "--models", str(model_dir),
