@@ -119,7 +119,6 @@ def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str 
     parity = parity_error(model, data, config, spec)
 
     write_bytes_atomic(out, data)
-    best = state["history"][state["best_epoch"] - 1]
     params = count_parameters(model)
     train, val = info["data"]["train"], info["data"]["val"]
     commands = list(dict.fromkeys(d["command"] for d in train + val if d.get("command"))) + list(info["commands"])
@@ -133,23 +132,8 @@ def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str 
         parameters=params["total"],
         architecture={"config": info["model"], "parameters": params, "onnx_opset": OPSET,
                       "onnx_bytes": len(data), "tensorflow": tf.__version__},
-        training={
-            "scene": train[0]["scene"],
-            "train": [_data_summary(d) for d in train],
-            "val": [_data_summary(d) for d in val],
-            "settings": info["settings"],
-            "transfer": info["transfer"],
-            "epochs_run": state["epochs_done"],
-            "best_epoch": state["best_epoch"],
-            "stop_reason": state["stop_reason"],
-            "train_seconds": state["train_seconds"],
-            "history": [[h["epoch"], round(h["train_loss"], 6), round(h["val_loss"], 6)]
-                        for h in state["history"]],
-        },
-        validation={"epoch": best["epoch"], "steps": sum(d["steps_used"] for d in val),
-                    "points": sum(d["points"] for d in val), "loss": best["val_loss"],
-                    "grid_mse": best["val_grid_mse"], "contact": best["val_contact"],
-                    "baselines": info.get("baselines", {})},
+        training=_training_record(info, state),
+        validation=_validation_record(info, state),
         parity_max_abs_error=parity,
         commands=tuple(commands + ([command] if command else [])),
     )
@@ -157,6 +141,33 @@ def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str 
     card.save(card_path)
     os.chmod(card_path, 0o644)  # the temporary file it was renamed from was private; a card is not
     return card, out, card_path
+
+
+def _training_record(info: dict[str, Any], state: dict[str, Any]) -> dict[str, Any]:
+    """The card's training section: the run's data, settings, transfer and epochs."""
+    train, val = info["data"]["train"], info["data"]["val"]
+    return {
+        "scene": train[0]["scene"],
+        "train": [_data_summary(d) for d in train],
+        "val": [_data_summary(d) for d in val],
+        "settings": info["settings"],
+        "transfer": info["transfer"],
+        "epochs_run": state["epochs_done"],
+        "best_epoch": state["best_epoch"],
+        "stop_reason": state["stop_reason"],
+        "train_seconds": state["train_seconds"],
+        "history": [[h["epoch"], round(h["train_loss"], 6), round(h["val_loss"], 6)] for h in state["history"]],
+    }
+
+
+def _validation_record(info: dict[str, Any], state: dict[str, Any]) -> dict[str, Any]:
+    """The card's validation section: the best epoch's losses and the run's baselines."""
+    best = state["history"][state["best_epoch"] - 1]
+    val = info["data"]["val"]
+    return {"epoch": best["epoch"], "steps": sum(d["steps_used"] for d in val),
+            "points": sum(d["points"] for d in val), "loss": best["val_loss"],
+            "grid_mse": best["val_grid_mse"], "contact": best["val_contact"],
+            "baselines": info.get("baselines", {})}
 
 
 def _data_summary(d: dict[str, Any]) -> dict[str, Any]:
