@@ -115,6 +115,9 @@
 #   graph-mse-1-799-r16-grown  its control: the same on the recorded corrections
 #   graph-projected-max-1-799-r16-distill-sym, -r16-grown-sym  the default's symmetric second
 #                              stage from each (served as NAME-mirror)
+#   graph-mse-1-799-r16-e10    -r16-grown's growth on every step: sixteen rounds grown from
+#                              graph-mse-1-799-r8-e9-reflect, one epoch of all 386,019 steps, half reflected
+#   graph-projected-max-1-799-r16-e10-sym  the default's symmetric second stage from it (-mirror card)
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
 #                              (--layer-norm): on the GPU it trained eight rounds faster and let
 #                              sixteen train; does it help the default's shape on two cores?
@@ -286,7 +289,11 @@ run() {
             fi
             variant "$1" --loss mse --rounds 16 --max-steps-per-file 12000 --epochs 4 --patience 3 --lr 1e-3 \
                 --mirror-augment --init runs/graph-cache/graph-mse-1-799-r8-e9-reflect.weights.npz "${teach[@]}" ;;
-        graph-projected-max-1-799-r16-distill-sym|graph-projected-max-1-799-r16-grown-sym)
+        graph-mse-1-799-r16-e10)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 16 --epochs 1 --lr 1e-3 --mirror-augment \
+                --init runs/graph-cache/graph-mse-1-799-r8-e9-reflect.weights.npz ;;
+        graph-projected-max-1-799-r16-distill-sym|graph-projected-max-1-799-r16-grown-sym|graph-projected-max-1-799-r16-e10-sym)
             local start=${1#graph-projected-max-1-799-}
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 16 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
