@@ -36,6 +36,11 @@ contact point, given Box2D's builtin warm start sent in the request:
                   is mostly wrong
 Several cards may name the same ONNX file, e.g. one model served two ways.
 
+`passes` (default 1; graph models with combine "residual" only) runs the network that
+many times on a step: each later pass reads the channels at the warm start the last one
+served, in place of Box2D's (which points are new to Box2D stays the request's), and adds
+its correction to it. A network must be trained for that (`train-graph --second-pass`).
+
 An alias card serves another card's model under a second name, so that users
 get the best measured variant without choosing one:
 
@@ -98,6 +103,7 @@ class ModelCard:
     combine: str = "replace"  # "replace", "residual", "new-points", "persisting" or "moving" (see above)
     correction_scale: float = 1.0  # "residual", "persisting", "moving": builtin + correction_scale x the model's correction
     correction_threshold: float = 0.0  # "residual", "persisting", "moving": drop corrections whose normal part is at most this (N s)
+    passes: int = 1  # graph "residual" models: the network run this many times, each from the last one's warm start
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...
@@ -131,6 +137,12 @@ class ModelCard:
         except ValueError as exc:
             raise ModelCardError(f"model card gridspec: {exc}") from None
         d["commands"] = tuple(d.get("commands", ()))
+        passes = d.get("passes", 1)
+        if not isinstance(passes, int) or isinstance(passes, bool) or passes < 1:
+            raise ModelCardError(f"model card passes {passes!r}: a whole number, 1 or more")
+        if passes > 1 and (d["kind"] != "graph" or d.get("combine", "replace") != "residual"):
+            raise ModelCardError(f"model card passes {passes}: only a graph model with combine \"residual\" "
+                                 f"can start a pass from its last one's warm start")
         if d.get("combine", "replace") not in COMBINE:
             raise ModelCardError(f"model card combine {d['combine']!r}: use one of {', '.join(COMBINE)}")
         return cls(**d)

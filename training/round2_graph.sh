@@ -118,6 +118,10 @@
 #   graph-mse-1-799-r16-e10    -r16-grown's growth on every step: sixteen rounds grown from
 #                              graph-mse-1-799-r8-e9-reflect, one epoch of all 386,019 steps, half reflected
 #   graph-projected-max-1-799-r16-e10-sym  the default's symmetric second stage from it (-mirror card)
+#   graph-projected-max-1-799-r8-e9-reflect-sym-2pass  a second pass: the default's symmetric
+#                              stage taken 2 more epochs from the default's weights on its 6,000
+#                              steps and on the same steps with the warm start the default serves
+#                              (train-graph --second-pass); served mirrored twice (-mirror-p2)
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
 #                              (--layer-norm): on the GPU it trained eight rounds faster and let
 #                              sixteen train; does it help the default's shape on two cores?
@@ -340,6 +344,13 @@ run() {
             variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
                 --symmetric --init "runs/graph-cache/$start.weights.npz"
             "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror" ;;
+        graph-projected-max-1-799-r8-e9-reflect-sym-2pass)
+            local first=graph-projected-max-1-799-r8-e9-reflect-sym
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --symmetric --init "runs/graph-cache/$first.weights.npz" --second-pass "$OUT/$first-mirror.json"
+            "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror"
+            "$PY" -m training.card_variant "$OUT/$1-mirror.json" --passes 2 ;;
         graph-projected-max-1-799-r8-ln)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --layer-norm --max-steps-per-file 3000 --epochs 2 \

@@ -40,6 +40,8 @@ from training import machine
 from deepcontact.channels import CHANNELS, mirror_signs
 from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set
 from training.grids import GridDataError
+from training.second_pass import SecondPassError, moved
+from training.second_pass import check as check_second_pass
 from training.teacher import Teacher, taught
 
 # What the correction is measured to: the solver's own end of the recorded step (Box2D's warm
@@ -97,6 +99,12 @@ def _data_arguments(parser) -> None:
                              "training and validation point instead of the recorded corrections: distillation "
                              "(training/teacher.py). The normalization stays the recorded targets', so --init "
                              "weights fit either way; the answers are kept in --cache")
+    parser.add_argument("--second-pass", type=Path, metavar="CARD",
+                        help="also train on every step as a second pass sees it: the warm start moved by what "
+                             "this graph model (e.g. the --init weights' own card) serves there, the targets "
+                             "what is left to correct (training/second_pass.py); the network is then served "
+                             "with `passes: 2` (python -m training.card_variant CARD --passes 2). Its answers "
+                             "are kept in --cache")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -209,7 +217,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     (its default depends on --order), args.sweeps (a sorted tuple) and args.inputs."""
     if args.out.suffix != ".onnx":
         return f"--out must name a .onnx file, got {args.out}"
-    given = (*args.train, *args.val, *(p for p in (args.init, getattr(args, "teacher", None)) if p))
+    given = (*args.train, *args.val,
+             *(p for p in (args.init, getattr(args, "teacher", None), getattr(args, "second_pass", None)) if p))
     missing = [str(p) for p in given if not p.exists()]
     if missing:
         return f"no such file: {', '.join(missing)}"
@@ -263,6 +272,10 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, "teacher", None) is not None:
             teacher = Teacher.load(args.teacher)
             train, val = ([_taught(g, p, most, teacher, args) for g, p in zip(gs, paths)]
+                          for gs, (paths, most) in zip((train, val), sets))
+        if getattr(args, "second_pass", None) is not None:
+            first = _first_pass(args.second_pass)
+            train, val = ([*gs, *(_moved(g, p, most, first, args) for g, p in zip(gs, paths))]
                           for gs, (paths, most) in zip((train, val), sets))
     except (GridDataError, ValueError) as exc:  # ValueError: --targets oracle on a file without the oracle,
         print(f"train-graph: {exc}", file=sys.stderr)  # or a --teacher that cannot answer these steps
@@ -318,6 +331,32 @@ def _taught(gs: GraphSet, path: Path, max_steps: int | None, teacher: Teacher, a
     finally:
         if bar is not None:
             bar.close()
+
+
+def _first_pass(card_path: Path) -> Teacher:
+    """--second-pass's card, refused unless what it serves is Box2D's warm start plus its answer."""
+    first = Teacher.load(card_path)
+    card = first.card
+    if card.combine != "residual" or card.correction_scale != 1.0 or card.correction_threshold != 0.0 \
+            or card.passes != 1:
+        raise SecondPassError(f"{card_path}: --second-pass moves the warm start by what the card serves, Box2D's "
+                              f"plus its correction; this card serves combine {card.combine!r}, scale "
+                              f"{card.correction_scale:g}, threshold {card.correction_threshold:g}, "
+                              f"{card.passes} pass(es)")
+    return first
+
+
+def _moved(gs: GraphSet, path: Path, max_steps: int | None, first: Teacher, args) -> GraphSet:
+    """gs as --second-pass's second pass sees it; the first pass's answers kept under --cache."""
+    check_second_pass(gs)
+    name = _cache_name(path, max_steps, args.seed, gs.target_names, gs.inputs)
+    bar = None if args.quiet else _bar(len(gs), f"first pass on {path.name}")
+    try:
+        answered = taught(gs, first, Path(args.cache) / f"{name}-teacher-{first.digest}.npz", progress=bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    return moved(gs, answered.targets)
 
 
 def normalization(train: list[GraphSet]) -> dict[str, tuple[float, float]]:
@@ -802,6 +841,8 @@ class _CardParts:
                       "init": None if args.init is None else str(args.init),
                       **({"teacher": Teacher.load(args.teacher).describe()}
                          if getattr(args, "teacher", None) is not None else {}),
+                      **({"second_pass": Teacher.load(args.second_pass).describe()}
+                         if getattr(args, "second_pass", None) is not None else {}),
                       "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                       "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
                       "read_seconds": round(self.read_seconds, 1), "history": list(fitted.history),

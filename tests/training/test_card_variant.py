@@ -33,3 +33,10 @@ def test_bad_requests_are_one_line_and_status_2(tmp_path, capsys):
     write_conv_model(tmp_path, "residual", combine="residual")
     assert main([str(tmp_path / "residual.json")]) == 2
     assert "nothing to change" in capsys.readouterr().err
+
+
+def test_only_a_graph_residual_model_runs_a_second_pass_from_its_first(tmp_path, capsys):
+    write_conv_model(tmp_path, "residual", combine="residual")
+    assert main([str(tmp_path / "residual.json"), "--passes", "2"]) == 2
+    assert "passes 2: only a graph model" in capsys.readouterr().err
+    assert not (tmp_path / "residual-p2.json").exists()

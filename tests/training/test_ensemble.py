@@ -107,6 +107,37 @@ def test_a_mirrored_model_serves_the_mean_of_its_answers_to_the_step_and_to_its_
     assert card.parity_max_abs_error < 1e-4
 
 
+def test_a_second_pass_reads_the_step_at_its_first_pass_warm_start(folder, thesis_steps):
+    from deepcontact import wire
+    from deepcontact.channels import Step, channel_values
+    from server.predictors import GraphPredictor, World
+
+    card = ModelCard.load(card_variant(folder / f"{MEMBERS[0]}.json", passes=2))
+    predictor = GraphPredictor(card, card.onnx_path(folder / f"{card.name}.json"))
+    seen, infer = [], predictor.infer
+    predictor.infer = lambda x, ends, dynamic: seen.append(x.copy()) or infer(x, ends, dynamic)
+    world, steps = thesis_steps
+    bodies, points = steps[0]
+    lower, upper, _ = wire.decode_world(world)
+    physics = wire.decode_physics(world)
+    answer, _ = predictor.predict(bodies, points, World((lower, upper), physics), 0)
+    first, second = (served(folder, name, world, steps[:1])[0] for name in (MEMBERS[0], card.name))
+    np.testing.assert_allclose(answer, second, atol=2e-5)  # what a real server serves
+    assert np.abs(second - first).max() > 1e-3  # the second pass moved the first's answer
+    # The second pass reads every channel at the first pass's warm start, except which
+    # points are new to Box2D: that stays what the request said (some are, some are not).
+    moved = points.copy()
+    moved["builtin"] = first
+    inputs = card.gridspec.inputs
+    expected = channel_values(inputs, Step(bodies, moved, None, physics))
+    new = inputs.index("new_point")
+    expected[:, new] = channel_values(("new_point",), Step(bodies, points, None, physics))[:, 0]
+    mean, std = card.gridspec.normalization_arrays(inputs)
+    assert len(seen) == 2 and len(np.unique(seen[0][:, new])) == 2
+    np.testing.assert_allclose(seen[1], (expected - mean) / std, atol=1e-3)
+    np.testing.assert_array_equal(seen[1][:, new], seen[0][:, new])
+
+
 def test_the_ensembles_card_names_its_members_and_folds_their_normalization_into_the_graph(folder):
     card = ModelCard.load(folder / "both.json")
     members = [ModelCard.load(folder / f"{name}.json") for name in MEMBERS]
