@@ -122,6 +122,10 @@
 #                              stage taken 2 more epochs from the default's weights on its 6,000
 #                              steps and on the same steps with the warm start the default serves
 #                              (train-graph --second-pass); served mirrored twice (-mirror-p2)
+#   graph-projected-max-1-799-r8-e9-reflect-sym-unrolled2  the same stage trained as two passes
+#                              unrolled (train-graph --passes 2: the second pass's inputs moved
+#                              inside the training graph, the gradient through both); served
+#                              mirrored twice (-mirror-p2) and once (-mirror)
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
 #                              (--layer-norm): on the GPU it trained eight rounds faster and let
 #                              sixteen train; does it help the default's shape on two cores?
@@ -349,6 +353,12 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
                 --symmetric --init "runs/graph-cache/$first.weights.npz" --second-pass "$OUT/$first-mirror.json"
+            "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror"
+            "$PY" -m training.card_variant "$OUT/$1-mirror.json" --passes 2 ;;
+        graph-projected-max-1-799-r8-e9-reflect-sym-unrolled2)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --symmetric --passes 2 --init runs/graph-cache/graph-projected-max-1-799-r8-e9-reflect-sym.weights.npz
             "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror"
             "$PY" -m training.card_variant "$OUT/$1-mirror.json" --passes 2 ;;
         graph-projected-max-1-799-r8-ln)

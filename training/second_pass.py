@@ -8,6 +8,9 @@ correction to it. A network trained only on Box2D's warm starts overshoots there
     a  = answers(gs, teacher)              # (N, 2) N s, the first pass's correction
     gs2 = moved(gs, a)                      # the same steps, warm start builtin + a
 
+`train-graph --passes K` trains the network as such a card serves it, the inputs moved
+inside the training graph by the same rule (`moves`), the gradient flowing through every pass.
+
 In gs2 every channel that reads the warm start is what the server computes from it, and
 the targets are what is left to correct (recorded impulse - (builtin + a)); the rest is
 unchanged (the geometry, the velocities before the solve, which points are new to Box2D).
@@ -34,19 +37,42 @@ class SecondPassError(ValueError):
     """These steps cannot be moved (a channel or target that does not follow the warm start here)."""
 
 
-def check(gs: GraphSet) -> None:
-    """Raise SecondPassError unless every warm-start channel of gs is one `moved` recomputes."""
+def check_inputs(inputs: tuple[str, ...]) -> None:
+    """Raise SecondPassError unless every warm-start channel among `inputs` is one a
+    second pass recomputes (MOVED) or keeps (KEPT), and the warm start is among them."""
     from deepcontact.channels import CHANNELS
 
-    reads_warm = [n for n in gs.inputs if "builtin" in CHANNELS[n].needs and n not in MOVED + KEPT]
+    reads_warm = [n for n in inputs if "builtin" in CHANNELS[n].needs and n not in MOVED + KEPT]
     if reads_warm:
-        raise SecondPassError(f"--second-pass moves {', '.join(MOVED)} with the warm start; "
+        raise SecondPassError(f"a second pass moves {', '.join(MOVED)} with the warm start; "
                               f"{', '.join(reads_warm)} would need the engine")
-    if tuple(gs.target_names) != TARGETS:
-        raise SecondPassError(f"--second-pass trains on {', '.join(TARGETS)}, not {', '.join(gs.target_names)}")
     for n in ("builtin_normal", "builtin_tangent"):
-        if n not in gs.inputs:
-            raise SecondPassError(f"--second-pass needs the warm start among the inputs ({n})")
+        if n not in inputs:
+            raise SecondPassError(f"a second pass needs the warm start among the inputs ({n})")
+
+
+def check(gs: GraphSet) -> None:
+    """check_inputs for gs's inputs, and its targets the correction to Box2D's warm start."""
+    check_inputs(gs.inputs)
+    if tuple(gs.target_names) != TARGETS:
+        raise SecondPassError(f"a second pass trains on {', '.join(TARGETS)}, not {', '.join(gs.target_names)}")
+
+
+def moves(inputs: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(W, V, J), each (2, F) float32: how the F `inputs` move when the warm start moves by
+    a correction c (P, 2) N s that changes the points' velocities by v = A c (P, 2) m/s:
+
+        inputs' = inputs + c @ W + v @ V - (m_eff * v) @ J
+
+    (the warm start itself, the velocities after it, and the Jacobi step -m_eff v)."""
+    check_inputs(inputs)
+    out = np.zeros((3, 2, len(inputs)), np.float32)
+    for k, names in enumerate((("builtin_normal", "builtin_tangent"), ("vn_builtin", "vt_builtin"),
+                               ("jacobi_normal", "jacobi_tangent"))):
+        for component, name in enumerate(names):
+            if name in inputs:
+                out[k, component, inputs.index(name)] = 1.0
+    return out[0], out[1], out[2]
 
 
 def delassus(gs: GraphSet, impulses: np.ndarray) -> np.ndarray:
@@ -70,18 +96,9 @@ def moved(gs: GraphSet, correction: np.ndarray) -> GraphSet:
     correction = np.asarray(correction, np.float64)
     if correction.shape != (len(gs.targets), 2):
         raise SecondPassError(f"a correction per point, ({len(gs.targets)}, 2), got {correction.shape}")
-    column = {n: j for j, n in enumerate(gs.inputs)}
-    features = gs.features.astype(np.float64)
-    features[:, column["builtin_normal"]] += correction[:, 0]
-    features[:, column["builtin_tangent"]] += correction[:, 1]
-    after = ("vn_builtin", "vt_builtin")
-    if any(n in column for n in after + ("jacobi_normal", "jacobi_tangent")):
-        dv = delassus(gs, correction)
-        for k, (v, jac) in enumerate(zip(after, ("jacobi_normal", "jacobi_tangent"))):
-            if v in column:
-                features[:, column[v]] += dv[:, k]
-            if jac in column:
-                features[:, column[jac]] -= gs.masses[:, k] * dv[:, k]  # -m_eff x (velocity after the warm start)
+    warm, velocity, jacobi = moves(gs.inputs)
+    dv = delassus(gs, correction)
+    features = gs.features.astype(np.float64) + correction @ warm + dv @ velocity - (gs.masses * dv) @ jacobi
     return dataclasses.replace(
         gs, features=features.astype(np.float32),
         targets=(gs.targets.astype(np.float64) - correction).astype(np.float32),

@@ -42,6 +42,8 @@ from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY,
 from training.grids import GridDataError
 from training.second_pass import SecondPassError, moved
 from training.second_pass import check as check_second_pass
+from training.second_pass import check_inputs as check_second_pass_inputs
+from training.second_pass import moves as second_pass_moves
 from training.teacher import Teacher, taught
 
 # What the correction is measured to: the solver's own end of the recorded step (Box2D's warm
@@ -131,6 +133,11 @@ def _network_arguments(parser) -> None:
                         help="train the mean of the network's answer and its mirror image's (the step reflected "
                              "left to right, answered, reflected back): the answer the loss scores is symmetric, "
                              "at twice the network's cost; serve it so (`python -m training.ensemble CARD --mirror`)")
+    parser.add_argument("--passes", type=int, default=1, metavar="K",
+                        help="train the network as a card with `passes: K` serves it: run K times, each pass "
+                             "reading the channels at the warm start the last one made (recomputed inside the "
+                             "training graph, training/second_pass.py) and the loss scoring the last; the card "
+                             "gets passes K (default %(default)s)")
 
 
 def _loss_arguments(parser) -> None:
@@ -252,6 +259,14 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
         return (f"--extra-inputs takes contact-point channels not already read ({', '.join(GRAPH_INPUTS)}), "
                 f"each once; got {args.extra_inputs!r}")
     args.inputs = GRAPH_INPUTS + extra
+    passes = getattr(args, "passes", 1)
+    if passes < 1 or (passes > 1 and args.combine != "residual"):
+        return f"--passes must be >= 1, and above 1 only with --combine residual; got {passes}, {args.combine}"
+    if passes > 1:
+        try:
+            check_second_pass_inputs(args.inputs)
+        except SecondPassError as exc:
+            return f"--passes {passes}: {exc}"
     return None
 
 
@@ -432,6 +447,9 @@ class BatchLoss:
         self.new_column = inputs.index("new_point")
         self.builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")]
         self.velocity_columns = [inputs.index("vn"), inputs.index("vt")]
+        if getattr(args, "passes", 1) > 1:  # which inputs move with the warm start, and how (second_pass)
+            self.moves_with_warm, self.moves_with_velocity, self.moves_with_jacobi = (
+                tf.constant(m, tf.float32) for m in second_pass_moves(inputs))
         self.loss_weight = tf.constant([1.0] + [args.tangent_weight] * (len(self.out_mean) - 1), tf.float32)
         # Solver loss: each checkpoint's mean squared residual, divided by what Box2D's
         # own warm start (no correction) leaves there on the training data, so each counts alike.
@@ -450,6 +468,8 @@ class BatchLoss:
 
     def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed):
         pred = self.predict(points, ends, dynamic, step_of)
+        for _ in range(getattr(self.args, "passes", 1) - 1):
+            pred = self._again(pred, points, ends, dynamic, geometry, masses, inverse, step_of)
         if self.args.loss in self.POINT_LOSSES:
             return self._at_points(pred, y)
         if self.args.loss == "mse-self-stress":
@@ -463,6 +483,19 @@ class BatchLoss:
         if self.args.loss in self.PROJECTED_LOSSES:
             return self._projected(points, *solver, colour, error, builtin_error)
         return self._unconstrained(*solver, error, builtin_error)
+
+    def _again(self, pred, points, ends, dynamic, geometry, masses, inverse, step_of):
+        """The correction after one more pass, (P, T) normalized: the network asked again at the
+        warm start pred made, its inputs moved as training.second_pass.moved moves them, the
+        gradient flowing through both passes."""
+        from training.graph_loss import apply_delassus
+
+        correction = pred * self.out_std + self.out_mean  # N s
+        velocity = apply_delassus(correction, ends, geometry, inverse)  # m/s
+        moved = points + (correction @ self.moves_with_warm + velocity @ self.moves_with_velocity
+                          - (masses * velocity) @ self.moves_with_jacobi) / self.in_std
+        answer = self.predict(moved, ends, dynamic, step_of) * self.out_std + self.out_mean
+        return (correction + answer - self.out_mean) / self.out_std
 
     def _at_points(self, pred, y):
         """mse and relative: each point's squared error, normalized units."""
@@ -819,6 +852,7 @@ class _CardParts:
         return ModelCard(
             name=name, kind="graph", onnx_file=onnx_file, gridspec=self.spec, fixed_grid=False,
             input_name="points", output_name="impulses", combine=args.combine, parameters=params,
+            passes=getattr(args, "passes", 1),
             architecture={"config": config_to_dict(net.config), "parameters": {"total": params, "trainable": params},
                           "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "onnx_incidence": "scatter",
                           "tensorflow": net.tf.__version__},

@@ -10,6 +10,7 @@ import pytest
 
 from deepcontact.channels import Step, channel_values
 from deepcontact.cli import main
+from deepcontact.modelcard import ModelCard
 from tests.training.conftest import SMALL
 from training.card_variant import card_variant
 from training.contact_graph import GRAPH_INPUTS, build_graph_set, one_world
@@ -67,3 +68,42 @@ def test_a_first_pass_that_serves_something_else_is_refused(data, small_graph, t
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
                  "--cache", str(cache), "--second-pass", str(scaled), *SMALL]) == 2
     assert "scale 0.5" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_network_trained_for_two_passes_is_scored_as_the_server_serves_it(data, small_graph, tmp_path):
+    from server.predictors import GraphPredictor, World
+
+    folder, cache = small_graph
+    out = tmp_path / "twice.onnx"
+    # At a rate of 1e-12 the weights stay the small model's: the validation loss is then the
+    # squared error of what the server answers with those weights run twice.
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
+                 "--cache", str(cache), "--passes", "2", "--init", str(cache / "small.weights.npz"),
+                 "--lr", "1e-12", *SMALL]) == 0
+    card = ModelCard.load(out.with_suffix(".json"))
+    assert card.passes == 2
+    predictor = GraphPredictor(card, out)
+    path = data / "val.h5"
+    with open_dataset(path) as ds:
+        steps = ds.steps
+    out_mean, out_std = card.gridspec.normalization_arrays(card.gridspec.targets)
+    squares = []
+    for _, step in iter_steps(path, steps, select_steps(steps, None, 0)):
+        world = World(((0.0, 0.0), (1.0, 1.0)), step.physics)
+        served, _ = predictor.predict(step.bodies, step.contacts, world, 0)
+        error = (served - step.contacts["impulse"]) / out_std  # served - (builtin + recorded correction)
+        squares.append(np.square(error).sum(axis=1))
+    served_loss = np.concatenate(squares).mean()
+    assert card.validation["loss"] == pytest.approx(served_loss, rel=1e-3)
+    once = json.loads((folder / "small.json").read_text())["validation"]["loss"]
+    assert abs(served_loss - once) > 1e-3 * once  # the second pass changed the answer
+
+
+def test_passes_need_a_residual_model_whose_inputs_a_pass_can_move(data, tmp_path, capsys):
+    base = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"),
+            "--out", str(tmp_path / "x.onnx"), "--cache", str(tmp_path / "cache"), *SMALL]
+    assert main(base + ["--passes", "2", "--combine", "new-points"]) == 2
+    assert "only with --combine residual" in capsys.readouterr().err
+    assert main(base + ["--passes", "2", "--extra-inputs", "vn_builtin_asinh"]) == 2
+    assert "vn_builtin_asinh would need the engine" in capsys.readouterr().err
+    assert not (tmp_path / "x.onnx").exists()
