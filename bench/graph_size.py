@@ -9,7 +9,9 @@ grow with points times bodies, once per round of message passing. This times the
 alone, as the server runs it (`GraphPredictor.run_session`, one thread), on synthetic steps of
 P contact points between B dynamic bodies: random normalized inputs and random ends, since the
 arithmetic does not depend on the values. Printed: per model and size, the median over
---repeats runs, in ms. Set OMP_NUM_THREADS=1 for numbers comparable to the other benchmarks'.
+--repeats runs, in ms. A card with `passes: K` (deepcontact.modelcard) is timed as K runs of
+its session, as the server runs them; the channels it computes between passes are not timed.
+Set OMP_NUM_THREADS=1 for numbers comparable to the other benchmarks'.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         if not isinstance(predictor, GraphPredictor):
             raise SystemExit(f"bench graph-size: {name} is a {predictor.kind} model, not a contact-graph one")
         rounds = predictor.card.architecture.get("config", {}).get("rounds")
+        passes = predictor.card.passes
         rng = np.random.default_rng(args.seed)
         for points, bodies in sizes:
             feed = synthetic_step(points, bodies, len(predictor.inputs), rng)
@@ -85,14 +88,16 @@ def run(args: argparse.Namespace) -> int:
             times = []
             for _ in range(args.repeats):
                 t0 = time.perf_counter()
-                predictor.run_session(*feed)
+                for _ in range(passes):
+                    predictor.run_session(*feed)
                 times.append(time.perf_counter() - t0)
-            rows.append({"model": name, "served": predictor.name, "rounds": rounds, "points": points,
-                         "bodies": bodies, "median_ms": 1e3 * float(np.median(times))})
-    print("| model | rounds | points | bodies | inference median ms |\n|---|---|---|---|---|")
+            rows.append({"model": name, "served": predictor.name, "rounds": rounds, "passes": passes,
+                         "points": points, "bodies": bodies, "median_ms": 1e3 * float(np.median(times))})
+    print("| model | rounds | passes | points | bodies | inference median ms |\n|---|---|---|---|---|---|")
     for r in rows:
         shown = r["model"] if r["model"] == r["served"] else f"{r['model']} ({r['served']})"
-        print(f"| {shown} | {'–' if r['rounds'] is None else r['rounds']} | {r['points']} | {r['bodies']} | {r['median_ms']:.2f} |")
+        print(f"| {shown} | {'–' if r['rounds'] is None else r['rounds']} | {r['passes']} | {r['points']} | "
+              f"{r['bodies']} | {r['median_ms']:.2f} |")
     if args.json:
         write_json_atomic(args.json, {"repeats": args.repeats, "seed": args.seed, "rows": rows})
         print(f"wrote {args.json}")

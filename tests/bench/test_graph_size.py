@@ -40,6 +40,7 @@ def test_the_default_and_a_named_model_are_timed_at_every_size(tmp_path, capsys)
         ("default", 5, 3), ("default", 20, 10),
         ("graph-projected-max-1-799-long-e2", 5, 3), ("graph-projected-max-1-799-long-e2", 20, 10)]
     assert rows[0]["served"] == target and rows[2]["rounds"] == 3
+    assert all(r["passes"] == 1 for r in rows)
     assert all(r["median_ms"] > 0 for r in rows)
     assert f"default ({target})" in capsys.readouterr().out
 
@@ -47,3 +48,28 @@ def test_the_default_and_a_named_model_are_timed_at_every_size(tmp_path, capsys)
 def test_a_grid_model_is_refused_with_a_message():
     with pytest.raises(SystemExit, match="not a contact-graph one"):
         main(["bench", "graph-size", "--models", str(MODELS), "--model", "pressure", "--sizes", "5x3", "--repeats", "1"])
+
+
+def test_a_card_with_two_passes_is_timed_as_two_runs_of_its_network(tmp_path, monkeypatch):
+    from server.predictors import GraphPredictor
+    from training.card_variant import card_variant
+
+    for suffix in (".json", ".onnx"):
+        (tmp_path / f"graph-projected-max-1-799-long-e2{suffix}").write_bytes(
+            (MODELS / f"graph-projected-max-1-799-long-e2{suffix}").read_bytes())
+    card_variant(tmp_path / "graph-projected-max-1-799-long-e2.json", passes=2)
+    runs, run_session = {}, GraphPredictor.run_session
+
+    def counted(self, *feed):
+        runs[self.name] = runs.get(self.name, 0) + 1
+        return run_session(self, *feed)
+
+    monkeypatch.setattr(GraphPredictor, "run_session", counted)
+    out = tmp_path / "sizes.json"
+    assert main(["bench", "graph-size", "--models", str(tmp_path), "--model",
+                 "graph-projected-max-1-799-long-e2,graph-projected-max-1-799-long-e2-p2", "--sizes", "5x3",
+                 "--repeats", "7", "--json", str(out)]) == 0
+    once, twice = json.loads(out.read_text())["rows"]
+    assert (once["passes"], twice["passes"]) == (1, 2)
+    # Each model also runs once when it loads and once to plan the size's memory, untimed.
+    assert runs == {"graph-projected-max-1-799-long-e2": 2 + 7, "graph-projected-max-1-799-long-e2-p2": 2 + 2 * 7}
