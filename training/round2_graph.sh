@@ -126,6 +126,9 @@
 #                              unrolled (train-graph --passes 2: the second pass's inputs moved
 #                              inside the training graph, the gradient through both); served
 #                              mirrored twice (-mirror-p2) and once (-mirror)
+#   graph-projected-max-1-799-r8-e9-reflect-unrolled2  the default's symmetric stage itself trained
+#                              as two passes unrolled, from the same squared-error start
+#                              (graph-mse-1-799-r8-e9-reflect); served mirrored twice (-mirror-p2)
 #   graph-mse-1-799-r8-ln      graph-mse-1-799-r8 with a layer normalization before each round
 #                              (--layer-norm): on the GPU it trained eight rounds faster and let
 #                              sixteen train; does it help the default's shape on two cores?
@@ -355,10 +358,12 @@ run() {
                 --symmetric --init "runs/graph-cache/$first.weights.npz" --second-pass "$OUT/$first-mirror.json"
             "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror"
             "$PY" -m training.card_variant "$OUT/$1-mirror.json" --passes 2 ;;
-        graph-projected-max-1-799-r8-e9-reflect-sym-unrolled2)
+        graph-projected-max-1-799-r8-e9-reflect-sym-unrolled2|graph-projected-max-1-799-r8-e9-reflect-unrolled2)
+            local start=graph-projected-max-1-799-r8-e9-reflect-sym
+            [ "$1" = graph-projected-max-1-799-r8-e9-reflect-unrolled2 ] && start=graph-mse-1-799-r8-e9-reflect
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
-                --symmetric --passes 2 --init runs/graph-cache/graph-projected-max-1-799-r8-e9-reflect-sym.weights.npz
+                --symmetric --passes 2 --init "runs/graph-cache/$start.weights.npz"
             "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror"
             "$PY" -m training.card_variant "$OUT/$1-mirror.json" --passes 2 ;;
         graph-projected-max-1-799-r8-ln)
