@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=900, help="thesis-world seed (benchmark range 900-999; default 900)")
     parser.add_argument("--settle-steps", type=int, default=200, help="steps before measuring, so the pile has settled (default 200)")
     parser.add_argument("--repeats", type=int, default=2000, help="repeats of export and injection (default 2000)")
-    parser.add_argument("--solve-steps", type=int, default=200, help="steps timed for the solve comparison (default 60)")
+    parser.add_argument("--solve-steps", type=int, default=200, help="steps timed for the solve comparison (default 200)")
     parser.add_argument("--iterations", type=int, default=200, help="fixed velocity iterations for the solve comparison (default 200)")
 
 

@@ -3,9 +3,10 @@
     deepcontact bench graph-size --model default,graph-projected-max-1-799-long-e2 \
         --sizes 140x100,400x400,400x1600 --json bench/results/graph-size/sizes.json
 
-The exported contact-graph network sums each round's messages per body with dense one-hot
-incidence matrices (points x bodies; docs/models.md, "Contact-graph models"), so its cost should
-grow with points times bodies, once per round of message passing. This times the ONNX session
+A contact-graph network exported since 2026-11-26 sums each round's messages per body with
+scatter-adds, so its cost should grow with the points; one exported before, with dense one-hot
+incidence matrices (points x bodies; docs/models.md, "Contact-graph models"), with points times
+bodies, once per round of message passing. This times the ONNX session
 alone, as the server runs it (`GraphPredictor.run_session`, one thread), on synthetic steps of
 P contact points between B dynamic bodies: random normalized inputs and random ends, since the
 arithmetic does not depend on the values. Printed: per model and size, the median over
