@@ -23,9 +23,9 @@
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
 # (DEFAULT_ONLY=1). On 2 cores about 2 h 17 min for the default with AVX2, 1 h 20 min with
-# AVX-512, and the grid models 15-30 min more (docs/models.md, "Since the default became
-# ...-r8-e9-reflect-sym-mirror"). The other
-# models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
+# AVX-512, and the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
+# "Since the default became ...-r8-e9-reflect-sym-mirror"; GRID_ONLY=1 rebuilds them alone).
+# The other models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
 # they hold); run directories are always started afresh.
 #
@@ -48,9 +48,9 @@ CONFIG='{"l2": 0.0001}'
 RECIPE=(--loss grid --lr-schedule constant --config "$CONFIG" --batch-size 16 --seed 0 --quiet)
 
 SECONDS=0
-if [ "${GRID_ONLY:-0}" != 1 ]; then
 CHAIN=(graph-mse-1-799-r8 graph-mse-1-799-r8-e9-reflect graph-projected-max-1-799-r8-e9-reflect-sym)
 DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror
+if [ "${GRID_ONLY:-0}" != 1 ]; then
 # The shipped files of the chain, kept before the runs overwrite them, so that each rebuild is
 # compared with what it replaced (below).
 SHIPPED=runs/shipped-models
