@@ -28,7 +28,9 @@ Faults: on Ray a task whose worker dies, or that raises, runs once more
 `TaskFailed` naming it, and the tasks still pending are cancelled. Without
 Ray there are no retries: the first failure names its task. A dead pool
 worker breaks the whole pool, so that error lists the tasks left unfinished,
-the one it ran among them.
+the one it ran among them. Pool workers end themselves within a second of
+the process that started them dying, so a run killed by a signal Python does
+not catch (SIGKILL; SIGTERM's default) leaves no simulation running on.
 
 Test hook (workers only, never this process): with DEEPCONTACT_TEST_KILL_TASK
 set to a task's name, the worker running it exits at once with status 1; with
@@ -45,6 +47,8 @@ import multiprocessing
 import os
 import sys
 import tempfile
+import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -57,6 +61,7 @@ INSTALL_RAY = f"--ray needs Ray: pip install '.[ray]' (ray[client]=={RAY_VERSION
 TEST_KILL_TASK = "DEEPCONTACT_TEST_KILL_TASK"
 TEST_KILL_ONCE = "DEEPCONTACT_TEST_KILL_ONCE"
 TASKS_PER_CPU = 4  # in flight: enough to keep every CPU busy while the earliest task finishes
+PARENT_POLL_S = 0.5  # how often a pool worker looks whether the process that started it is still there
 
 
 class Task(NamedTuple):
@@ -192,7 +197,8 @@ class _Pool:
         self.width = TASKS_PER_CPU * workers
         self.description = f"{workers} worker processes"
         self._tmp = tempfile.TemporaryDirectory(prefix="deepcontact-dispatch-")
-        self._pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        self._pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_exit_with_parent, initargs=(os.getpid(),))
         self._unfinished: dict[cf.Future, str] = {}  # submitted, not yet collected -> task name
 
     def submit(self, fn, task: Task, kill) -> cf.Future:
@@ -294,6 +300,21 @@ class _Ray:
 
 
 # -- in the workers ------------------------------------------------------------
+
+def _exit_with_parent(parent: int) -> None:
+    """Pool worker initializer: exit once `parent` (the pool's process) is gone.
+
+    A parent killed by SIGKILL, or by SIGTERM with Python's default handling, never
+    shuts its pool down, and its workers would run their simulations to the end, minutes
+    of two busy cores that nobody reads. Ctrl-C reaches the whole process group and
+    needs none of this. Orphans are re-parented, so a changed parent pid is the sign."""
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
 
 def _run_in_worker(fn, task: Task, kill: tuple[str, str | None] | None):
     if kill is not None and kill[0] == task.name:
