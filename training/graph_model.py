@@ -28,6 +28,15 @@ With `layer_norm`, each round reads its state through a layer normalization
 (pre-norm, as deep transformers do) and so does the decoder: without it, sixteen
 residual rounds did not train (docs/results.md, "Eight rounds").
 
+With `tied`, every round uses the same weights (those named round0_*), so the
+network is one learned sweep repeated: how many rounds it runs is then a choice
+made at each call (`rounds=`), not a property of the weights, and a network
+trained at a few rounds can be exported to run more (reach, which is what paid
+from three rounds to eight, without more weights; training/tied_rounds.py). With
+`recall`, every round's update also reads the encoded inputs, so however many
+rounds run, the last still sees the step it is answering (as recurrent networks
+that extrapolate to more iterations than trained do).
+
 Plain tf.Module, no Keras: the weights are a dict of arrays (saved as .npz)
 and the same tf.function is trained and exported (tf2onnx, opset 17). How points
 reach their bodies (`incidence`) changes the graph's ops, not its numbers: training
@@ -57,16 +66,18 @@ class GraphConfig:
     kind: str = "graph"
     pooled: bool = False  # each round also reads the mean state of the step's points
     layer_norm: bool = False  # each round reads its state through a layer normalization (pre-norm)
+    tied: bool = False  # every round uses round 0's weights; `rounds` is then how many the export runs
+    recall: bool = False  # each round's update also reads the encoded inputs
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
     """Every dense layer's (fan_in, fan_out), in the order the network uses them."""
     w = c.width
     shapes = {"encode0": (c.in_channels, w), "encode1": (w, w)}
-    for r in range(c.rounds):
+    for r in range(1 if c.tied else c.rounds):
         shapes[f"round{r}_to_a"] = (w, w)
         shapes[f"round{r}_to_b"] = (w, w)
-        shapes[f"round{r}_update0"] = ((4 if c.pooled else 3) * w, w)
+        shapes[f"round{r}_update0"] = ((3 + c.pooled + c.recall) * w, w)
         shapes[f"round{r}_update1"] = (w, w)
     shapes["decode0"] = (w, w)
     shapes["decode1"] = (w, c.out_channels)
@@ -75,7 +86,7 @@ def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
 
 def _norm_names(c: GraphConfig) -> list[str]:
     """The layer normalizations, in the order the network uses them: one before each round, one before the decoder."""
-    return [f"round{r}_norm" for r in range(c.rounds)] + ["decode_norm"] if c.layer_norm else []
+    return [f"round{r}_norm" for r in range(1 if c.tied else c.rounds)] + ["decode_norm"] if c.layer_norm else []
 
 
 def init_weights(c: GraphConfig, seed: int = 0) -> dict[str, np.ndarray]:
@@ -142,18 +153,22 @@ class ContactGraphNet:
         var = tf.reduce_mean(tf.square(x - mean), axis=1, keepdims=True)
         return (x - mean) * tf.math.rsqrt(var + LAYER_NORM_EPS) * self.variables[f"{name}/gain"] + self.variables[f"{name}/offset"]
 
-    def __call__(self, points, ends, dynamic, step_of=None):
+    def __call__(self, points, ends, dynamic, step_of=None, rounds: int | None = None):
         """points (P, F), ends (P, 2), dynamic (B, 1) as in the module docstring;
-        step_of (P,) int32, each point's step, read only by a pooled network."""
+        step_of (P,) int32, each point's step, read only by a pooled network; rounds, how
+        many to run (only a tied network may run other than config.rounds)."""
+        if rounds is not None and rounds != self.config.rounds and not self.config.tied:
+            raise ValueError(f"an untied network runs its {self.config.rounds} rounds, not {rounds}")
         tf = self.tf
-        h = self._dense(self._dense(points, "encode0"), "encode1")
+        h = encoded = self._dense(self._dense(points, "encode0"), "encode1")
         a, b = ends[:, 0], ends[:, 1]
         n_bodies = tf.shape(dynamic)[0]
         # Built once, used by every round: the one-hot matrices are the costly part of "matmul".
         at_a = at_b = None
         if self.incidence == "matmul":
             at_a, at_b = tf.one_hot(a, n_bodies), tf.one_hot(b, n_bodies)  # (P, B)
-        for r in range(self.config.rounds):  # loop over rounds, not points
+        for r in range(self.config.rounds if rounds is None else rounds):  # loop over rounds, not points
+            r = 0 if self.config.tied else r
             # Pre-norm: the residual stream h is summed, never normalized, so deep stacks keep
             # their gradients; each round reads a normalized copy.
             x = self._norm(h, f"round{r}_norm")
@@ -164,6 +179,8 @@ class ContactGraphNet:
             u = tf.concat([x, self._read_bodies(load, a, at_a), self._read_bodies(load, b, at_b)], axis=1)
             if self.config.pooled:
                 u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
+            if self.config.recall:
+                u = tf.concat([u, encoded], axis=1)
             h = h + self._dense(self._dense(u, f"round{r}_update0"), f"round{r}_update1", relu=False)
         return self._dense(self._dense(self._norm(h, "decode_norm"), "decode0"), "decode1", relu=False)
 
@@ -203,7 +220,12 @@ class ContactGraphNet:
 
 
 def config_to_dict(c: GraphConfig) -> dict[str, Any]:
-    return dataclasses.asdict(c)
+    """The config as a card records it; `tied` and `recall` only where set, so other cards read as before them."""
+    d = dataclasses.asdict(c)
+    for key in ("tied", "recall"):
+        if not d[key]:
+            del d[key]
+    return d
 
 
 def to_onnx(net: ContactGraphNet, opset: int = 17, incidence: str = "scatter") -> bytes:

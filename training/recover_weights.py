@@ -54,10 +54,23 @@ def exported_incidence(onnx_bytes: bytes) -> str:
     return "scatter" if "ScatterND" in ops else "matmul"
 
 
-def tensor_names(config, incidence: str = "scatter") -> dict[str, str]:
-    """{weight key ("edge0/kernel", ...): ONNX tensor name} for a network of `config`,
-    found by exporting one with distinct random weights the `incidence` way."""
+def tensor_names(config, incidence: str = "scatter") -> dict[str, tuple[str, ...]]:
+    """{weight key ("edge0/kernel", ...): the ONNX tensor names holding it} for a network of
+    `config`, found by exporting one with distinct random weights the `incidence` way. One
+    name a weight, except in a tied network, which reads its round weights once a round
+    (tf2onnx merges the copies under the name of any one read, so every read's name is a
+    candidate: they are found by probing the untied network of the same shape, whose ops
+    are the tied one's)."""
+    import dataclasses
+
     from training.graph_model import ContactGraphNet, init_weights, to_onnx
+
+    if config.tied:
+        untied = tensor_names(dataclasses.replace(config, tied=False), incidence)
+        return {k: tuple(sorted(n for r in range(config.rounds)
+                                for n in untied[k.replace("round0_", f"round{r}_", 1)]))
+                if k.startswith("round0_") else untied[k]
+                for k in init_weights(config)}
 
     rng = np.random.default_rng(0)
     probe = {k: rng.standard_normal(v.shape).astype(np.float32) for k, v in init_weights(config).items()}
@@ -65,19 +78,17 @@ def tensor_names(config, incidence: str = "scatter") -> dict[str, str]:
     names = {}
     for key, value in probe.items():
         hits = [n for n, t in exported.items() if t.shape == value.shape and np.array_equal(t, value)]
-        if len(hits) != 1:
-            raise RecoveryError(f"weight {key} {value.shape} appears {len(hits)} times in the exported graph "
-                                f"(tf2onnx folded or copied it); its value cannot be recovered by name")
-        names[key] = hits[0]
+        if not hits:
+            raise RecoveryError(f"weight {key} {value.shape} does not appear in the exported graph "
+                                f"(tf2onnx folded it); its value cannot be recovered by name")
+        names[key] = tuple(sorted(hits))
     return names
 
 
 def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
     """(weights, parity): the weights of the graph model `card_path` describes, and the
     largest difference (normalized units) between them run in TensorFlow and its ONNX file."""
-    import onnxruntime as ort
-
-    from training.graph_model import ContactGraphNet, GraphConfig
+    from training.graph_model import GraphConfig
 
     card = ModelCard.load(card_path)
     if card.kind != "graph":
@@ -85,14 +96,23 @@ def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
     config = GraphConfig(**card.architecture.get("config", {}))
     onnx_bytes = card.onnx_path(card_path).read_bytes()
     shipped = _initializers(onnx_bytes)
-    names = tensor_names(config, exported_incidence(onnx_bytes))
-    missing = sorted(n for n in names.values() if n not in shipped)
+    names = {k: [n for n in candidates if n in shipped]
+             for k, candidates in tensor_names(config, exported_incidence(onnx_bytes)).items()}
+    missing = sorted(k for k, found in names.items() if not found)
     if missing:
         raise RecoveryError(f"{card_path}: the ONNX file lacks {missing[:3]}...: it was exported by other code "
                             f"than this checkout's training/graph_model.py")
-    weights = {k: shipped[n].astype(np.float32) for k, n in names.items()}
+    weights = {k: shipped[found[0]].astype(np.float32) for k, found in names.items()}
+    return weights, onnx_parity(config, weights, onnx_bytes)
 
-    # A random step: 40 points between 12 bodies of which 10 dynamic.
+
+def onnx_parity(config, weights: dict[str, np.ndarray], onnx_bytes: bytes) -> float:
+    """The largest |TensorFlow - ONNX Runtime| (normalized units) of the network `config` with
+    `weights` against an ONNX file, on a random step: 40 points between 12 bodies, 10 dynamic."""
+    import onnxruntime as ort
+
+    from training.graph_model import ContactGraphNet
+
     rng = np.random.default_rng(1)
     points = rng.standard_normal((40, config.in_channels)).astype(np.float32)
     ends = rng.integers(0, 12, size=(40, 2)).astype(np.int32)
@@ -100,7 +120,7 @@ def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
     session = ort.InferenceSession(onnx_bytes, providers=["CPUExecutionProvider"])
     onnx_out = session.run(None, {"points": points, "ends": ends, "dynamic": dynamic})[0]
     tf_out = np.asarray(ContactGraphNet(config, weights)(points, ends, dynamic))
-    return weights, float(np.max(np.abs(onnx_out - tf_out)))
+    return float(np.max(np.abs(onnx_out - tf_out)))
 
 
 def largest_differences(shipped: dict[str, np.ndarray], rebuilt: dict[str, np.ndarray]) -> dict[str, float]:

@@ -107,6 +107,12 @@
 #                              3 once: docs/results.md, "Not done in round 2")
 #   graph-projected-max-1-799-w64-r8  the default's second stage from graph-mse-1-799-w64-r8's
 #                              weights (with a -t1 card)
+#   graph-mse-1-799-tied8      one sweep repeated: graph-mse-1-799-r8's recipe with every round
+#                              sharing one set of weights (--tied) and reading the encoded inputs
+#                              (--recall), each batch run at 4 to 12 rounds (--train-rounds 4-12),
+#                              validated and exported at 8; its epochs kept (--checkpoints) and the
+#                              same weights exported at 12, 16 and 24 rounds (-r12, -r16, -r24,
+#                              training.tied_rounds)
 #   graph-mse-1-799-r16-distill  distillation (train-graph --teacher): sixteen rounds grown from
 #                              graph-mse-1-799-r8-e9-reflect's weights, trained for 4 epochs on the
 #                              answers of the sixteen-round width-128 GPU network averaged with its
@@ -284,6 +290,13 @@ run() {
         graph-mse-1-799-w64-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse --rounds 8 --width 64 --epochs 6 --patience 3 ;;
+        graph-mse-1-799-tied8)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 8 --tied --recall --train-rounds 4-12 --epochs 6 --patience 3 \
+                --checkpoints "runs/epochs/$1"
+            for k in 12 16 24; do
+                "$PY" -m training.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
+            done ;;
         graph-projected-max-1-799-w64-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \

@@ -129,6 +129,16 @@ def _network_arguments(parser) -> None:
     parser.add_argument("--layer-norm", action="store_true",
                         help="each round, and the decoder, reads the point states through a layer normalization "
                              "(pre-norm): what let sixteen rounds train on the GPU (docs/results.md)")
+    parser.add_argument("--tied", action="store_true",
+                        help="every round uses the same weights (one learned sweep, repeated --rounds times), so "
+                             "the trained network can be exported to run more rounds than it was trained with "
+                             "(python -m training.tied_rounds)")
+    parser.add_argument("--recall", action="store_true",
+                        help="every round's update also reads the encoded inputs, so a deep (or deeper than "
+                             "trained) tied network's last rounds still see the step")
+    parser.add_argument("--train-rounds", metavar="A-B",
+                        help="with --tied: each training batch runs a round count drawn evenly from A to B "
+                             "(validation and export run --rounds), so the one sweep learns to help at any depth")
     parser.add_argument("--symmetric", action="store_true",
                         help="train the mean of the network's answer and its mirror image's (the step reflected "
                              "left to right, answered, reflected back): the answer the loss scores is symmetric, "
@@ -244,6 +254,17 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
                 f"got {args.omega}")
     if min(args.epochs, args.batch_size, args.width, args.rounds, args.patience) < 1:
         return "--epochs, --batch-size, --width, --rounds and --patience must be >= 1"
+    args.round_counts = (args.rounds,)
+    if getattr(args, "train_rounds", None):
+        if not args.tied:
+            return "--train-rounds needs --tied (an untied network has one weight set per round)"
+        try:
+            low, high = (int(x) for x in str(args.train_rounds).split("-"))
+            if not 1 <= low <= high:
+                raise ValueError
+        except ValueError:
+            return f"--train-rounds takes a range of round counts like 4-12, got {args.train_rounds!r}"
+        args.round_counts = tuple(range(low, high + 1))
     try:
         args.sweeps = tuple(sorted({int(k) for k in str(args.sweeps).split(",")}))
         if args.sweeps[0] < 0:
@@ -455,19 +476,20 @@ class BatchLoss:
         # own warm start (no correction) leaves there on the training data, so each counts alike.
         self.scales = tf.constant(residual_scales, tf.float32)
 
-    def predict(self, points, ends, dynamic, step_of):
+    def predict(self, points, ends, dynamic, step_of, rounds=None):
         """The correction the loss scores, (P, T) normalized: the network's, or with --symmetric
         the mean of it and its mirror image's (the reflection x -> -x of every channel, taken in
         raw units, since the normalization's means do not change sign)."""
-        pred = self.net(points, ends, dynamic, step_of)
+        pred = self.net(points, ends, dynamic, step_of, rounds=rounds)
         if not getattr(self.args, "symmetric", False):
             return pred
         mirrored_in = ((points * self.in_std + self.in_mean) * self.mirror_in - self.in_mean) / self.in_std
-        answer = self.net(mirrored_in, ends, dynamic, step_of) * self.out_std + self.out_mean
+        answer = self.net(mirrored_in, ends, dynamic, step_of, rounds=rounds) * self.out_std + self.out_mean
         return 0.5 * (pred + (answer * self.mirror_out - self.out_mean) / self.out_std)
 
-    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed):
-        pred = self.predict(points, ends, dynamic, step_of)
+    def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed, rounds=None):
+        """The batch's (losses, weights); rounds, how many the network runs (a tied one's choice)."""
+        pred = self.predict(points, ends, dynamic, step_of, rounds)
         for _ in range(getattr(self.args, "passes", 1) - 1):
             pred = self._again(pred, points, ends, dynamic, geometry, masses, inverse, step_of)
         if self.args.loss in self.POINT_LOSSES:
@@ -687,7 +709,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
                          rounds=args.rounds, pooled=args.pooled,
-                         layer_norm=getattr(args, "layer_norm", False))
+                         layer_norm=getattr(args, "layer_norm", False), tied=getattr(args, "tied", False),
+                         recall=getattr(args, "recall", False))
     if args.init is not None:
         net = ContactGraphNet(config, initial_weights(args.init, config))
     else:
@@ -716,7 +739,7 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
     fresh = init_weights(config)
     expected = {k: v.shape for k, v in fresh.items()}
     rounds = sum(1 for k in weights if k.endswith("_update1/kernel"))
-    if 0 < rounds < config.rounds and all(k in expected for k in weights):
+    if not config.tied and 0 < rounds < config.rounds and all(k in expected for k in weights):
         # A network with fewer rounds: the new ones follow its last, their update's last layer at
         # zero, so each passes its input through (the residual) and the network starts as exactly
         # the one it grew from; their other layers start random, so gradients reach them.
@@ -738,15 +761,18 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
     got = {k: v.shape for k, v in weights.items()}
     if got != expected:
         raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
-                         f"{config.rounds}{' --pooled' if config.pooled else ''}{' --layer-norm' if config.layer_norm else ''} "
+                         f"{config.rounds}{' --tied' if config.tied else ''}{' --recall' if config.recall else ''}"
+                         f"{' --pooled' if config.pooled else ''}"
+                         f"{' --layer-norm' if config.layer_norm else ''} "
                          f"with {config.in_channels} inputs")
     return weights
 
 
-def _compiled_steps(net, batch_loss, lr: float):
-    """(optimizer, train_step, val_step): Adam at `lr`, and the two traced functions of a
-    normalized batch (Scaling.batch): train_step applies one update and returns the batch's
-    loss, val_step returns (sum of losses, sum of weights)."""
+def _compiled_steps(net, batch_loss, lr: float, round_counts: tuple[int, ...] = ()):
+    """(optimizer, train_steps, val_step): Adam at `lr`, and traced functions of a
+    normalized batch (Scaling.batch): train_steps[K] applies one update with the network
+    running K rounds (one K, config.rounds, unless a tied network trains at several) and
+    returns the batch's loss; val_step, at config.rounds, returns (sum of losses, sum of weights)."""
     tf = net.tf
     optimizer = tf.keras.optimizers.Adam(learning_rate=lr)
     spec_in = net.signature() + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
@@ -754,22 +780,24 @@ def _compiled_steps(net, batch_loss, lr: float):
                                  tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32),
                                  tf.TensorSpec((None,), tf.int32), tf.TensorSpec((None,), tf.float32)]
 
-    @tf.function(input_signature=spec_in)
-    def train_step(*batch):
-        with tf.GradientTape() as tape:
-            losses, weights = batch_loss(*batch)
-            # A batch may weigh nothing (mse-sticking: every point slides; mse-moving: no body
-            # moves): no loss, no step.
-            loss = tf.reduce_sum(losses) / tf.maximum(tf.reduce_sum(weights), 1e-12)
-        optimizer.apply_gradients(zip(tape.gradient(loss, net.trainable), net.trainable))
-        return loss
+    def train_step_at(rounds: int):
+        @tf.function(input_signature=spec_in)
+        def train_step(*batch):
+            with tf.GradientTape() as tape:
+                losses, weights = batch_loss(*batch, rounds=rounds)
+                # A batch may weigh nothing (mse-sticking: every point slides; mse-moving: no body
+                # moves): no loss, no step.
+                loss = tf.reduce_sum(losses) / tf.maximum(tf.reduce_sum(weights), 1e-12)
+            optimizer.apply_gradients(zip(tape.gradient(loss, net.trainable), net.trainable))
+            return loss
+        return train_step
 
     @tf.function(input_signature=spec_in)
     def val_step(*batch):
         losses, weights = batch_loss(*batch)
         return tf.reduce_sum(losses), tf.reduce_sum(weights)
 
-    return optimizer, train_step, val_step
+    return optimizer, {k: train_step_at(k) for k in (round_counts or (net.config.rounds,))}, val_step
 
 
 def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss, on_epoch=None):
@@ -777,7 +805,8 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     without a better validation loss. Returns (Fitted, validate), validate() scoring
     the net's current weights on `val`. on_epoch(epoch, fitted) is called after each
     epoch's validation, the net holding that epoch's weights."""
-    optimizer, train_step, val_step = _compiled_steps(net, batch_loss, args.lr)
+    round_counts = getattr(args, "round_counts", (net.config.rounds,))
+    optimizer, train_steps, val_step = _compiled_steps(net, batch_loss, args.lr, round_counts)
     colour = getattr(args, "order", "jacobi") == "gauss-seidel"
     mirror = getattr(args, "mirror_augment", False)
 
@@ -804,8 +833,11 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
             i, _ = batches[j]
             steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False)
             reflect = rng.random(len(steps)) < 0.5 if mirror else None
+            # Drawn only when there is a choice, so untied runs keep their step order to the bit.
+            rounds = round_counts[rng.integers(len(round_counts))] if len(round_counts) > 1 else round_counts[0]
             optimizer.learning_rate.assign(args.lr * 0.5 * (1 + np.cos(np.pi * done / total_steps)))
-            losses.append(float(train_step(*scaling.batch(train[i], steps, colour=colour, reflect=reflect))))
+            batch = scaling.batch(train[i], steps, colour=colour, reflect=reflect)
+            losses.append(float(train_steps[rounds](*batch)))
             if not np.isfinite(losses[-1]):
                 raise TrainingDiverged(f"the training loss became {losses[-1]} in epoch {epoch}; nothing was "
                                        f"written (a smaller --lr, or --omega below 0.6 for the solver losses)")
@@ -867,6 +899,9 @@ class _CardParts:
                                                                    "max_val_steps")}
                                   | ({"extra_inputs": args.extra_inputs} if getattr(args, "extra_inputs", "") else {})
                                   | ({"layer_norm": True} if getattr(args, "layer_norm", False) else {})
+                                  | ({"tied": True, "train_rounds": list(args.round_counts)}
+                                     if getattr(args, "tied", False) else {})
+                                  | ({"recall": True} if getattr(args, "recall", False) else {})
                                   | ({"symmetric": True} if getattr(args, "symmetric", False) else {})
                                   | ({"mirror_augment": True} if getattr(args, "mirror_augment", False) else {})
                                   | ({"self_stress_weight": args.self_stress_weight,

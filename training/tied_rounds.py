@@ -1,0 +1,93 @@
+"""A tied contact-graph model exported to run another number of rounds.
+
+    python -m training.tied_rounds models/graph-mse-1-799-tied8.json --rounds 16
+        # models/graph-mse-1-799-tied8-r16.onnx + .json: the same weights, sixteen rounds
+
+A network trained with `train-graph --tied` applies one learned sweep `rounds` times
+(training.graph_model), so how far a step's load travels is a choice made at export,
+not a property of the weights: the same weights can be served at more rounds than
+they were trained at, for more reach at proportionally more inference. Whether the
+sweep keeps helping past its training depth is what the pricing says
+(docs/results.md, "One sweep, repeated").
+
+The weights come from the card's ONNX file (training.recover_weights) or `--weights`;
+the new file is checked against the same weights run in TensorFlow at the new depth
+(largest difference under 1e-4 in normalized units) before it is written (temporary
+name, then rename). The new card is the old one with another name, file, round count
+and this command added to its commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.io import write_bytes_atomic
+from deepcontact.modelcard import ModelCard, ModelCardError
+from training.recover_weights import PARITY_TOLERANCE, RecoveryError, onnx_parity, recover
+
+
+def export_rounds(card_path: Path, rounds: int, *, weights_path: Path | None = None, name: str | None = None,
+                  command: str = "") -> Path:
+    """Write the tied model of `card_path` at `rounds` rounds beside it; returns the new card's path.
+    Default name: the card's with -rROUNDS added."""
+    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict, to_onnx
+
+    card = ModelCard.load(card_path)
+    config = GraphConfig(**card.architecture.get("config", {})) if card.kind == "graph" else None
+    if config is None or not config.tied:
+        raise ModelCardError(f"{card_path}: only a tied graph model (train-graph --tied) runs another number "
+                             f"of rounds with the same weights")
+    if rounds < 1:
+        raise ValueError(f"--rounds must be >= 1, got {rounds}")
+    if weights_path is None:
+        weights, _ = recover(card_path)
+    else:
+        with np.load(weights_path, allow_pickle=False) as f:
+            weights = {k: f[k] for k in f.files}
+    config = dataclasses.replace(config, rounds=rounds)
+    onnx_bytes = to_onnx(ContactGraphNet(config, weights))
+    parity = onnx_parity(config, weights, onnx_bytes)
+    if not parity < PARITY_TOLERANCE:
+        raise RecoveryError(f"the export at {rounds} rounds differs from TensorFlow by {parity:.3g} "
+                            f"(normalized units, over {PARITY_TOLERANCE}); nothing written")
+    name = name or f"{card.name}-r{rounds}"
+    onnx_file = f"{name}.onnx"
+    write_bytes_atomic(card_path.with_name(onnx_file), onnx_bytes)
+    architecture = dict(card.architecture, config=config_to_dict(config), onnx_bytes=len(onnx_bytes))
+    out = card_path.with_name(f"{name}.json")
+    dataclasses.replace(card, name=name, onnx_file=onnx_file, architecture=architecture,
+                        parity_max_abs_error=parity,
+                        commands=card.commands + ((command,) if command else ())).save(out)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m training.tied_rounds",
+        description="export a tied contact-graph model (train-graph --tied) to run another number of rounds "
+                    "with the same weights; writes NAME-rROUNDS.onnx and its card beside the card")
+    parser.add_argument("card", type=Path, help="the tied model's card, e.g. models/graph-mse-1-799-tied8.json")
+    parser.add_argument("--rounds", type=int, required=True, help="rounds the new export runs")
+    parser.add_argument("--weights", type=Path, metavar="NPZ",
+                        help="the weights (train-graph's runs/graph-cache/NAME.weights.npz); default: "
+                             "recovered from the card's ONNX file")
+    parser.add_argument("--name", help="the new model's name (default NAME-rROUNDS)")
+    args = parser.parse_args(argv)
+    command = "python -m training.tied_rounds " + shlex.join(sys.argv[1:] if argv is None else argv)
+    try:
+        out = export_rounds(args.card, args.rounds, weights_path=args.weights, name=args.name, command=command)
+    except (ModelCardError, RecoveryError, ValueError, OSError) as exc:
+        print(f"tied_rounds: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
