@@ -797,6 +797,12 @@ def _compiled_steps(net, batch_loss, lr: float, round_counts: tuple[int, ...] = 
         losses, weights = batch_loss(*batch)
         return tf.reduce_sum(losses), tf.reduce_sum(weights)
 
+    if len(round_counts) > 1:
+        # Each depth's step is traced once, but TensorFlow counts the traces of one Python function
+        # together and warns of "excessive retracing"; nothing is retraced.
+        import logging
+
+        logging.getLogger("tensorflow").setLevel(logging.ERROR)
     return optimizer, {k: train_step_at(k) for k in (round_counts or (net.config.rounds,))}, val_step
 
 
