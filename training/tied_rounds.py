@@ -2,6 +2,9 @@
 
     python -m training.tied_rounds models/graph-mse-1-799-tied8.json --rounds 16
         # models/graph-mse-1-799-tied8-r16.onnx + .json: the same weights, sixteen rounds
+    python -m training.tied_rounds models/graph-mse-1-799-tied8.json --depths 4,8,12,16 \
+        --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5
+        # the squared error train-graph validates with, at each depth; writes nothing
 
 A network trained with `train-graph --tied` applies one learned sweep `rounds` times
 (training.graph_model), so how far a step's load travels is a choice made at export,
@@ -67,22 +70,76 @@ def export_rounds(card_path: Path, rounds: int, *, weights_path: Path | None = N
     return out
 
 
+def validation_losses(card_path: Path, depths: list[int], val: list[Path], *, max_val_steps: int = 500,
+                      cache: Path = Path("runs/graph-cache"), weights_path: Path | None = None) -> dict[int, float]:
+    """{rounds: the squared error of the card's weights run that many rounds}, on the steps
+    train-graph validates with (`max_val_steps` of each `val` file, seed 0): per point the
+    squared normalized error summed over the targets, averaged over points, as in the card's
+    validation.loss for --loss mse."""
+    from training.graph_model import ContactGraphNet, GraphConfig
+    from training.train_graph import Scaling, cached_graph_set
+
+    card = ModelCard.load(card_path)
+    config = GraphConfig(**card.architecture.get("config", {})) if card.kind == "graph" else None
+    if config is None or not config.tied:
+        raise ModelCardError(f"{card_path}: only a tied graph model (train-graph --tied) runs at other depths")
+    if weights_path is None:
+        weights, _ = recover(card_path)
+    else:
+        with np.load(weights_path, allow_pickle=False) as f:
+            weights = {k: f[k] for k in f.files}
+    spec = card.gridspec
+    scaling = Scaling.of(spec)
+    sets = [cached_graph_set(p, max_val_steps, 0, cache, True, spec.targets, spec.inputs) for p in val]
+    out = {}
+    for k in depths:  # loop over depths and batches of steps, not points
+        net = ContactGraphNet(dataclasses.replace(config, rounds=k), weights)
+        total, count = 0.0, 0
+        for gs in sets:
+            for start in range(0, len(gs), 64):
+                points, ends, dynamic, y, *_ = scaling.batch(gs, np.arange(start, min(start + 64, len(gs))))
+                total += float(np.sum((np.asarray(net(points, ends, dynamic)) - y) ** 2))
+                count += len(y)
+        out[k] = total / count
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m training.tied_rounds",
         description="export a tied contact-graph model (train-graph --tied) to run another number of rounds "
                     "with the same weights; writes NAME-rROUNDS.onnx and its card beside the card")
     parser.add_argument("card", type=Path, help="the tied model's card, e.g. models/graph-mse-1-799-tied8.json")
-    parser.add_argument("--rounds", type=int, required=True, help="rounds the new export runs")
+    parser.add_argument("--rounds", type=int, help="rounds the new export runs")
+    parser.add_argument("--depths", metavar="K,K,...",
+                        help="instead of exporting: print the validation loss (train-graph's squared error) of "
+                             "the weights run at each of these round counts; needs --val")
+    parser.add_argument("--val", type=Path, action="append", default=[],
+                        help="with --depths: validation data, repeatable (train-graph's --val)")
+    parser.add_argument("--max-val-steps", type=int, default=500, metavar="N",
+                        help="with --depths: steps of each --val file (default %(default)s, as the models' runs)")
+    parser.add_argument("--cache", type=Path, default=Path("runs/graph-cache"),
+                        help="with --depths: where the validation graphs are cached (train-graph's --cache)")
     parser.add_argument("--weights", type=Path, metavar="NPZ",
                         help="the weights (train-graph's runs/graph-cache/NAME.weights.npz); default: "
                              "recovered from the card's ONNX file")
     parser.add_argument("--name", help="the new model's name (default NAME-rROUNDS)")
     args = parser.parse_args(argv)
+    if (args.rounds is None) == (args.depths is None) or (args.depths is not None and not args.val):
+        parser.error("give --rounds K (export), or --depths with one or more --val (print losses)")
     command = "python -m training.tied_rounds " + shlex.join(sys.argv[1:] if argv is None else argv)
     try:
+        if args.depths is not None:
+            depths = [int(k) for k in args.depths.split(",") if k.strip().isdigit() and int(k) >= 1]
+            if len(depths) != len(args.depths.split(",")):
+                raise ValueError(f"--depths takes round counts >= 1 like 4,8,16, got {args.depths!r}")
+            losses = validation_losses(args.card, depths, args.val, max_val_steps=args.max_val_steps,
+                                       cache=args.cache, weights_path=args.weights)
+            for k, loss in losses.items():
+                print(f"{args.card.stem} at {k} rounds: validation loss {loss:.4f}")
+            return 0
         out = export_rounds(args.card, args.rounds, weights_path=args.weights, name=args.name, command=command)
-    except (ModelCardError, RecoveryError, ValueError, OSError) as exc:
+    except (ModelCardError, RecoveryError, ValueError, OSError) as exc:  # ValueError: GridDataError too
         print(f"tied_rounds: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {out}")

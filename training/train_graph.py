@@ -302,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
     targets = TARGETS[getattr(args, "targets", "final")]
     sets = ((args.train, args.max_steps_per_file), (args.val, args.max_val_steps))
     try:
-        train, val = ([_cached(p, most, args.seed, args.cache, args.quiet, targets, args.inputs) for p in paths]
+        train, val = ([cached_graph_set(p, most, args.seed, args.cache, args.quiet, targets, args.inputs) for p in paths]
                       for paths, most in sets)
         recorded = train
         if getattr(args, "teacher", None) is not None:
@@ -342,9 +342,10 @@ def _cache_name(path: Path, max_steps: int | None, seed: int, targets: tuple[str
     return f"{path.stem}-{hashlib.sha1(key.encode()).hexdigest()[:12]}"
 
 
-def _cached(path: Path, max_steps: int | None, seed: int, cache: Path, quiet: bool,
+def cached_graph_set(path: Path, max_steps: int | None, seed: int, cache: Path, quiet: bool,
             targets: tuple[str, ...] = GRAPH_TARGETS, inputs: tuple[str, ...] = GRAPH_INPUTS) -> GraphSet:
-    """The file's contact graphs, read once and kept as .npz under `cache`."""
+    """The file's contact graphs (at most max_steps of its steps, drawn with seed), read once and
+    kept as .npz under `cache`: what train-graph trains and validates on."""
     target = cache / f"{_cache_name(path, max_steps, seed, targets, inputs)}.npz"
     if target.exists():
         return GraphSet.load(target)

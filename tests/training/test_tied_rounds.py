@@ -53,6 +53,14 @@ def test_train_graph_trains_a_tied_network_at_several_depths_and_exports_it_deep
     assert card["training"]["settings"]["train_rounds"] == [2, 3, 4]
     assert card["parity_max_abs_error"] < 1e-4
 
+    # Its validation loss at the depth it was validated at is the card's; at other depths, others.
+    depths = ["--depths", "3,6", "--val", str(data / "val.h5"), "--cache", str(tmp_path / "cache")]
+    capsys.readouterr()
+    assert tied_rounds([str(out.with_suffix(".json")), *depths]) == 0
+    printed = [line.split()[-1] for line in capsys.readouterr().out.splitlines()]
+    assert float(printed[0]) == pytest.approx(card["validation"]["loss"], rel=1e-3)
+    assert float(printed[1]) != pytest.approx(float(printed[0]), rel=1e-3)
+
     # The same weights at six rounds, recovered from the ONNX file, checked against TensorFlow.
     assert tied_rounds([str(out.with_suffix(".json")), "--rounds", "6"]) == 0
     deeper = json.loads((tmp_path / "tied-r6.json").read_text())
