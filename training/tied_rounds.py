@@ -35,24 +35,31 @@ from deepcontact.modelcard import ModelCard, ModelCardError
 from training.recover_weights import PARITY_TOLERANCE, RecoveryError, onnx_parity, recover
 
 
-def export_rounds(card_path: Path, rounds: int, *, weights_path: Path | None = None, name: str | None = None,
-                  command: str = "") -> Path:
-    """Write the tied model of `card_path` at `rounds` rounds beside it; returns the new card's path.
-    Default name: the card's with -rROUNDS added."""
-    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict, to_onnx
+def _tied(card_path: Path, weights_path: Path | None) -> tuple[ModelCard, object, dict[str, np.ndarray]]:
+    """(card, GraphConfig, weights) of a tied graph model; the weights from `weights_path`
+    (a .weights.npz) or recovered from the card's ONNX file."""
+    from training.graph_model import GraphConfig
 
     card = ModelCard.load(card_path)
     config = GraphConfig(**card.architecture.get("config", {})) if card.kind == "graph" else None
     if config is None or not config.tied:
         raise ModelCardError(f"{card_path}: only a tied graph model (train-graph --tied) runs another number "
                              f"of rounds with the same weights")
+    if weights_path is None:
+        return card, config, recover(card_path)[0]
+    with np.load(weights_path, allow_pickle=False) as f:
+        return card, config, {k: f[k] for k in f.files}
+
+
+def export_rounds(card_path: Path, rounds: int, *, weights_path: Path | None = None, name: str | None = None,
+                  command: str = "") -> Path:
+    """Write the tied model of `card_path` at `rounds` rounds beside it; returns the new card's path.
+    Default name: the card's with -rROUNDS added."""
+    from training.graph_model import ContactGraphNet, config_to_dict, to_onnx
+
     if rounds < 1:
         raise ValueError(f"--rounds must be >= 1, got {rounds}")
-    if weights_path is None:
-        weights, _ = recover(card_path)
-    else:
-        with np.load(weights_path, allow_pickle=False) as f:
-            weights = {k: f[k] for k in f.files}
+    card, config, weights = _tied(card_path, weights_path)
     config = dataclasses.replace(config, rounds=rounds)
     onnx_bytes = to_onnx(ContactGraphNet(config, weights))
     parity = onnx_parity(config, weights, onnx_bytes)
@@ -76,18 +83,10 @@ def validation_losses(card_path: Path, depths: list[int], val: list[Path], *, ma
     train-graph validates with (`max_val_steps` of each `val` file, seed 0): per point the
     squared normalized error summed over the targets, averaged over points, as in the card's
     validation.loss for --loss mse."""
-    from training.graph_model import ContactGraphNet, GraphConfig
+    from training.graph_model import ContactGraphNet
     from training.train_graph import Scaling, cached_graph_set
 
-    card = ModelCard.load(card_path)
-    config = GraphConfig(**card.architecture.get("config", {})) if card.kind == "graph" else None
-    if config is None or not config.tied:
-        raise ModelCardError(f"{card_path}: only a tied graph model (train-graph --tied) runs at other depths")
-    if weights_path is None:
-        weights, _ = recover(card_path)
-    else:
-        with np.load(weights_path, allow_pickle=False) as f:
-            weights = {k: f[k] for k in f.files}
+    card, config, weights = _tied(card_path, weights_path)
     spec = card.gridspec
     scaling = Scaling.of(spec)
     sets = [cached_graph_set(p, max_val_steps, 0, cache, True, spec.targets, spec.inputs) for p in val]
