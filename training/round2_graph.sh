@@ -113,6 +113,10 @@
 #                              validated and exported at 8; its epochs kept (--checkpoints) and the
 #                              same weights exported at 12, 16 and 24 rounds (-r12, -r16, -r24,
 #                              training.tied_rounds)
+#   graph-mse-1-799-tied12     one more epoch of graph-mse-1-799-tied8 from its weights, each batch
+#                              run at 8 to 16 rounds, validated and exported at 12 (peak rate 5e-4):
+#                              whether depth past the first run's range pays once trained for; the
+#                              same weights also exported at 16 and 20 rounds
 #   graph-mse-1-799-r16-distill  distillation (train-graph --teacher): sixteen rounds grown from
 #                              graph-mse-1-799-r8-e9-reflect's weights, trained for 4 epochs on the
 #                              answers of the sixteen-round width-128 GPU network averaged with its
@@ -295,6 +299,13 @@ run() {
             variant "$1" --loss mse --rounds 8 --tied --recall --train-rounds 4-12 --epochs 6 --patience 3 \
                 --checkpoints "runs/epochs/$1"
             for k in 12 16 24; do
+                "$PY" -m training.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
+            done ;;
+        graph-mse-1-799-tied12)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 12 --tied --recall --train-rounds 8-16 --epochs 1 --lr 5e-4 \
+                --init runs/graph-cache/graph-mse-1-799-tied8.weights.npz
+            for k in 16 20; do
                 "$PY" -m training.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
             done ;;
         graph-projected-max-1-799-w64-r8)
