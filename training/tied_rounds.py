@@ -46,7 +46,10 @@ def _tied(card_path: Path, weights_path: Path | None) -> tuple[ModelCard, object
         raise ModelCardError(f"{card_path}: only a tied graph model (train-graph --tied) runs another number "
                              f"of rounds with the same weights")
     if weights_path is None:
-        return card, config, recover(card_path)[0]
+        weights, parity = recover(card_path)
+        if not parity < PARITY_TOLERANCE:
+            raise RecoveryError(f"{card_path}: the recovered weights differ from the ONNX file by {parity:.3g}")
+        return card, config, weights
     with np.load(weights_path, allow_pickle=False) as f:
         return card, config, {k: f[k] for k in f.files}
 
@@ -65,7 +68,7 @@ def export_rounds(card_path: Path, rounds: int, *, weights_path: Path | None = N
     parity = onnx_parity(config, weights, onnx_bytes)
     if not parity < PARITY_TOLERANCE:
         raise RecoveryError(f"the export at {rounds} rounds differs from TensorFlow by {parity:.3g} "
-                            f"(normalized units, over {PARITY_TOLERANCE}); nothing written")
+                            f"(training.recover_weights.onnx_parity, over {PARITY_TOLERANCE}); nothing written")
     name = name or f"{card.name}-r{rounds}"
     onnx_file = f"{name}.onnx"
     write_bytes_atomic(card_path.with_name(onnx_file), onnx_bytes)
