@@ -30,12 +30,12 @@ residual rounds did not train (docs/results.md, "Eight rounds").
 
 With `tied`, every round uses the same weights (those named round0_*), so the
 network is one learned sweep repeated: how many rounds it runs is then a choice
-made at each call (`rounds=`), not a property of the weights, and a network
-trained at a few rounds can be exported to run more (reach, which is what paid
-from three rounds to eight, without more weights; training/tied_rounds.py). With
+made at each call (`rounds=`), not a property of the weights: reach, which is
+what paid from three rounds to eight, without more weights (training/tied_rounds.py
+exports other depths). Measured, it helps only at the depths it was trained at;
+past them the answers get worse (docs/results.md, "One sweep, repeated"). With
 `recall`, every round's update also reads the encoded inputs, so however many
-rounds run, the last still sees the step it is answering (as recurrent networks
-that extrapolate to more iterations than trained do).
+rounds run, the last still sees the step it is answering.
 
 Plain tf.Module, no Keras: the weights are a dict of arrays (saved as .npz)
 and the same tf.function is trained and exported (tf2onnx, opset 17). How points

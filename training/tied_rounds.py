@@ -8,14 +8,15 @@
 
 A network trained with `train-graph --tied` applies one learned sweep `rounds` times
 (training.graph_model), so how far a step's load travels is a choice made at export,
-not a property of the weights: the same weights can be served at more rounds than
-they were trained at, for more reach at proportionally more inference. Whether the
-sweep keeps helping past its training depth is what the pricing says
+not a property of the weights: the same weights can be served at another depth, for
+more reach at proportionally more inference. Measured, the sweep helps up to about the
+deepest rounds it was trained at (`train-graph --train-rounds`) and gets worse past them,
+so `--depths` on the validation files is how the export's depth is chosen
 (docs/results.md, "One sweep, repeated").
 
 The weights come from the card's ONNX file (training.recover_weights) or `--weights`;
 the new file is checked against the same weights run in TensorFlow at the new depth
-(largest difference under 1e-4 in normalized units) before it is written (temporary
+(training.recover_weights.onnx_parity under 1e-4) before it is written (temporary
 name, then rename). The new card is the old one with another name, file, round count
 and this command added to its commands.
 """

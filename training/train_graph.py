@@ -131,11 +131,11 @@ def _network_arguments(parser) -> None:
                              "(pre-norm): what let sixteen rounds train on the GPU (docs/results.md)")
     parser.add_argument("--tied", action="store_true",
                         help="every round uses the same weights (one learned sweep, repeated --rounds times), so "
-                             "the trained network can be exported to run more rounds than it was trained with "
-                             "(python -m training.tied_rounds)")
+                             "the trained network can be exported at another depth (python -m training.tied_rounds); "
+                             "it helps at the depths it was trained at (--train-rounds), not past them")
     parser.add_argument("--recall", action="store_true",
-                        help="every round's update also reads the encoded inputs, so a deep (or deeper than "
-                             "trained) tied network's last rounds still see the step")
+                        help="every round's update also reads the encoded inputs, so a deep tied network's last "
+                             "rounds still see the step")
     parser.add_argument("--train-rounds", metavar="A-B",
                         help="with --tied: each training batch runs a round count drawn evenly from A to B "
                              "(validation and export run --rounds), so the one sweep learns to help at any depth")
