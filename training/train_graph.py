@@ -481,11 +481,12 @@ class BatchLoss:
         """The correction the loss scores, (P, T) normalized: the network's, or with --symmetric
         the mean of it and its mirror image's (the reflection x -> -x of every channel, taken in
         raw units, since the normalization's means do not change sign)."""
-        pred = self.net(points, ends, dynamic, step_of, rounds=rounds)
+        depth = {} if rounds is None else {"rounds": rounds}  # only a tied network is asked for a depth
+        pred = self.net(points, ends, dynamic, step_of, **depth)
         if not getattr(self.args, "symmetric", False):
             return pred
         mirrored_in = ((points * self.in_std + self.in_mean) * self.mirror_in - self.in_mean) / self.in_std
-        answer = self.net(mirrored_in, ends, dynamic, step_of, rounds=rounds) * self.out_std + self.out_mean
+        answer = self.net(mirrored_in, ends, dynamic, step_of, **depth) * self.out_std + self.out_mean
         return 0.5 * (pred + (answer * self.mirror_out - self.out_mean) / self.out_std)
 
     def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed, rounds=None):
@@ -785,7 +786,7 @@ def _compiled_steps(net, batch_loss, lr: float, round_counts: tuple[int, ...] = 
         @tf.function(input_signature=spec_in)
         def train_step(*batch):
             with tf.GradientTape() as tape:
-                losses, weights = batch_loss(*batch, rounds=rounds)
+                losses, weights = batch_loss(*batch, rounds=rounds if len(round_counts) > 1 else None)
                 # A batch may weigh nothing (mse-sticking: every point slides; mse-moving: no body
                 # moves): no loss, no step.
                 loss = tf.reduce_sum(losses) / tf.maximum(tf.reduce_sum(weights), 1e-12)
