@@ -117,6 +117,14 @@
 #                              run at 8 to 16 rounds, validated and exported at 12 (peak rate 5e-4):
 #                              whether depth past the first run's range pays once trained for; the
 #                              same weights also exported at 16 and 20 rounds
+#   graph-projected-max-1-799-tied16  the default's stopping-rule stage (2 epochs of 3,000 steps a
+#                              file, peak rate 5e-4) from graph-mse-1-799-tied12's weights, run at
+#                              16 rounds: whether the tied network's better squared error pays once
+#                              the loss ranks warm starts as the solver does (with a -t1 card)
+#   graph-projected-max-1-799-tied16-lr2e-4  the same at peak rate 2e-4: sixteen applications of
+#                              one set of weights move further per step than eight separate sets
+#   graph-projected-max-1-799-tied16-sym  that stage trained as the mean of the network and its
+#                              mirror image (--symmetric), served so (-mirror), like the default
 #   graph-mse-1-799-r16-distill  distillation (train-graph --teacher): sixteen rounds grown from
 #                              graph-mse-1-799-r8-e9-reflect's weights, trained for 4 epochs on the
 #                              answers of the sixteen-round width-128 GPU network averaged with its
@@ -308,6 +316,18 @@ run() {
             for k in 16 20; do
                 "$PY" -m training.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
             done ;;
+        graph-projected-max-1-799-tied16|graph-projected-max-1-799-tied16-lr2e-4)
+            local lr=5e-4
+            [ "$1" = graph-projected-max-1-799-tied16-lr2e-4 ] && lr=2e-4
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 16 --tied --recall --max-steps-per-file 3000 \
+                --epochs 2 --lr $lr --init runs/graph-cache/graph-mse-1-799-tied12.weights.npz
+            "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-tied16-sym)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 16 --tied --recall --max-steps-per-file 3000 \
+                --epochs 2 --lr 2e-4 --symmetric --init runs/graph-cache/graph-mse-1-799-tied12.weights.npz
+            "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror" ;;
         graph-projected-max-1-799-w64-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \
