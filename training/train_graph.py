@@ -132,7 +132,8 @@ def _network_arguments(parser) -> None:
     parser.add_argument("--tied", action="store_true",
                         help="every round uses the same weights (one learned sweep, repeated --rounds times), so "
                              "the trained network can be exported at another depth (python -m training.tied_rounds); "
-                             "it helps at the depths it was trained at (--train-rounds), not past them")
+                             "it helps at the depths it was trained at (--train-rounds), not past them; fine-tuning it "
+                             "at sixteen rounds needed a lower --lr than the untied network (2e-4, not 5e-4)")
     parser.add_argument("--recall", action="store_true",
                         help="every round's update also reads the encoded inputs, so a deep tied network's last "
                              "rounds still see the step")
