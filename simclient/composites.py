@@ -39,6 +39,12 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  motion at the moving bodies (W1 plus the least-norm change that moves them as W2
                  does and no other body), admitted and not: one model's self-stress and resting
                  bodies with another's moving bodies
+    feedback:W   serves W, as W alone would, and trial-solves builtin, W, and W less G times
+                 its own error on the previous step at each point that persists (what W served
+                 there minus where the solve ended, matched by key), for G in 0.25, 0.5 and 1:
+                 are a model's errors the same from one step to the next, so that a server that
+                 remembered them could take them off? (G = 1 is Box2D's warm start plus the
+                 model's change since the previous step)
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ from __future__ import annotations
 import numpy as np
 
 from simclient.oracles import SEPARATING_SPEED
-from simclient.provider import Provider, as_warm_start, body_friction, point_friction
+from simclient.provider import Provider, as_warm_start, body_friction, persisting_rows, point_friction
 
 class Pick(Provider):
     """An oracle over warm starts: each step, the engine solves the step from
@@ -56,9 +62,11 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft")
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft", "feedback")
     #: boost:W: the factors its self-stress part is priced at.
     BOOSTS = (0.5, 1.5, 2.0, 3.0)
+    #: feedback:W: the shares of its previous step's error it is priced less.
+    FEEDBACKS = (0.25, 0.5, 1.0)
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
@@ -72,8 +80,9 @@ class Pick(Provider):
         # split: serve the one candidate, price it and the two parts of its correction;
         # boost: serve the one candidate, price it with its self-stress part scaled;
         # admit: serve the one candidate, price it and its admissible forms;
-        # graft: serve the first, price it with the second's moving bodies' motion
-        if mode in ("split", "boost", "admit") and len(candidates) != 1:
+        # graft: serve the first, price it with the second's moving bodies' motion;
+        # feedback: serve the one candidate, price it less shares of its last step's error
+        if mode in ("split", "boost", "admit", "feedback") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
         if mode == "graft" and len(candidates) != 2:
             raise ValueError(f"graft: takes two warm starts, e.g. graft:server:default+server:graph-mse-1-799-moving-rel, "
@@ -86,6 +95,10 @@ class Pick(Provider):
         self.uses_server = any(c.uses_server for c in candidates)
         self.sends_oracle = False
         self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
+        # feedback: the candidate's answer this step, (keys (P,), impulses (P, 2) N s), until observe() scores it,
+        # then its error at the previous step's points, sorted by key
+        self._answer: tuple[np.ndarray, np.ndarray] | None = None
+        self._error_keys, self._error = np.zeros(0, np.uint64), np.zeros((0, 2))
 
     @property
     def models(self) -> tuple[str, ...]:
@@ -101,7 +114,8 @@ class Pick(Provider):
                            f"{first} body-space admissible, separating open",
                            f"{first} moving bodies' motion admissible", f"{first} moving bodies' motion"],
                  "graft": [f"{first} with {self.candidates[-1].name}'s moving bodies' motion admissible",
-                           f"{first} with {self.candidates[-1].name}'s moving bodies' motion"]}.get(self.mode, [])
+                           f"{first} with {self.candidates[-1].name}'s moving bodies' motion"],
+                 "feedback": [f"{first} less {g:g} x its last error" for g in self.FEEDBACKS]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -116,6 +130,23 @@ class Pick(Provider):
     def observe(self, points_after_solve):
         for c in self.candidates:
             c.observe(points_after_solve)
+        if self.mode == "feedback":
+            self._remember_error(points_after_solve)
+
+    def _remember_error(self, after: np.ndarray) -> None:
+        """feedback: the candidate's error at this step's points (its answer minus the solve's
+        final impulse, N s), kept by key for the next step; none where it fell back."""
+        answer, self._answer = self._answer, None
+        if answer is None or len(after) == 0:
+            self._error_keys, self._error = np.zeros(0, np.uint64), np.zeros((0, 2))
+            return
+        keys, served = answer
+        order = np.argsort(keys)
+        rows = np.searchsorted(keys[order], after["key"]).clip(max=len(keys) - 1)
+        found = keys[order][rows] == after["key"]
+        error = served[order][rows[found]] - after["impulse"][found].astype(np.float64)
+        by_key = np.argsort(after["key"][found])
+        self._error_keys, self._error = after["key"][found][by_key], error[by_key]
 
     def pick(self, engine, points, served: list) -> tuple[np.ndarray, np.ndarray]:
         """The best for this step, by trial solves, of Box2D's warm start and the
@@ -148,6 +179,15 @@ class Pick(Provider):
             grafted = base + body_space_part_of(bodies, points, donor - base, bodies_moving(bodies))
             candidates += [as_warm_start(nearest_admissible(bodies, points, grafted, point_friction(self._friction, points))),
                            as_warm_start(np.column_stack([np.maximum(grafted[:, 0], 0.0), grafted[:, 1]]))]
+        if self.mode == "feedback":
+            answer = np.stack(candidates[1], axis=1).astype(np.float64)
+            self._answer = None if served[0] is None else (points["key"].copy(), answer)
+            idx, persisting = persisting_rows(self._error_keys, points)
+            for g in self.FEEDBACKS:
+                warm = answer.copy()
+                warm[persisting] -= g * self._error[idx[persisting]]
+                warm[:, 0] = np.maximum(warm[:, 0], 0.0)
+                candidates.append(as_warm_start(warm))
         if self.mode in ("split", "boost"):
             from deepcontact.kinematics import body_space_part
 
@@ -162,7 +202,7 @@ class Pick(Provider):
                 candidates.append(as_warm_start(warm))
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
-        if self.mode in ("shadow", "split", "boost", "admit", "graft"):
+        if self.mode in ("shadow", "split", "boost", "admit", "graft", "feedback"):
             return candidates[1]
         if self.mode == "price":
             return builtin  # the trials left the last candidate's as the step's warm start

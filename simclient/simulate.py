@@ -111,7 +111,7 @@ def _ask_server(client, provider: Provider, engine, k: int, bodies, points, time
 
 
 def _pick(provider, client, engine, k: int, bodies, points, timeout: float) -> _Served:
-    """A pick:/shadow:/mean:/price:/split:/boost:/admit: oracle's warm start for step k: every candidate asked and
+    """A pick:/shadow:/mean:/price:/split:/boost:/admit:/graft:/feedback: oracle's warm start for step k: every candidate asked and
     priced by trial solves, the cheapest (or the first, their mean, builtin) served. A server candidate that fell back is priced as builtin, and
     the step counts as a fallback."""
     if len(points) == 0:

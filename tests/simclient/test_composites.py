@@ -7,6 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from simclient.composites import Pick
+from simclient.oracles import OracleMix
+from simclient.provider import Provider, as_warm_start
 from simclient.scene import SceneSpec
 from simclient.simulate import run_simulation
 from simclient.warmstarts import make_provider
@@ -121,3 +124,37 @@ def test_graft_serves_the_first_and_prices_it_with_the_seconds_moving_bodies_mot
     assert trials[:, 3].sum() < 0.8 * trials[:, 1].sum()
     with pytest.raises(ValueError, match="two warm starts"):
         make_provider("graft:oracle:near")
+
+
+class _Biased(Provider):
+    """The step's solution from Box2D's warm start (oracle:near) with BIAS N s more normal
+    impulse at every point: a model that errs the same way at every step."""
+
+    name = "biased"
+    BIAS = 0.2
+
+    def __init__(self):
+        self._solution = OracleMix("near")
+
+    def warm_start(self, engine, bodies, points, step):
+        warm = self._solution.warm_start(engine, bodies, points, step)
+        if warm is None:
+            return None
+        warm = np.stack(warm, axis=1).astype(np.float64)
+        warm[:, 0] += self.BIAS
+        return as_warm_start(warm)
+
+
+def test_feedback_serves_its_warm_start_and_takes_off_an_error_that_repeats():
+    provider = Pick([_Biased()], mode="feedback")
+    assert provider.labels == ["builtin", "biased"] + [f"biased less {g:g} x its last error" for g in (0.25, 0.5, 1)]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    trials = np.array(served["trials"])
+    assert trials[:, 1].tolist() == its  # serves the warm start itself
+    assert trials[0, 1] == trials[0, 2] == trials[0, 4]  # no previous step: nothing to take off
+    # The more of last step's error taken off, the fewer iterations: the bias is what it was.
+    assert trials[:, 4].mean() < trials[:, 3].mean() < trials[:, 2].mean() < trials[:, 1].mean()
+    assert trials[:, 4].mean() < 0.6 * trials[:, 1].mean()
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("feedback:oracle:near+oracle:half")
