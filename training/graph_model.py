@@ -37,6 +37,18 @@ past them the answers get worse (docs/results.md, "One sweep, repeated"). With
 `recall`, every round's update also reads the encoded inputs, so however many
 rounds run, the last still sees the step it is answering.
 
+With `probes` = C > 0, every round also asks the physics a question: the round's state
+makes C trial impulses at each point (a normal and a tangent part each), and the round
+reads back, at each point and for each trial, the relative (normal, tangent) velocity that
+all points' trials together give it, times the point's effective masses (N s, what one
+Jacobi sweep would change): J M^-1 J^T applied exactly, C times a round. A ReLU network
+can only approximate the products of directions and impulses that this operator is made
+of; here it is given them. It needs each point's geometry (normal, tangent, and its place
+on both bodies) and masses, and each body's inverse mass and inertia (`physics=`), as the
+training batches carry them (training.train_graph.Scaling.batch). A screen for now
+(training/probe_screen.py): the server does not compute those inputs, so such a network is
+not exported.
+
 Plain tf.Module, no Keras: the weights are a dict of arrays (saved as .npz)
 and the same tf.function is trained and exported (tf2onnx, opset 17). How points
 reach their bodies (`incidence`) changes the graph's ops, not its numbers: training
@@ -68,6 +80,7 @@ class GraphConfig:
     layer_norm: bool = False  # each round reads its state through a layer normalization (pre-norm)
     tied: bool = False  # every round uses round 0's weights; `rounds` is then how many the export runs
     recall: bool = False  # each round's update also reads the encoded inputs
+    probes: int = 0  # trial impulses a round sends through the contact problem's operator (0: none)
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
@@ -77,7 +90,9 @@ def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
     for r in range(1 if c.tied else c.rounds):
         shapes[f"round{r}_to_a"] = (w, w)
         shapes[f"round{r}_to_b"] = (w, w)
-        shapes[f"round{r}_update0"] = ((3 + c.pooled + c.recall) * w, w)
+        if c.probes:
+            shapes[f"round{r}_probe"] = (w, 2 * c.probes)
+        shapes[f"round{r}_update0"] = ((3 + c.pooled + c.recall) * w + 2 * c.probes, w)
         shapes[f"round{r}_update1"] = (w, w)
     shapes["decode0"] = (w, w)
     shapes["decode1"] = (w, c.out_channels)
@@ -153,12 +168,16 @@ class ContactGraphNet:
         var = tf.reduce_mean(tf.square(x - mean), axis=1, keepdims=True)
         return (x - mean) * tf.math.rsqrt(var + LAYER_NORM_EPS) * self.variables[f"{name}/gain"] + self.variables[f"{name}/offset"]
 
-    def __call__(self, points, ends, dynamic, step_of=None, rounds: int | None = None):
+    def __call__(self, points, ends, dynamic, step_of=None, rounds: int | None = None, physics=None):
         """points (P, F), ends (P, 2), dynamic (B, 1) as in the module docstring;
         step_of (P,) int32, each point's step, read only by a pooled network; rounds, how
-        many to run (only a tied network may run other than config.rounds)."""
+        many to run (only a tied network may run other than config.rounds); physics, for a
+        network with probes: (geometry (P, 8), masses (P, 2) kg, inverse (B, 2)) as
+        training.contact_graph.GraphSet.solver_batch gives them."""
         if rounds is not None and rounds != self.config.rounds and not self.config.tied:
             raise ValueError(f"an untied network runs its {self.config.rounds} rounds, not {rounds}")
+        if self.config.probes and (physics is None or self.incidence != "segments"):
+            raise ValueError("a network with probes needs physics=(geometry, masses, inverse) and is not exported")
         tf = self.tf
         h = encoded = self._dense(self._dense(points, "encode0"), "encode1")
         a, b = ends[:, 0], ends[:, 1]
@@ -181,8 +200,27 @@ class ContactGraphNet:
                 u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
             if self.config.recall:
                 u = tf.concat([u, encoded], axis=1)
+            if self.config.probes:
+                u = tf.concat([u, self._probe(self._dense(x, f"round{r}_probe", relu=False), ends, *physics)], axis=1)
             h = h + self._dense(self._dense(u, f"round{r}_update0"), f"round{r}_update1", relu=False)
         return self._dense(self._dense(self._norm(h, "decode_norm"), "decode0"), "decode1", relu=False)
+
+    def _probe(self, trials, ends, geometry, masses, inverse):
+        """trials (P, 2C): C trial impulses at each point (normal parts, then tangent parts,
+        N s) -> (P, 2C): the effective mass times the relative velocity all of them together
+        give each point, per trial (normal parts, then tangent parts): m_eff * (J M^-1 J^T) trials."""
+        from training.graph_loss import apply_delassus
+
+        tf, c = self.tf, self.config.probes
+        # The C trials as one batch of C problems side by side: (P, 2) impulses each, stacked
+        # along the points, the ends offset so that each trial has bodies of its own.
+        lam = tf.reshape(tf.transpose(tf.reshape(trials, [-1, 2, c]), [2, 0, 1]), [-1, 2])  # (C P, 2)
+        n_bodies = tf.shape(inverse)[0]
+        offsets = tf.repeat(tf.range(c) * n_bodies, tf.shape(ends)[0])[:, None]
+        response = apply_delassus(lam, tf.tile(ends, [c, 1]) + offsets, tf.tile(geometry, [c, 1]),
+                                  tf.tile(inverse, [c, 1]))  # (C P, 2) m/s
+        response = tf.reshape(response * tf.tile(masses, [c, 1]), [c, -1, 2])  # (C, P, 2) N s
+        return tf.reshape(tf.transpose(response, [1, 2, 0]), [-1, 2 * c])
 
     def _sum_at_bodies(self, messages, body, one_hot, n_bodies):
         """messages (P, W), body (P,) int32 each point's body, one_hot (P, B) float32 of body
@@ -220,9 +258,9 @@ class ContactGraphNet:
 
 
 def config_to_dict(c: GraphConfig) -> dict[str, Any]:
-    """The config as a card records it; `tied` and `recall` only where set, so other cards read as before them."""
+    """The config as a card records it; `tied`, `recall` and `probes` only where set, so other cards read as before them."""
     d = dataclasses.asdict(c)
-    for key in ("tied", "recall"):
+    for key in ("tied", "recall", "probes"):
         if not d[key]:
             del d[key]
     return d

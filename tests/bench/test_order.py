@@ -1,4 +1,4 @@
-"""`deepcontact bench order`: a projected Gauss-Seidel replica of the solver, run in several
+"""`deepcontact bench order`: the solver's replica (training.gauss_seidel) run in several
 orders from Box2D's warm start on recorded steps.
 
 The command itself loads TensorFlow (the self-stress split), so it runs as its own process:
@@ -10,13 +10,9 @@ import json
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
-from bench.order import Steps, gauss_seidel
 from deepcontact.cli import main
-from training.contact_graph import build_graph_set
-from training.graph_loss import colour_points
 
 
 def deepcontact(*args: str) -> subprocess.CompletedProcess:
@@ -29,23 +25,6 @@ def recorded(tmp_path_factory):
     path = tmp_path_factory.mktemp("order") / "val.h5"
     assert main(["generate", "--steps", "60", "--seeds", "3", "--out", str(path), "--quiet"]) == 0
     return path
-
-
-def test_the_replica_stops_about_where_the_recorded_solve_did(recorded):
-    p = Steps(build_graph_set(recorded, max_steps=20), mu=0.5)  # the thesis world's friction
-    lam, sweeps = gauss_seidel(p, colour_points(p.ends, p.inverse, seed=0), threshold=1e-4, max_sweeps=1000)
-    correction = np.sqrt(np.mean(np.sum((p.solution - p.builtin) ** 2, axis=1)))
-    assert np.sqrt(np.mean(np.sum((lam - p.solution) ** 2, axis=1))) < 0.2 * correction
-    assert sweeps.shape == (p.n_steps,) and (sweeps >= 1).all() and sweeps.max() > 1
-    assert (lam[:, 0] >= 0).all() and (np.abs(lam[:, 1]) <= 0.5 * lam[:, 0] + 1e-12).all()  # inside the cones
-
-
-def test_a_solve_already_at_its_answer_stops_at_once(recorded):
-    p = Steps(build_graph_set(recorded, max_steps=20), mu=0.5)
-    colour = colour_points(p.ends, p.inverse, seed=0)
-    lam, _ = gauss_seidel(p, colour, threshold=1e-6, max_sweeps=5000)
-    again, sweeps = gauss_seidel(p, colour, threshold=1e-4, max_sweeps=1000, start=lam)
-    assert (sweeps == 1).all() and np.allclose(again, lam, atol=1e-4)
 
 
 def test_the_command_sets_the_orders_answers_side_by_side(recorded, tmp_path):

@@ -1,0 +1,58 @@
+"""Networks whose rounds read the contact problem's operator (training.graph_model, `probes`),
+and the screen that trains them beside a plain control (training.probe_screen)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from training.contact_graph import GRAPH_INPUTS, build_graph_set
+
+
+@pytest.fixture(scope="module")
+def graphs(data):
+    return build_graph_set(data / "train.h5", max_steps=12)
+
+
+def test_a_probe_reads_what_each_trial_impulse_does_at_every_point(graphs):
+    from training.graph_loss import apply_delassus
+    from training.graph_model import ContactGraphNet, GraphConfig
+
+    steps = [3, 5]
+    _, _, ends, _ = graphs.batch(steps)
+    geometry, masses, inverse = graphs.solver_batch(steps)
+    net = ContactGraphNet(GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=1, probes=2))
+    trials = np.random.default_rng(0).normal(size=(len(ends), 4)).astype(np.float32)  # normal parts, then tangent
+    got = net._probe(trials, ends, geometry, masses, inverse).numpy()
+    for k in range(2):  # each trial alone through m_eff * J M^-1 J^T
+        alone = (masses * apply_delassus(trials[:, [k, 2 + k]], ends, geometry, inverse)).numpy()
+        np.testing.assert_allclose(got[:, [k, 2 + k]], alone, rtol=1e-5, atol=1e-5)
+
+
+def test_a_network_with_probes_needs_its_physics_and_cards_without_them_read_as_before(graphs):
+    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict
+
+    x, _, e, d = graphs.batch([3])
+    net = ContactGraphNet(GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, probes=3))
+    with pytest.raises(ValueError, match="physics"):
+        net(x, e, d)
+    y = net(x, e, d, physics=graphs.solver_batch([3]))
+    assert y.shape == (len(x), 2)
+    assert "probes" not in config_to_dict(GraphConfig(in_channels=14))
+    assert config_to_dict(net.config)["probes"] == 3
+
+
+def test_the_screen_trains_the_control_and_the_probed_network_the_same_way(data, tmp_path, capsys):
+    from training.probe_screen import main
+
+    out = tmp_path / "screen.json"
+    assert main(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--probes", "0,2", "--epochs", "2",
+                 "--width", "8", "--rounds", "2", "--batch-size", "4", "--cache", str(tmp_path / "cache"),
+                 "--json", str(out), "--quiet"]) == 0
+    control, probed = json.loads(out.read_text())["networks"]
+    assert (control["probes"], probed["probes"]) == (0, 2)
+    assert probed["weights"] == control["weights"] + 2 * (8 * 4 + 4) + 2 * (4 * 8)  # the probe layers and their reads
+    assert [h[0] for h in control["history"]] == [h[0] for h in probed["history"]] == [1, 2]
+    assert "| 2 |" in capsys.readouterr().out
