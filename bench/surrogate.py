@@ -136,9 +136,8 @@ def _scores(args, sweeps: tuple[int, ...]) -> np.ndarray:
     import tensorflow as tf
 
     from deepcontact.channels import channel_values
-    from deepcontact.kinematics import effective_masses
+    from deepcontact.kinematics import contact_physics
     from server.predictors import World, load_model
-    from training.contact_graph import inverse_masses, point_geometry
     from training.graph_loss import (colour_points, friction_bounds, gauss_seidel_changes_after,
                                      projected_changes_after, step_log_norms)
     from training.grids import iter_steps, open_dataset, select_steps
@@ -182,9 +181,9 @@ def _scores(args, sweeps: tuple[int, ...]) -> np.ndarray:
         world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
         served = predictor.predict(b, c, world, 0, step.previous)[0].astype(np.float32)
         v_free = channel_values(("vn", "vt"), step).astype(np.float32)
+        geometry, masses, inverse = contact_physics(b, c)
         batch.append((served, c["builtin"].astype(np.float32), c["impulse"].astype(np.float32), v_free,
-                      point_geometry(b, c), effective_masses(b, c).astype(np.float32),
-                      np.stack([c["body_a"], c["body_b"]], axis=1).astype(np.int32), inverse_masses(b)))
+                      geometry, masses, np.stack([c["body_a"], c["body_b"]], axis=1).astype(np.int32), inverse))
         if len(batch) == BATCH_STEPS:
             flush()
     if batch:

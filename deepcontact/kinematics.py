@@ -195,6 +195,19 @@ def effective_masses(bodies: np.ndarray, points: np.ndarray) -> np.ndarray:
     return _kinematics(bodies, points, Physics(), None, False, False, True)[2]
 
 
+def contact_physics(bodies: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the contact problem's operator J M^-1 J^T is made of, float32, as a contact-graph
+    network with probes reads it (training/graph_model.py): geometry (P, 8), the normal, the
+    tangent and the point relative to the centres of A and of B (m); masses (P, 2), the
+    effective masses (kg, effective_masses); inverse (B, 2), each body's 1/mass (1/kg) and
+    1/inertia (1/(kg m^2)), 0 for bodies that are not dynamic. bodies, points: as in
+    contact_velocities. Training data and the server both take them from here."""
+    frame = contact_frame(bodies, points)
+    geometry = np.concatenate([frame.n, frame.t, frame.ra, frame.rb], axis=1).astype(np.float32)
+    inverse = np.stack([frame.inv_mass, frame.inv_inertia], axis=1).astype(np.float32)
+    return geometry, effective_masses(bodies, points).astype(np.float32), inverse
+
+
 def contact_quantities(bodies: np.ndarray, points: np.ndarray,
                        physics: Physics = Physics()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the point channels read, in one pass: (velocities, velocities after the

@@ -33,7 +33,7 @@ import numpy as np
 from deepcontact.channels import Step, channel_values, needs
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
-from deepcontact.kinematics import BODY_DYNAMIC, Physics, points_at_rest
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.transfer import plan
 
@@ -247,6 +247,11 @@ class ModelPredictor(Predictor):
         return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
 
 
+#: A graph model's ONNX inputs (training/graph_model.py, to_onnx), and those a network with probes adds.
+GRAPH_INPUT_NAMES = ("points", "ends", "dynamic")
+PHYSICS_INPUT_NAMES = ("geometry", "masses", "inverse")
+
+
 class GraphPredictor(Predictor):
     """The contact-graph model (card kind "graph", training/graph_model.py): no
     grids; the card's input channels are read at each contact point, the
@@ -259,23 +264,37 @@ class GraphPredictor(Predictor):
         self.gridspec = card.gridspec
         self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
         names = {i.name for i in self.session.get_inputs()}
-        if names != {"points", "ends", "dynamic"} or card.output_name not in [o.name for o in
-                                                                              self.session.get_outputs()]:
-            raise ValueError(f"{onnx_path}: a graph model takes points, ends and dynamic and returns "
-                             f"{card.output_name!r}; this one takes {sorted(names)}")
+        # A network with probes (training/graph_model.py) also reads the contact problem's operator.
+        self.physics = names == set(GRAPH_INPUT_NAMES + PHYSICS_INPUT_NAMES)
+        if (names != set(GRAPH_INPUT_NAMES) and not self.physics) \
+                or card.output_name not in [o.name for o in self.session.get_outputs()]:
+            raise ValueError(f"{onnx_path}: a graph model takes points, ends and dynamic (and, with probes, "
+                             f"geometry, masses and inverse) and returns {card.output_name!r}; this one takes "
+                             f"{sorted(names)}")
         spec = card.gridspec
         self.inputs = spec.inputs
         self.in_mean, self.in_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.inputs))
         self.out_mean, self.out_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.targets))
-        self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",))))
+        physics_needs = ("point_bodies", "body_inertia") if self.physics else ()
+        self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",)
+                                         + physics_needs)))
         self.new_point = self.inputs.index("new_point") if "new_point" in self.inputs else None
         self.infer = self.run_session
+        first = (np.zeros((1, 8), np.float32), np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32))
         self.run_session(np.zeros((1, len(self.inputs)), np.float32), np.zeros((1, 2), np.int32),
-                         np.zeros((1, 1), np.float32))  # the first run plans memory: not on a served step
+                         np.zeros((1, 1), np.float32), *(first if self.physics else ()))
+        # (the first run plans memory: not on a served step)
 
-    def run_session(self, points: np.ndarray, ends: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
-        """points (P, F) float32 normalized, ends (P, 2) int32, dynamic (B, 1) float32 -> (P, T)."""
-        return self.session.run([self.card.output_name], {"points": points, "ends": ends, "dynamic": dynamic})[0]
+    def run_session(self, points: np.ndarray, ends: np.ndarray, dynamic: np.ndarray,
+                    geometry: np.ndarray | None = None, masses: np.ndarray | None = None,
+                    inverse: np.ndarray | None = None) -> np.ndarray:
+        """points (P, F) float32 normalized, ends (P, 2) int32, dynamic (B, 1) float32 -> (P, T);
+        with probes also geometry (P, 8), masses (P, 2) kg and inverse (B, 2), float32
+        (deepcontact.kinematics.contact_physics)."""
+        feed = {"points": points, "ends": ends, "dynamic": dynamic}
+        if self.physics:
+            feed.update(geometry=geometry, masses=masses, inverse=inverse)
+        return self.session.run([self.card.output_name], feed)[0]
 
     def predict(self, bodies, points, world, step, previous=None):
         t0 = time.perf_counter()
@@ -284,6 +303,8 @@ class GraphPredictor(Predictor):
         ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32, copy=False)
         dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
         stages = {"p2g": 0.0, "inference": 0.0, "g2p": 0.0}
+        # The operator does not depend on the warm start: one computation serves every pass.
+        physics = contact_physics(bodies, points) if self.physics else ()
         warm, new = points, None
         for _ in range(self.card.passes):
             x = channel_values(self.inputs, Step(bodies, warm, previous, world.physics)).astype(np.float32)
@@ -294,7 +315,7 @@ class GraphPredictor(Predictor):
             x -= self.in_mean
             x /= self.in_std
             t1 = time.perf_counter()
-            y = self.infer(x, ends, dynamic)
+            y = self.infer(x, ends, dynamic, *physics)
             t2 = time.perf_counter()
             out = y * self.out_std + self.out_mean
             impulses = combine(self.card.combine, out, warm["builtin"], self.card.correction_scale,

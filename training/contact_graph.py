@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact.channels import CHANNELS, Step, channel_values
-from deepcontact.kinematics import BODY_DYNAMIC, effective_masses
+from deepcontact.kinematics import BODY_DYNAMIC, contact_physics
 from training.grids import GridDataError, iter_steps, open_dataset, select_steps
 
 #: What the contact-graph model reads at each point: geometry, Box2D's own warm
@@ -158,9 +158,8 @@ def build_graph_set(path: str | os.PathLike, inputs=GRAPH_INPUTS, targets=GRAPH_
     for chunk in _batches((step for _, step in iter_steps(path, steps, index)), per_call):
         world = one_world(chunk)
         c, b = world.contacts, world.bodies
-        geometry.append(point_geometry(b, c))
-        masses.append(effective_masses(b, c).astype(np.float32))
-        inverse.append(inverse_masses(b))
+        for out, value in zip((geometry, masses, inverse), contact_physics(b, c)):
+            out.append(value)
         speed.append(np.hypot(*b["velocity"].T).astype(np.float32))
         feats.append(channel_values(inputs, world).astype(np.float32))
         targs.append(channel_values(targets, world).astype(np.float32))
@@ -215,30 +214,9 @@ def one_world(steps: list[Step]) -> Step:
     return Step(bodies, contacts, None, steps[0].physics, oracle)
 
 
-#: Each point_geometry column's sign when the world is reflected left to right (x -> -x): the
-#: normal's and both lever arms' x change sign, and Box2D's tangent (n_y, -n_x) becomes
+#: Each geometry column's sign (deepcontact.kinematics.contact_physics) when the world is
+#: reflected left to right (x -> -x): the normal's and both lever arms' x change sign, and
+#: Box2D's tangent (n_y, -n_x) becomes
 #: (n_y, n_x), its y component's sign changed (it is then minus the reflected tangent, which is
 #: why tangent channels have Channel.mirror -1).
 MIRROR_GEOMETRY = np.array([-1, 1, 1, -1, -1, 1, -1, 1], np.float32)
-
-
-def point_geometry(bodies: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(P, 8) float32: normal, tangent (Box2D's (n_y, -n_x)), point - centre of A, point - centre of B (m)."""
-    n = points["normal"].astype(np.float64)
-    p = points["point"].astype(np.float64)
-    centre = bodies["position"].astype(np.float64)
-    t = np.stack([n[:, 1], -n[:, 0]], axis=1)
-    ra = p - centre[points["body_a"]]
-    rb = p - centre[points["body_b"]]
-    return np.concatenate([n, t, ra, rb], axis=1).astype(np.float32)
-
-
-def inverse_masses(bodies: np.ndarray) -> np.ndarray:
-    """(B, 2) float32: 1/mass and 1/inertia of dynamic bodies, 0 for the others."""
-    dynamic = (bodies["type"] == BODY_DYNAMIC)
-    out = np.zeros((len(bodies), 2), np.float32)
-    for k, field in enumerate(("mass", "inertia")):  # two fields, not a loop over bodies
-        x = bodies[field].astype(np.float64)
-        ok = dynamic & (x > 0)
-        out[ok, k] = 1.0 / x[ok]
-    return out

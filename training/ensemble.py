@@ -41,6 +41,11 @@ bodies numbered after the sent one's), so the price is one larger inference,
 not two. Why: the worlds are symmetric under the reflection and the networks
 are not built to be; their answer and their mirror image's differ by about a
 fifth of the answer, and the mean of the two errs less than either.
+
+Members with probes (training/graph_model.py) also read the contact problem's
+operator: geometry (P, 8), masses (P, 2), inverse (B, 2), which the ensemble then
+takes too and hands on (reflected with the step under --mirror: the geometry's
+columns times training.contact_graph.MIRROR_GEOMETRY).
 """
 
 from __future__ import annotations
@@ -59,6 +64,7 @@ from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard, ModelCardError
 
 GRAPH_INPUTS = ("points", "ends", "dynamic")
+PHYSICS_INPUTS = ("geometry", "masses", "inverse")  # a network with probes's three more
 
 
 def _member(path: Path) -> ModelCard:
@@ -83,17 +89,19 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
     first = members[0][0]
     inputs, targets = first.gridspec.inputs, first.gridspec.targets
     nodes, initializers, opsets, corrections = [], [], {}, []
-    for i, (card, path) in enumerate(members):
-        model = onnx.load(str(card.onnx_path(path)))
+    models = [onnx.load(str(card.onnx_path(path))) for card, path in members]
+    physics = any(x.name in PHYSICS_INPUTS for model in models for x in model.graph.input)
+    for i, ((card, path), model) in enumerate(zip(members, models)):
         got = [x.name for x in model.graph.input]
-        if sorted(got) != sorted(GRAPH_INPUTS) or [o.name for o in model.graph.output] != [card.output_name]:
-            raise ModelCardError(f"{path}: a graph model takes {', '.join(GRAPH_INPUTS)} and returns "
-                                 f"{card.output_name!r}; this one takes {got}")
+        if sorted(got) not in (sorted(GRAPH_INPUTS), sorted(GRAPH_INPUTS + PHYSICS_INPUTS)) \
+                or [o.name for o in model.graph.output] != [card.output_name]:
+            raise ModelCardError(f"{path}: a graph model takes {', '.join(GRAPH_INPUTS)} (and, with probes, "
+                                 f"{', '.join(PHYSICS_INPUTS)}) and returns {card.output_name!r}; this one takes {got}")
         for opset in model.opset_import:
             opsets[opset.domain] = max(opsets.get(opset.domain, 0), opset.version)
         p = f"m{i}/"
         member_nodes, member_initializers, member_corrections = _member_graph(
-            compose.add_prefix(model, p), card, p, mirror)
+            compose.add_prefix(model, p), card, p, mirror, "geometry" in got)
         nodes += member_nodes
         initializers += member_initializers
         corrections += member_corrections
@@ -106,7 +114,10 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
         nodes, "ensemble",
         [helper.make_tensor_value_info("points", TensorProto.FLOAT, ["P", len(inputs)]),
          helper.make_tensor_value_info("ends", TensorProto.INT32, ["P", 2]),
-         helper.make_tensor_value_info("dynamic", TensorProto.FLOAT, ["B", 1])],
+         helper.make_tensor_value_info("dynamic", TensorProto.FLOAT, ["B", 1])]
+        + ([helper.make_tensor_value_info("geometry", TensorProto.FLOAT, ["P", 8]),
+            helper.make_tensor_value_info("masses", TensorProto.FLOAT, ["P", 2]),
+            helper.make_tensor_value_info("inverse", TensorProto.FLOAT, ["B", 2])] if physics else []),
         [helper.make_tensor_value_info("impulses", TensorProto.FLOAT, ["P", len(targets)])],
         initializer=initializers)
     proto = helper.make_model(graph, opset_imports=[helper.make_opsetid(d, v) for d, v in sorted(opsets.items())],
@@ -116,12 +127,15 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
     return proto
 
 
-def _member_graph(model, card: ModelCard, p: str, mirror: bool) -> tuple[list, list, list[str]]:
+def _member_graph(model, card: ModelCard, p: str, mirror: bool, physics: bool = False) -> tuple[list, list, list[str]]:
     """One member's part of the ensemble: its nodes with their names prefixed by `p` (already
     so in `model`), from the shared raw inputs through its own normalization to its
     denormalized correction(s), N s; its initializers; the names of its corrections, one, or
-    two with `mirror` (its answer to the step and to the step reflected, reflected back)."""
+    two with `mirror` (its answer to the step and to the step reflected, reflected back).
+    physics: the member has probes, and reads geometry, masses and inverse too."""
     from onnx import helper, numpy_helper
+
+    from training.contact_graph import MIRROR_GEOMETRY
 
     inputs, targets = card.gridspec.inputs, card.gridspec.targets
     in_mean, in_std = card.gridspec.normalization_arrays(inputs)
@@ -137,12 +151,16 @@ def _member_graph(model, card: ModelCard, p: str, mirror: bool) -> tuple[list, l
                  helper.make_node("Div", [p + "points_centred", p + "in_std"], [p + "points"]),
                  helper.make_node("Identity", ["ends"], [p + "ends"]),
                  helper.make_node("Identity", ["dynamic"], [p + "dynamic"]),
+                 *(helper.make_node("Identity", [name], [p + name]) for name in (PHYSICS_INPUTS if physics else ())),
                  *model.graph.node, *denormalize]
         corrections = [p + "correction"]
     else:
         initializers += [numpy_helper.from_array(value, p + name)
                          for name, value in (("mirror_in", mirror_signs(inputs)), ("mirror_out", mirror_signs(targets)))]
-        nodes = [*_reflected_batch(p), *model.graph.node, *denormalize, *_halves(p)]
+        nodes = [*_reflected_batch(p), *(_reflected_physics(p) if physics else ()), *model.graph.node, *denormalize,
+                 *_halves(p)]
+        if physics:
+            initializers.append(numpy_helper.from_array(MIRROR_GEOMETRY, p + "mirror_geometry"))
         corrections = [p + "correction", p + "reflected_back"]
     return nodes, initializers + list(model.graph.initializer), corrections
 
@@ -166,6 +184,20 @@ def _reflected_batch(p: str) -> list:
         helper.make_node("Add", ["ends", p + "body_count"], [p + "ends_after"]),
         helper.make_node("Concat", ["ends", p + "ends_after"], [p + "ends"], axis=0),
         helper.make_node("Concat", ["dynamic", "dynamic"], [p + "dynamic"], axis=0),
+    ]
+
+
+def _reflected_physics(p: str) -> list:
+    """Nodes from the graph's physics inputs to one member's (prefix p) for the batch of two
+    steps _reflected_batch makes: the geometry as sent and reflected (each column times its
+    sign, the initializer p+mirror_geometry (8,)); masses and inverse masses do not change."""
+    from onnx import helper
+
+    return [
+        helper.make_node("Mul", ["geometry", p + "mirror_geometry"], [p + "reflected_geometry"]),
+        helper.make_node("Concat", ["geometry", p + "reflected_geometry"], [p + "geometry"], axis=0),
+        helper.make_node("Concat", ["masses", "masses"], [p + "masses"], axis=0),
+        helper.make_node("Concat", ["inverse", "inverse"], [p + "inverse"], axis=0),
     ]
 
 
@@ -224,26 +256,39 @@ def _parity(proto_bytes: bytes, members: list[tuple[ModelCard, Path]], n_points:
     (with `mirror`, each member also run on the reflected step, its answer reflected back)."""
     import onnxruntime as ort
 
+    from training.contact_graph import MIRROR_GEOMETRY
+
     rng = np.random.default_rng(seed)
     card = members[0][0]
     n_bodies = 20
     points = rng.normal(0.0, 1.0, (n_points, len(card.gridspec.inputs))).astype(np.float32)
     ends = rng.integers(0, n_bodies, (n_points, 2)).astype(np.int32)
     dynamic = (rng.random((n_bodies, 1)) > 0.1).astype(np.float32)
+    normal = rng.normal(size=(n_points, 2))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    geometry = np.concatenate([normal, normal[:, ::-1] * [1, -1], rng.uniform(-0.5, 0.5, (n_points, 4))],
+                              axis=1).astype(np.float32)
+    physics = {"geometry": geometry, "masses": rng.uniform(0.1, 1.0, (n_points, 2)).astype(np.float32),
+               "inverse": (rng.uniform(0.5, 2.0, (n_bodies, 2)) * dynamic).astype(np.float32)}
     want = []
     for member, path in members:
         session = ort.InferenceSession(str(member.onnx_path(path)), providers=["CPUExecutionProvider"])
+        reads = {i.name for i in session.get_inputs()}
         in_mean, in_std = member.gridspec.normalization_arrays(member.gridspec.inputs)
         out_mean, out_std = member.gridspec.normalization_arrays(member.gridspec.targets)
         signs = [(np.ones(len(member.gridspec.inputs), np.float32), np.ones(len(member.gridspec.targets), np.float32))]
         if mirror:
             signs.append((mirror_signs(member.gridspec.inputs), mirror_signs(member.gridspec.targets)))
-        for sign_in, sign_out in signs:
-            y = session.run([member.output_name], {"points": (points * sign_in - in_mean) / in_std, "ends": ends,
-                                                   "dynamic": dynamic})[0]
+        for k, (sign_in, sign_out) in enumerate(signs):
+            feed = {"points": (points * sign_in - in_mean) / in_std, "ends": ends, "dynamic": dynamic}
+            if "geometry" in reads:
+                feed.update(physics, geometry=geometry * (MIRROR_GEOMETRY if k else 1.0))
+            y = session.run([member.output_name], feed)[0]
             want.append((y * out_std + out_mean) * sign_out)
     session = ort.InferenceSession(proto_bytes, providers=["CPUExecutionProvider"])
-    got = session.run(["impulses"], {"points": points, "ends": ends, "dynamic": dynamic})[0]
+    reads = {i.name for i in session.get_inputs()}
+    got = session.run(["impulses"], {"points": points, "ends": ends, "dynamic": dynamic,
+                                     **(physics if "geometry" in reads else {})})[0]
     return float(np.max(np.abs(got - agreed_mean(np.stack(want), agree))))
 
 

@@ -45,9 +45,9 @@ Jacobi sweep would change): J M^-1 J^T applied exactly, C times a round. A ReLU 
 can only approximate the products of directions and impulses that this operator is made
 of; here it is given them. It needs each point's geometry (normal, tangent, and its place
 on both bodies) and masses, and each body's inverse mass and inertia (`physics=`), as the
-training batches carry them (training.train_graph.Scaling.batch). A screen for now
-(training/probe_screen.py): the server does not compute those inputs, so such a network is
-not exported.
+training batches carry them (training.train_graph.Scaling.batch) and the server computes
+them from a request (deepcontact.kinematics.contact_physics); exported, they are three more
+inputs, "geometry", "masses" and "inverse".
 
 Plain tf.Module, no Keras: the weights are a dict of arrays (saved as .npz)
 and the same tf.function is trained and exported (tf2onnx, opset 17). How points
@@ -176,8 +176,8 @@ class ContactGraphNet:
         training.contact_graph.GraphSet.solver_batch gives them."""
         if rounds is not None and rounds != self.config.rounds and not self.config.tied:
             raise ValueError(f"an untied network runs its {self.config.rounds} rounds, not {rounds}")
-        if self.config.probes and (physics is None or self.incidence != "segments"):
-            raise ValueError("a network with probes needs physics=(geometry, masses, inverse) and is not exported")
+        if self.config.probes and physics is None:
+            raise ValueError("a network with probes needs physics=(geometry, masses, inverse)")
         tf = self.tf
         h = encoded = self._dense(self._dense(points, "encode0"), "encode1")
         a, b = ends[:, 0], ends[:, 1]
@@ -201,26 +201,39 @@ class ContactGraphNet:
             if self.config.recall:
                 u = tf.concat([u, encoded], axis=1)
             if self.config.probes:
-                u = tf.concat([u, self._probe(self._dense(x, f"round{r}_probe", relu=False), ends, *physics)], axis=1)
+                trials = self._dense(x, f"round{r}_probe", relu=False)
+                u = tf.concat([u, self._probe(trials, a, b, at_a, at_b, *physics)], axis=1)
             h = h + self._dense(self._dense(u, f"round{r}_update0"), f"round{r}_update1", relu=False)
         return self._dense(self._dense(self._norm(h, "decode_norm"), "decode0"), "decode1", relu=False)
 
-    def _probe(self, trials, ends, geometry, masses, inverse):
+    def _probe(self, trials, a, b, at_a, at_b, geometry, masses, inverse):
         """trials (P, 2C): C trial impulses at each point (normal parts, then tangent parts,
         N s) -> (P, 2C): the effective mass times the relative velocity all of them together
-        give each point, per trial (normal parts, then tangent parts): m_eff * (J M^-1 J^T) trials."""
-        from training.graph_loss import apply_delassus
-
+        give each point, per trial (normal parts, then tangent parts): m_eff * (J M^-1 J^T) trials.
+        a, b (P,) and at_a, at_b as in __call__; geometry (P, 8), masses (P, 2) kg, inverse (B, 2).
+        The C trials go through J^T, M^-1 and J side by side as columns, so the sums per body
+        are the network's own (segments, matmul or scatter) and the export needs no other op."""
         tf, c = self.tf, self.config.probes
-        # The C trials as one batch of C problems side by side: (P, 2) impulses each, stacked
-        # along the points, the ends offset so that each trial has bodies of its own.
-        lam = tf.reshape(tf.transpose(tf.reshape(trials, [-1, 2, c]), [2, 0, 1]), [-1, 2])  # (C P, 2)
+        n, t, ra, rb = geometry[:, 0:2], geometry[:, 2:4], geometry[:, 4:6], geometry[:, 6:8]
+        normal, tangent = trials[:, :c], trials[:, c:]
+        ix = normal * n[:, 0:1] + tangent * t[:, 0:1]  # (P, C) impulse on B along x; its opposite on A
+        iy = normal * n[:, 1:2] + tangent * t[:, 1:2]
+        on_b = tf.concat([ix, iy, rb[:, 0:1] * iy - rb[:, 1:2] * ix], axis=1)  # (P, 3C) force x, y, torque
+        on_a = tf.concat([ix, iy, ra[:, 0:1] * iy - ra[:, 1:2] * ix], axis=1)
         n_bodies = tf.shape(inverse)[0]
-        offsets = tf.repeat(tf.range(c) * n_bodies, tf.shape(ends)[0])[:, None]
-        response = apply_delassus(lam, tf.tile(ends, [c, 1]) + offsets, tf.tile(geometry, [c, 1]),
-                                  tf.tile(inverse, [c, 1]))  # (C P, 2) m/s
-        response = tf.reshape(response * tf.tile(masses, [c, 1]), [c, -1, 2])  # (C, P, 2) N s
-        return tf.reshape(tf.transpose(response, [1, 2, 0]), [-1, 2 * c])
+        total = self._sum_at_bodies(on_b, b, at_b, n_bodies) - self._sum_at_bodies(on_a, a, at_a, n_bodies)
+        scale = tf.concat([tf.tile(inverse[:, 0:1], [1, 2 * c]), tf.tile(inverse[:, 1:2], [1, c])], axis=1)
+        motion = total * scale  # (B, 3C): velocity x, y and angular velocity per trial
+
+        def at(body, one_hot, r):  # (P, C) x and y velocity of each point's place on its body
+            m = self._read_bodies(motion, body, one_hot)
+            w = m[:, 2 * c:]
+            return m[:, :c] - w * r[:, 1:2], m[:, c:2 * c] + w * r[:, 0:1]
+
+        (bx, by), (ax, ay) = at(b, at_b, rb), at(a, at_a, ra)
+        rx, ry = bx - ax, by - ay
+        return tf.concat([masses[:, 0:1] * (rx * n[:, 0:1] + ry * n[:, 1:2]),
+                          masses[:, 1:2] * (rx * t[:, 0:1] + ry * t[:, 1:2])], axis=1)
 
     def _sum_at_bodies(self, messages, body, one_hot, n_bodies):
         """messages (P, W), body (P,) int32 each point's body, one_hot (P, B) float32 of body
@@ -230,7 +243,7 @@ class ContactGraphNet:
             return tf.matmul(one_hot, messages, transpose_a=True)
         if self.incidence == "scatter":
             # Indices (P, 1): each point adds its whole row W into row body of the sums.
-            zeros = tf.zeros([n_bodies, self.config.width], messages.dtype)
+            zeros = tf.zeros([n_bodies, tf.shape(messages)[1]], messages.dtype)
             return tf.tensor_scatter_nd_add(zeros, body[:, None], messages)
         return tf.math.unsorted_segment_sum(messages, body, n_bodies)
 
@@ -254,7 +267,10 @@ class ContactGraphNet:
         tf = self.tf
         return [tf.TensorSpec((None, self.config.in_channels), tf.float32, name="points"),
                 tf.TensorSpec((None, 2), tf.int32, name="ends"),
-                tf.TensorSpec((None, 1), tf.float32, name="dynamic")]
+                tf.TensorSpec((None, 1), tf.float32, name="dynamic")] + ([
+                tf.TensorSpec((None, 8), tf.float32, name="geometry"),
+                tf.TensorSpec((None, 2), tf.float32, name="masses"),
+                tf.TensorSpec((None, 2), tf.float32, name="inverse")] if self.config.probes else [])
 
 
 def config_to_dict(c: GraphConfig) -> dict[str, Any]:
@@ -267,7 +283,8 @@ def config_to_dict(c: GraphConfig) -> dict[str, Any]:
 
 
 def to_onnx(net: ContactGraphNet, opset: int = 17, incidence: str = "scatter") -> bytes:
-    """The network as ONNX: inputs "points", "ends", "dynamic", output "impulses".
+    """The network as ONNX: inputs "points", "ends", "dynamic" (and, with probes, "geometry",
+    "masses", "inverse"), output "impulses".
     `incidence` picks how the exported graph sums per body (ContactGraphNet): "scatter"
     (the default since round 2's eight-round default), ScatterND adds (opset 16 or later),
     whose cost does not grow with the bodies and which ran the default 2x faster than
@@ -284,9 +301,14 @@ def to_onnx(net: ContactGraphNet, opset: int = 17, incidence: str = "scatter") -
     tf = net.tf
     net = ContactGraphNet(net.config, net.weights(), incidence=incidence)
 
-    @tf.function(input_signature=net.signature())
-    def forward(points, ends, dynamic):
-        return {"impulses": net(points, ends, dynamic)}
+    if net.config.probes:
+        @tf.function(input_signature=net.signature())
+        def forward(points, ends, dynamic, geometry, masses, inverse):
+            return {"impulses": net(points, ends, dynamic, physics=(geometry, masses, inverse))}
+    else:
+        @tf.function(input_signature=net.signature())
+        def forward(points, ends, dynamic):
+            return {"impulses": net(points, ends, dynamic)}
 
     proto, _ = tf2onnx.convert.from_function(forward, input_signature=net.signature(), opset=opset)
     return proto.SerializeToString()

@@ -12,8 +12,8 @@ network, the control). Printed per network: its weights and each epoch's trainin
 validation loss, so the fits are compared at equal training, and what its answers are worth
 to the solver's replica (training.gauss_seidel) on --price-steps steps of the first --val
 file: the mean sweeps from them over those from Box2D's warm start, the same steps for every
-network. Nothing is exported: the server does not compute the inputs a network with probes
-reads (training.graph_model), so the engine cannot price these networks yet.
+network. Nothing is exported here: `deepcontact train-graph --probes C` trains one to serve
+(the server computes what it reads, deepcontact.kinematics.contact_physics).
 """
 
 from __future__ import annotations

@@ -144,6 +144,12 @@ def _network_arguments(parser) -> None:
                         help="train the mean of the network's answer and its mirror image's (the step reflected "
                              "left to right, answered, reflected back): the answer the loss scores is symmetric, "
                              "at twice the network's cost; serve it so (`python -m training.ensemble CARD --mirror`)")
+    parser.add_argument("--probes", type=int, default=0, metavar="C",
+                        help="every round also sends C trial impulses per point through the contact problem's "
+                             "operator (m_eff J M^-1 J^T, exact) and reads back their effect (training/graph_model.py); "
+                             "the export then takes the points' geometry and masses and the bodies' inverse masses, "
+                             "which the server computes. With --init from a network without them, their reads start "
+                             "at 0, so the network starts as exactly that one (default %(default)s: none)")
     parser.add_argument("--passes", type=int, default=1, metavar="K",
                         help="train the network as a card with `passes: K` serves it: run K times, each pass "
                              "reading the channels at the warm start the last one made (recomputed inside the "
@@ -255,6 +261,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
                 f"got {args.omega}")
     if min(args.epochs, args.batch_size, args.width, args.rounds, args.patience) < 1:
         return "--epochs, --batch-size, --width, --rounds and --patience must be >= 1"
+    if getattr(args, "probes", 0) < 0:
+        return f"--probes must be 0 (none) or more, got {args.probes}"
     args.round_counts = (args.rounds,)
     if getattr(args, "train_rounds", None):
         if not args.tied:
@@ -478,21 +486,27 @@ class BatchLoss:
         # own warm start (no correction) leaves there on the training data, so each counts alike.
         self.scales = tf.constant(residual_scales, tf.float32)
 
-    def predict(self, points, ends, dynamic, step_of, rounds=None):
+    def predict(self, points, ends, dynamic, step_of, rounds=None, physics=None):
         """The correction the loss scores, (P, T) normalized: the network's, or with --symmetric
         the mean of it and its mirror image's (the reflection x -> -x of every channel, taken in
-        raw units, since the normalization's means do not change sign)."""
+        raw units, since the normalization's means do not change sign). physics: (geometry,
+        masses, inverse), read by a network with probes only."""
         depth = {} if rounds is None else {"rounds": rounds}  # only a tied network is asked for a depth
+        if self.net.config.probes:
+            depth["physics"] = physics
         pred = self.net(points, ends, dynamic, step_of, **depth)
         if not getattr(self.args, "symmetric", False):
             return pred
         mirrored_in = ((points * self.in_std + self.in_mean) * self.mirror_in - self.in_mean) / self.in_std
+        if self.net.config.probes:
+            geometry, masses, inverse = physics
+            depth["physics"] = (geometry * MIRROR_GEOMETRY, masses, inverse)
         answer = self.net(mirrored_in, ends, dynamic, step_of, **depth) * self.out_std + self.out_mean
         return 0.5 * (pred + (answer * self.mirror_out - self.out_mean) / self.out_std)
 
     def __call__(self, points, ends, dynamic, y, geometry, masses, inverse, step_of, colour, speed, rounds=None):
         """The batch's (losses, weights); rounds, how many the network runs (a tied one's choice)."""
-        pred = self.predict(points, ends, dynamic, step_of, rounds)
+        pred = self.predict(points, ends, dynamic, step_of, rounds, (geometry, masses, inverse))
         for _ in range(getattr(self.args, "passes", 1) - 1):
             pred = self._again(pred, points, ends, dynamic, geometry, masses, inverse, step_of)
         if self.args.loss in self.POINT_LOSSES:
@@ -519,7 +533,8 @@ class BatchLoss:
         velocity = apply_delassus(correction, ends, geometry, inverse)  # m/s
         moved = points + (correction @ self.moves_with_warm + velocity @ self.moves_with_velocity
                           - (masses * velocity) @ self.moves_with_jacobi) / self.in_std
-        answer = self.predict(moved, ends, dynamic, step_of) * self.out_std + self.out_mean
+        answer = self.predict(moved, ends, dynamic, step_of, physics=(geometry, masses, inverse)) * self.out_std \
+            + self.out_mean
         return (correction + answer - self.out_mean) / self.out_std
 
     def _at_points(self, pred, y):
@@ -713,7 +728,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
                          rounds=args.rounds, pooled=args.pooled,
                          layer_norm=getattr(args, "layer_norm", False), tied=getattr(args, "tied", False),
-                         recall=getattr(args, "recall", False))
+                         recall=getattr(args, "recall", False), probes=getattr(args, "probes", 0))
     if args.init is not None:
         net = ContactGraphNet(config, initial_weights(args.init, config))
     else:
@@ -755,6 +770,14 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
         # first layer, so the network starts as exactly the one it grew from.
         v = weights[k]
         weights[k] = np.concatenate([v, np.zeros((config.in_channels - v.shape[0], v.shape[1]), v.dtype)])
+    if config.probes and not any(k.endswith("_probe/kernel") for k in weights):
+        # A network without probes: each round gains its probe layer (random, so gradients reach
+        # it) and its update zero rows for the probes' reads (the last 2C), so the network starts
+        # as exactly the one it grew from.
+        for k, v in list(weights.items()):
+            if k.endswith("_update0/kernel") and k in expected and v.shape[0] == expected[k][0] - 2 * config.probes:
+                weights[k] = np.concatenate([v, np.zeros((2 * config.probes, v.shape[1]), v.dtype)])
+        weights.update({k: v for k, v in fresh.items() if "_probe/" in k})
     if config.pooled:
         # A network without the summary: its update layers gain zero rows for it, so the
         # pooled network starts as exactly that network.
@@ -765,7 +788,7 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
     if got != expected:
         raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
                          f"{config.rounds}{' --tied' if config.tied else ''}{' --recall' if config.recall else ''}"
-                         f"{' --pooled' if config.pooled else ''}"
+                         f"{' --pooled' if config.pooled else ''}{f' --probes {config.probes}' if config.probes else ''}"
                          f"{' --layer-norm' if config.layer_norm else ''} "
                          f"with {config.in_channels} inputs")
     return weights
@@ -778,7 +801,8 @@ def _compiled_steps(net, batch_loss, lr: float, round_counts: tuple[int, ...] = 
     returns the batch's loss; val_step, at config.rounds, returns (sum of losses, sum of weights)."""
     tf = net.tf
     optimizer = tf.keras.optimizers.Adam(learning_rate=lr)
-    spec_in = net.signature() + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
+    # The network's first three inputs; a batch carries the physics a network with probes reads anyway.
+    spec_in = net.signature()[:3] + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
                                  tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
                                  tf.TensorSpec((None, 2), tf.float32), tf.TensorSpec((None,), tf.int32),
                                  tf.TensorSpec((None,), tf.int32), tf.TensorSpec((None,), tf.float32)]
@@ -1002,9 +1026,14 @@ def _parity(net, onnx_bytes: bytes, batch) -> float:
     import onnxruntime as ort
 
     x, e, d = batch[:3]
+    feed = {"points": x, "ends": e, "dynamic": d}
+    physics = {}
+    if net.config.probes:
+        feed.update(zip(("geometry", "masses", "inverse"), batch[4:7]))
+        physics = {"physics": batch[4:7]}
     session = ort.InferenceSession(onnx_bytes, providers=["CPUExecutionProvider"])
-    got = session.run(["impulses"], {"points": x, "ends": e, "dynamic": d})[0]
-    return float(np.abs(got - net(x, e, d).numpy()).max())
+    got = session.run(["impulses"], feed)[0]
+    return float(np.abs(got - net(x, e, d, **physics).numpy()).max())
 
 
 def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:

@@ -57,6 +57,38 @@ def test_effective_mass_is_the_impulse_that_stops_one_point_alone():
     assert effective_masses(bodies, points[:0]).shape == (0, 2)
 
 
+def test_the_contact_physics_put_impulses_through_the_operator_as_the_velocities_do():
+    # m_eff * (J M^-1 J^T) lam from contact_physics's three arrays is the change in relative
+    # velocity that contact_velocities sees when lam is applied, times the effective masses.
+    from deepcontact.kinematics import contact_physics, effective_masses
+
+    engine = settled_world(SceneSpec.thesis(), 901, 150)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    geometry, masses, inverse = contact_physics(bodies, points)
+    assert (geometry.shape, masses.shape, inverse.shape) == ((len(points), 8), (len(points), 2), (len(bodies), 2))
+    assert geometry.dtype == masses.dtype == inverse.dtype == np.float32
+    np.testing.assert_array_equal(masses, effective_masses(bodies, points).astype(np.float32))
+    assert not inverse[bodies["type"] != BODY_DYNAMIC].any() and (inverse[bodies["type"] == BODY_DYNAMIC] > 0).all()
+    lam = np.random.default_rng(0).normal(size=(len(points), 2))
+    n, t, ra, rb = (geometry[:, k:k + 2].astype(np.float64) for k in (0, 2, 4, 6))
+    impulse = lam[:, :1] * n + lam[:, 1:] * t  # on B, its opposite on A
+    a, b = points["body_a"], points["body_b"]
+    force, torque = np.zeros((len(bodies), 2)), np.zeros(len(bodies))
+    for end, sign, r in ((b, 1.0, rb), (a, -1.0, ra)):
+        np.add.at(force, end, sign * impulse)
+        np.add.at(torque, end, sign * (r[:, 0] * impulse[:, 1] - r[:, 1] * impulse[:, 0]))
+    dv, dw = force * inverse[:, :1], torque * inverse[:, 1]
+
+    def at(end, r):
+        return dv[end] + dw[end][:, None] * np.stack([-r[:, 1], r[:, 0]], axis=1)
+
+    rel = at(b, rb) - at(a, ra)
+    by_hand = np.stack([(rel * n).sum(axis=1), (rel * t).sum(axis=1)], axis=1)
+    np.testing.assert_allclose(by_hand, contact_velocities(bodies, points, lam) - contact_velocities(bodies, points),
+                               rtol=1e-4, atol=1e-5)
+
+
 def test_points_at_rest_are_those_whose_dynamic_bodies_move_slower_than_the_threshold():
     bodies = np.zeros(4, BODY_DTYPE)
     bodies["type"] = [0, BODY_DYNAMIC, BODY_DYNAMIC, BODY_DYNAMIC]

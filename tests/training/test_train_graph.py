@@ -778,3 +778,70 @@ def test_an_unknown_way_of_summing_per_body_is_refused():
         ContactGraphNet(config, incidence="sparse")
     with pytest.raises(ValueError, match="opset 16"):
         to_onnx(ContactGraphNet(config), opset=15, incidence="scatter")
+
+
+def test_a_network_given_probes_starts_as_the_plain_one_and_is_served_what_training_saw(data, tmp_path,
+                                                                                         thesis_steps, graphs):
+    # Grown from a plain network, a network with probes answers as it did (its probes' reads
+    # start at 0); exported, it takes the contact problem's three arrays, which the server
+    # computes from the request's records (deepcontact.kinematics.contact_physics), alone or
+    # as a mirror ensemble (the geometry reflected with the step).
+    import grpc
+
+    from deepcontact import wire
+    from deepcontact.channels import Step, channel_values
+    from deepcontact.gridspec import GridSpec
+    from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.serve import Server
+    from training.ensemble import build_ensemble
+    from training.graph_model import ContactGraphNet, GraphConfig
+    from training.train_graph import initial_weights
+
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--rounds", "2", "--width", "8", "--loss", "mse", "--cache",
+              str(tmp_path / "cache"), "--quiet"]
+    models = tmp_path / "models"
+    assert main(common + ["--out", str(tmp_path / "plain.onnx")]) == 0
+    plain = tmp_path / "cache" / "plain.weights.npz"
+    config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, probes=2)
+    grown = initial_weights(plain, config)
+    x, _, e, d = graphs.batch([3, 5])
+    with np.load(plain) as f:
+        before = ContactGraphNet(GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2), dict(f))(x, e, d)
+    np.testing.assert_allclose(ContactGraphNet(config, grown)(x, e, d, physics=graphs.solver_batch([3, 5])).numpy(),
+                               before.numpy(), rtol=1e-6, atol=1e-6)
+
+    assert main(common + ["--out", str(models / "probed.onnx"), "--probes", "2", "--init", str(plain)]) == 0
+    card = json.loads((models / "probed.json").read_text())
+    assert card["architecture"]["config"]["probes"] == 2 and card["parity_max_abs_error"] < 1e-4
+    session = ort.InferenceSession(str(models / "probed.onnx"), providers=["CPUExecutionProvider"])
+    assert [i.name for i in session.get_inputs()] == ["points", "ends", "dynamic", "geometry", "masses", "inverse"]
+    mirrored = build_ensemble([models / "probed.json"], "probed-mirror", mirror=True)
+    assert json.loads(mirrored.read_text())["parity_max_abs_error"] < 1e-4
+
+    world, steps = thesis_steps
+    srv = Server(models=models).start()
+    try:
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            request = wire.encode_step(0, "probed", *steps[0], world=world, builtin=steps[0][1]["builtin"])
+            reply = stub.Predict(request)
+            assert stub.Predict(wire.encode_step(0, "probed-mirror", *steps[0], world=world,
+                                                 builtin=steps[0][1]["builtin"])).ListFields()
+    finally:
+        srv.stop()
+    bodies, points = wire.decode_step(request, max_bodies=10**4, max_points=10**5)
+    spec = GridSpec.from_dict(card["gridspec"])
+    mean, std = spec.normalization_arrays(spec.inputs)
+    x = (channel_values(spec.inputs, Step(bodies, points, None, Physics.thesis())) - mean) / std
+    ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32)
+    dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
+    feed = dict(zip(("geometry", "masses", "inverse"), contact_physics(bodies, points)))
+    y = session.run(None, {"points": x.astype(np.float32), "ends": ends, "dynamic": dynamic, **feed})[0]
+    mo, so = spec.normalization_arrays(spec.targets)
+    np.testing.assert_allclose(np.stack(wire.decode_impulses(reply), 1), y * so + mo + points["builtin"],
+                               rtol=1e-4, atol=1e-5)
+    unmoved = session.run(None, {"points": x.astype(np.float32), "ends": ends, "dynamic": dynamic, **feed,
+                                 "masses": np.zeros_like(feed["masses"])})[0]
+    assert np.abs(unmoved - y).max() > 1e-4  # the answer reads the operator: the check above sees it
