@@ -52,12 +52,21 @@ def parse_sizes(text: str) -> list[tuple[int, int]]:
     return sizes
 
 
-def synthetic_step(points: int, bodies: int, channels: int, rng: np.random.Generator):
+def synthetic_step(points: int, bodies: int, channels: int, rng: np.random.Generator, physics: bool = False):
     """Inputs of one step: points (P, channels) float32 normalized, ends (P, 2) int32 rows of
-    dynamic, dynamic (B, 1) float32 (all bodies dynamic)."""
-    return (rng.standard_normal((points, channels)).astype(np.float32),
+    dynamic, dynamic (B, 1) float32 (all bodies dynamic); with `physics`, for a network with
+    probes, also geometry (P, 8) (unit normals and tangents, lever arms up to 0.5 m), masses
+    (P, 2) kg and inverse (B, 2)."""
+    step = (rng.standard_normal((points, channels)).astype(np.float32),
             rng.integers(0, bodies, (points, 2)).astype(np.int32),
             np.ones((bodies, 1), np.float32))
+    if not physics:
+        return step
+    angle = rng.uniform(0.0, 2 * np.pi, points)
+    n = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    geometry = np.concatenate([n, n[:, ::-1] * [1, -1], rng.uniform(-0.5, 0.5, (points, 4))], axis=1)
+    return step + (geometry.astype(np.float32), rng.uniform(0.1, 1.0, (points, 2)).astype(np.float32),
+                   rng.uniform(0.5, 2.0, (bodies, 2)).astype(np.float32))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -84,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         passes = predictor.card.passes
         rng = np.random.default_rng(args.seed)
         for points, bodies in sizes:
-            feed = synthetic_step(points, bodies, len(predictor.inputs), rng)
+            feed = synthetic_step(points, bodies, len(predictor.inputs), rng, predictor.physics)
             predictor.run_session(*feed)  # the first run at a shape plans its memory
             times = []
             for _ in range(args.repeats):

@@ -27,6 +27,10 @@ def test_a_synthetic_step_has_the_server_s_shapes_and_ends_within_the_bodies():
     assert points.shape == (7, 14) and points.dtype == np.float32
     assert ends.shape == (7, 2) and ends.dtype == np.int32 and ends.min() >= 0 and ends.max() < 3
     assert dynamic.shape == (3, 1) and np.all(dynamic == 1)
+    *_, geometry, masses, inverse = synthetic_step(7, 3, 14, np.random.default_rng(0), physics=True)  # probes
+    assert geometry.shape == (7, 8) and masses.shape == (7, 2) and inverse.shape == (3, 2)
+    np.testing.assert_allclose(np.linalg.norm(geometry[:, :2], axis=1), 1.0, rtol=1e-6)  # unit normals
+    np.testing.assert_allclose((geometry[:, :2] * geometry[:, 2:4]).sum(axis=1), 0.0, atol=1e-6)  # tangents across
 
 
 def test_the_default_and_a_named_model_are_timed_at_every_size(tmp_path, capsys):
