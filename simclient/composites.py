@@ -39,6 +39,11 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  motion at the moving bodies (W1 plus the least-norm change that moves them as W2
                  does and no other body), admitted and not: one model's self-stress and resting
                  bodies with another's moving bodies
+    shrink:W+E   serves builtin, so its steps are Builtin's own (as price:), and trial-solves
+                 W, E, and E plus W's error against E (W - E) times 1/2, 1/4 and 3/4, then
+                 its two parts each halved alone: the part that moves the bodies and the
+                 self-stress. With E = oracle:near: how much better must W be, in its own
+                 error's shape, and in which part of it?
     feedback:W   serves W, as W alone would, and trial-solves builtin, W, and W less G times
                  its own error on the previous step at each point that persists (what W served
                  there minus where the solve ended, matched by key), for G in 0.25, 0.5 and 1:
@@ -62,7 +67,9 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft", "feedback")
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft", "feedback", "shrink")
+    #: shrink:W+E: the factors W's whole error is priced at.
+    SHRINKS = (0.75, 0.5, 0.25)
     #: boost:W: the factors its self-stress part is priced at.
     BOOSTS = (0.5, 1.5, 2.0, 3.0)
     #: feedback:W: the shares of its previous step's error it is priced less.
@@ -82,8 +89,12 @@ class Pick(Provider):
         # admit: serve the one candidate, price it and its admissible forms;
         # graft: serve the first, price it with the second's moving bodies' motion;
         # feedback: serve the one candidate, price it less shares of its last step's error
+        # shrink: serve builtin, price the first candidate's error against the second scaled, and its parts
         if mode in ("split", "boost", "admit", "feedback") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
+        if mode == "shrink" and len(candidates) != 2:
+            raise ValueError(f"shrink: takes a warm start and its reference, e.g. shrink:server:default+oracle:near, "
+                             f"got {len(candidates)}")
         if mode == "graft" and len(candidates) != 2:
             raise ValueError(f"graft: takes two warm starts, e.g. graft:server:default+server:graph-mse-1-799-moving-rel, "
                              f"got {len(candidates)}")
@@ -115,7 +126,9 @@ class Pick(Provider):
                            f"{first} moving bodies' motion admissible", f"{first} moving bodies' motion"],
                  "graft": [f"{first} with {self.candidates[-1].name}'s moving bodies' motion admissible",
                            f"{first} with {self.candidates[-1].name}'s moving bodies' motion"],
-                 "feedback": [f"{first} less {g:g} x its last error" for g in self.FEEDBACKS]}.get(self.mode, [])
+                 "feedback": [f"{first} less {g:g} x its last error" for g in self.FEEDBACKS],
+                 "shrink": [f"{first} error x{k:g}" for k in self.SHRINKS]
+                 + [f"{first} error's body-space part x0.5", f"{first} error's self-stress x0.5"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -200,12 +213,29 @@ class Pick(Provider):
                 warm = start + part
                 warm[:, 0] = np.maximum(warm[:, 0], 0.0)
                 candidates.append(as_warm_start(warm))
+        if self.mode == "shrink":
+            candidates += self._shrunk(engine, candidates[1], candidates[2], points)
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
         if self.mode in ("shadow", "split", "boost", "admit", "graft", "feedback"):
             return candidates[1]
-        if self.mode == "price":
+        if self.mode in ("price", "shrink"):
             return builtin  # the trials left the last candidate's as the step's warm start
         if self.mode == "mean":
             return candidates[-1]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
+
+    def _shrunk(self, engine, served, reference, points) -> list:
+        """shrink: the reference plus the served warm start's error against it, (P,) each of
+        normal and tangent N s: scaled whole by each of SHRINKS, then with its body-space part
+        halved and with its self-stress halved (deepcontact.kinematics.body_space_part)."""
+        from deepcontact.kinematics import body_space_part
+
+        ref = np.stack(reference, axis=1).astype(np.float64)
+        error = np.stack(served, axis=1).astype(np.float64) - ref
+        moves = body_space_part(engine.bodies(), points, error)
+        stress = error - moves
+        warm = [ref + k * error for k in self.SHRINKS] + [ref + 0.5 * moves + stress, ref + moves + 0.5 * stress]
+        for w in warm:
+            w[:, 0] = np.maximum(w[:, 0], 0.0)  # a part alone can pull; the whole never does
+        return [as_warm_start(w) for w in warm]

@@ -88,6 +88,23 @@ def test_boost_serves_its_warm_start_and_prices_it_with_its_self_stress_scaled()
         make_provider("boost:oracle:near+oracle:half")
 
 
+def test_shrink_steps_as_builtin_and_prices_a_warm_starts_error_scaled_and_split():
+    # W = oracle:half misses half of each correction; against the exact answer its error
+    # shrunk to a quarter takes fewer iterations than W itself, on Builtin's own states.
+    provider = make_provider("shrink:oracle:half+oracle:near")
+    assert provider.labels == ["builtin", "oracle:half", "oracle:near", "oracle:half error x0.75",
+                               "oracle:half error x0.5", "oracle:half error x0.25",
+                               "oracle:half error's body-space part x0.5", "oracle:half error's self-stress x0.5"]
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    served = run_simulation(SHORT, 901, provider)
+    assert served["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
+    trials = np.array(served["trials"])
+    assert trials.shape[1] == 8 and trials[:, 2].max() <= 2  # the reference is the step's answer
+    assert trials[:, 5].sum() < trials[:, 1].sum()
+    with pytest.raises(ValueError, match="its reference"):
+        make_provider("shrink:oracle:half")
+
+
 def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
     # Served here: the solution's body-space part alone (oracle:near-body-space). Brought
     # inside the friction cones by the smallest self-stress, the same motion takes far
