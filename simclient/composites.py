@@ -44,6 +44,12 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  its two parts each halved alone: the part that moves the bodies and the
                  self-stress. With E = oracle:near: how much better must W be, in its own
                  error's shape, and in which part of it?
+    gate:W+E     serves builtin (as price:) and trial-solves W, E, and at each point W or
+                 Box2D's warm start, whichever lies nearer E there (a hard gate), then
+                 Box2D's warm start moved toward W by the share of the way that comes
+                 nearest E at each point (a soft gate, 0 to 1), and the same share taken
+                 for normal and tangent apart. With E = oracle:near: the most any gate
+                 between a model and Box2D's warm start, learned per point, could be worth
     feedback:W   serves W, as W alone would, and trial-solves builtin, W, and W less G times
                  its own error on the previous step at each point that persists (what W served
                  there minus where the solve ended, matched by key), for G in 0.25, 0.5 and 1:
@@ -67,7 +73,7 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft", "feedback", "shrink")
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft", "feedback", "shrink", "gate")
     #: shrink:W+E: the factors W's whole error is priced at.
     SHRINKS = (0.75, 0.5, 0.25)
     #: boost:W: the factors its self-stress part is priced at.
@@ -90,10 +96,11 @@ class Pick(Provider):
         # graft: serve the first, price it with the second's moving bodies' motion;
         # feedback: serve the one candidate, price it less shares of its last step's error
         # shrink: serve builtin, price the first candidate's error against the second scaled, and its parts
+        # gate: serve builtin, price the first candidate gated per point against builtin, judged by the second
         if mode in ("split", "boost", "admit", "feedback") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
-        if mode == "shrink" and len(candidates) != 2:
-            raise ValueError(f"shrink: takes a warm start and its reference, e.g. shrink:server:default+oracle:near, "
+        if mode in ("shrink", "gate") and len(candidates) != 2:
+            raise ValueError(f"{mode}: takes a warm start and its reference, e.g. {mode}:server:default+oracle:near, "
                              f"got {len(candidates)}")
         if mode == "graft" and len(candidates) != 2:
             raise ValueError(f"graft: takes two warm starts, e.g. graft:server:default+server:graph-mse-1-799-moving-rel, "
@@ -128,7 +135,9 @@ class Pick(Provider):
                            f"{first} with {self.candidates[-1].name}'s moving bodies' motion"],
                  "feedback": [f"{first} less {g:g} x its last error" for g in self.FEEDBACKS],
                  "shrink": [f"{first} error x{k:g}" for k in self.SHRINKS]
-                 + [f"{first} error's body-space part x0.5", f"{first} error's self-stress x0.5"]}.get(self.mode, [])
+                 + [f"{first} error's body-space part x0.5", f"{first} error's self-stress x0.5"],
+                 "gate": [f"{first} or builtin, the nearer at each point", f"{first} gated at each point",
+                          f"{first} gated at each point, normal and tangent apart"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -215,11 +224,13 @@ class Pick(Provider):
                 candidates.append(as_warm_start(warm))
         if self.mode == "shrink":
             candidates += self._shrunk(engine, candidates[1], candidates[2], points)
+        if self.mode == "gate":
+            candidates += self._gated(*candidates[:3])
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
         if self.mode in ("shadow", "split", "boost", "admit", "graft", "feedback"):
             return candidates[1]
-        if self.mode in ("price", "shrink"):
+        if self.mode in ("price", "shrink", "gate"):
             return builtin  # the trials left the last candidate's as the step's warm start
         if self.mode == "mean":
             return candidates[-1]
@@ -239,3 +250,17 @@ class Pick(Provider):
         for w in warm:
             w[:, 0] = np.maximum(w[:, 0], 0.0)  # a part alone can pull; the whole never does
         return [as_warm_start(w) for w in warm]
+
+    @staticmethod
+    def _gated(builtin, served, reference) -> list:
+        """gate: Box2D's warm start B moved toward the served one W at each point, judged by the
+        reference E ((P,) each of normal and tangent N s): all the way or not at all, whichever
+        lies nearer E; by the share a in [0, 1] that minimises |B + a (W - B) - E| at the point;
+        and by that share for normal and tangent apart."""
+        b, w, e = (np.stack(x, axis=1).astype(np.float64) for x in (builtin, served, reference))
+        step, want = w - b, e - b  # (P, 2) N s
+        nearer = np.where((np.sum((w - e) ** 2, axis=1) < np.sum(want ** 2, axis=1))[:, None], w, b)
+        length = np.sum(step ** 2, axis=1)
+        share = np.clip(np.sum(step * want, axis=1) / np.where(length > 0, length, 1.0), 0.0, 1.0)
+        apart = np.clip(step * want / np.where(step ** 2 > 0, step ** 2, 1.0), 0.0, 1.0)
+        return [as_warm_start(x) for x in (nearer, b + share[:, None] * step, b + apart * step)]

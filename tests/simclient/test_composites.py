@@ -105,6 +105,30 @@ def test_shrink_steps_as_builtin_and_prices_a_warm_starts_error_scaled_and_split
         make_provider("shrink:oracle:half")
 
 
+def test_gate_steps_as_builtin_and_prices_a_warm_start_gated_per_point_by_a_reference():
+    # W = the answer itself: every gate takes all of W wherever W differs from Box2D's warm start.
+    provider = make_provider("gate:oracle:near+oracle:near")
+    assert provider.labels == ["builtin", "oracle:near", "oracle:near", "oracle:near or builtin, the nearer at each point",
+                               "oracle:near gated at each point", "oracle:near gated at each point, normal and tangent apart"]
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    served = run_simulation(SHORT, 901, provider)
+    assert served["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
+    trials = np.array(served["trials"])
+    assert trials.shape[1] == 6 and trials[:, 1:].max() <= 2
+    with pytest.raises(ValueError, match="its reference"):
+        make_provider("gate:oracle:near")
+
+
+def test_a_gate_moves_builtin_toward_the_warm_start_only_where_that_nears_the_reference():
+    b = (np.array([1.0, 1.0, 0.0]), np.array([0.0, 0.0, 0.0]))  # Box2D's warm start, N s
+    w = (np.array([2.0, 2.0, 1.0]), np.array([0.0, 1.0, 0.0]))  # the model's
+    e = (np.array([1.5, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]))  # the answer
+    nearer, share, apart = (np.column_stack(x) for x in Pick._gated(b, w, e))
+    np.testing.assert_allclose(nearer, [[1, 0], [1, 0], [1, 0]])  # at the first point both lie 0.5 away: builtin
+    np.testing.assert_allclose(share, [[1.5, 0], [1, 0], [1, 0]])
+    np.testing.assert_allclose(apart, [[1.5, 0], [1, 1], [1, 0]])  # the second point's tangent alone moves
+
+
 def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
     # Served here: the solution's body-space part alone (oracle:near-body-space). Brought
     # inside the friction cones by the smallest self-stress, the same motion takes far
