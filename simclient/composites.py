@@ -172,60 +172,16 @@ class Pick(Provider):
 
     def pick(self, engine, points, served: list) -> tuple[np.ndarray, np.ndarray]:
         """The best for this step, by trial solves, of Box2D's warm start and the
-        candidates' (`served`: (normal, tangent) each, or None for Box2D's own)."""
+        candidates' (`served`: (normal, tangent) each, or None for Box2D's own), or, by mode,
+        the one it serves; every trial's iterations are kept in `trials`."""
         builtin = (np.ascontiguousarray(points["builtin"][:, 0]), np.ascontiguousarray(points["builtin"][:, 1]))
         candidates = [builtin] + [builtin if w is None else w for w in served]
-        if self.mode == "mean":
-            normal = np.mean([w[0] for w in candidates[1:]], axis=0, dtype=np.float64)
-            tangent = np.mean([w[1] for w in candidates[1:]], axis=0, dtype=np.float64)
-            candidates.append(as_warm_start(np.stack([normal, tangent], axis=1)))
-        if self.mode == "admit":
-            from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of,
-                                                contact_velocities, nearest_admissible)
-
-            bodies, mu = engine.bodies(), point_friction(self._friction, points)
-            start = np.stack(candidates[0], axis=1).astype(np.float64)
-            served = np.stack(candidates[1], axis=1).astype(np.float64)
-            motion = start + body_space_part(bodies, points, served - start)
-            moving = start + body_space_part_of(bodies, points, served - start, bodies_moving(bodies))
-            physics = Physics(engine.config.dt, tuple(engine.world.gravity))
-            separating = contact_velocities(bodies, points, motion, physics)[:, 0] > SEPARATING_SPEED
-            candidates += [as_warm_start(nearest_admissible(bodies, points, w, mu, o))
-                           for w, o in ((served, None), (motion, None), (motion, separating), (moving, None))]
-            candidates.append(as_warm_start(np.column_stack([np.maximum(moving[:, 0], 0.0), moving[:, 1]])))
-        if self.mode == "graft":
-            from deepcontact.kinematics import bodies_moving, body_space_part_of, nearest_admissible
-
-            bodies = engine.bodies()
-            base, donor = (np.stack(w, axis=1).astype(np.float64) for w in candidates[1:3])
-            grafted = base + body_space_part_of(bodies, points, donor - base, bodies_moving(bodies))
-            candidates += [as_warm_start(nearest_admissible(bodies, points, grafted, point_friction(self._friction, points))),
-                           as_warm_start(np.column_stack([np.maximum(grafted[:, 0], 0.0), grafted[:, 1]]))]
         if self.mode == "feedback":
-            answer = np.stack(candidates[1], axis=1).astype(np.float64)
-            self._answer = None if served[0] is None else (points["key"].copy(), answer)
-            idx, persisting = persisting_rows(self._error_keys, points)
-            for g in self.FEEDBACKS:
-                warm = answer.copy()
-                warm[persisting] -= g * self._error[idx[persisting]]
-                warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-                candidates.append(as_warm_start(warm))
-        if self.mode in ("split", "boost"):
-            from deepcontact.kinematics import body_space_part
-
-            start = np.stack(candidates[0], axis=1).astype(np.float64)
-            correction = np.stack(candidates[1], axis=1).astype(np.float64) - start
-            moves = body_space_part(engine.bodies(), points, correction)
-            stress = correction - moves
-            parts = (moves, stress) if self.mode == "split" else [moves + k * stress for k in self.BOOSTS]
-            for part in parts:
-                warm = start + part
-                warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-                candidates.append(as_warm_start(warm))
-        if self.mode == "shrink":
-            candidates += self._shrunk(engine, candidates[1], candidates[2], points)
-        if self.mode == "gate":
-            candidates += self._gated(*candidates[:3])
+            self._answer = None if served[0] is None else (points["key"].copy(), _stacked(candidates[1]))
+        derive = {"mean": self._mean, "admit": self._admitted, "graft": self._grafted, "feedback": self._less_last_error,
+                  "split": self._parts, "boost": self._parts, "shrink": self._shrunk, "gate": self._gated}.get(self.mode)
+        if derive is not None:
+            candidates += derive(engine, points, candidates)
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
         if self.mode in ("shadow", "split", "boost", "admit", "graft", "feedback"):
@@ -236,31 +192,99 @@ class Pick(Provider):
             return candidates[-1]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
 
-    def _shrunk(self, engine, served, reference, points) -> list:
-        """shrink: the reference plus the served warm start's error against it, (P,) each of
-        normal and tangent N s: scaled whole by each of SHRINKS, then with its body-space part
-        halved and with its self-stress halved (deepcontact.kinematics.body_space_part)."""
-        from deepcontact.kinematics import body_space_part
-
-        ref = np.stack(reference, axis=1).astype(np.float64)
-        error = np.stack(served, axis=1).astype(np.float64) - ref
-        moves = body_space_part(engine.bodies(), points, error)
-        stress = error - moves
-        warm = [ref + k * error for k in self.SHRINKS] + [ref + 0.5 * moves + stress, ref + moves + 0.5 * stress]
-        for w in warm:
-            w[:, 0] = np.maximum(w[:, 0], 0.0)  # a part alone can pull; the whole never does
-        return [as_warm_start(w) for w in warm]
+    # Each mode's derived warm starts, priced after builtin and the candidates. Each takes the
+    # engine (after collide()), the step's point records and the candidates so far (builtin
+    # first; (normal (P,), tangent (P,)) N s each) and returns a list of the same.
 
     @staticmethod
-    def _gated(builtin, served, reference) -> list:
-        """gate: Box2D's warm start B moved toward the served one W at each point, judged by the
-        reference E ((P,) each of normal and tangent N s): all the way or not at all, whichever
-        lies nearer E; by the share a in [0, 1] that minimises |B + a (W - B) - E| at the point;
-        and by that share for normal and tangent apart."""
-        b, w, e = (np.stack(x, axis=1).astype(np.float64) for x in (builtin, served, reference))
+    def _mean(engine, points, candidates) -> list:
+        """mean: the candidates' mean."""
+        return [as_warm_start(np.mean([_stacked(w) for w in candidates[1:]], axis=0))]
+
+    def _admitted(self, engine, points, candidates) -> list:
+        """admit: the candidate made admissible, whole, by its motion, by its motion with the
+        points it pulls apart held open, and by its moving bodies' motion; the last not admitted."""
+        from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of,
+                                            contact_velocities, nearest_admissible)
+
+        bodies, mu = engine.bodies(), point_friction(self._friction, points)
+        start, served = _stacked(candidates[0]), _stacked(candidates[1])
+        motion = start + body_space_part(bodies, points, served - start)
+        moving = start + body_space_part_of(bodies, points, served - start, bodies_moving(bodies))
+        physics = Physics(engine.config.dt, tuple(engine.world.gravity))
+        separating = contact_velocities(bodies, points, motion, physics)[:, 0] > SEPARATING_SPEED
+        return [as_warm_start(nearest_admissible(bodies, points, w, mu, o))
+                for w, o in ((served, None), (motion, None), (motion, separating), (moving, None))] + [_pushing(moving)]
+
+    def _grafted(self, engine, points, candidates) -> list:
+        """graft: the first candidate with the second's motion at the moving bodies, admitted and not."""
+        from deepcontact.kinematics import bodies_moving, body_space_part_of, nearest_admissible
+
+        bodies = engine.bodies()
+        base, donor = _stacked(candidates[1]), _stacked(candidates[2])
+        grafted = base + body_space_part_of(bodies, points, donor - base, bodies_moving(bodies))
+        return [as_warm_start(nearest_admissible(bodies, points, grafted, point_friction(self._friction, points))),
+                _pushing(grafted)]
+
+    def _less_last_error(self, engine, points, candidates) -> list:
+        """feedback: the candidate less each of FEEDBACKS times its error on the previous step at
+        the points that persist."""
+        answer = _stacked(candidates[1])
+        idx, persisting = persisting_rows(self._error_keys, points)
+        warm = []
+        for g in self.FEEDBACKS:
+            w = answer.copy()
+            w[persisting] -= g * self._error[idx[persisting]]
+            warm.append(_pushing(w))
+        return warm
+
+    def _parts(self, engine, points, candidates) -> list:
+        """split: Box2D's warm start plus each part of the candidate's correction alone (the
+        part that moves the bodies, then the self-stress); boost: plus the whole correction
+        with its self-stress scaled by each of BOOSTS."""
+        from deepcontact.kinematics import body_space_part
+
+        start = _stacked(candidates[0])
+        correction = _stacked(candidates[1]) - start
+        moves = body_space_part(engine.bodies(), points, correction)
+        stress = correction - moves
+        parts = (moves, stress) if self.mode == "split" else [moves + k * stress for k in self.BOOSTS]
+        return [_pushing(start + part) for part in parts]
+
+    def _shrunk(self, engine, points, candidates) -> list:
+        """shrink: the reference (the second candidate) plus the first candidate's error against
+        it: scaled whole by each of SHRINKS, then with its body-space part halved and with its
+        self-stress halved (deepcontact.kinematics.body_space_part)."""
+        from deepcontact.kinematics import body_space_part
+
+        ref = _stacked(candidates[2])
+        error = _stacked(candidates[1]) - ref
+        moves = body_space_part(engine.bodies(), points, error)
+        stress = error - moves
+        # a part alone can pull; the whole never does
+        return [_pushing(ref + k * error) for k in self.SHRINKS] + [_pushing(ref + 0.5 * moves + stress),
+                                                                    _pushing(ref + moves + 0.5 * stress)]
+
+    @staticmethod
+    def _gated(engine, points, candidates) -> list:
+        """gate: Box2D's warm start B moved toward the first candidate W at each point, judged by
+        the second, E: all the way or not at all, whichever lies nearer E; by the share a in
+        [0, 1] that minimises |B + a (W - B) - E| at the point; and by that share for normal and
+        tangent apart."""
+        b, w, e = (_stacked(x) for x in candidates[:3])
         step, want = w - b, e - b  # (P, 2) N s
         nearer = np.where((np.sum((w - e) ** 2, axis=1) < np.sum(want ** 2, axis=1))[:, None], w, b)
         length = np.sum(step ** 2, axis=1)
         share = np.clip(np.sum(step * want, axis=1) / np.where(length > 0, length, 1.0), 0.0, 1.0)
         apart = np.clip(step * want / np.where(step ** 2 > 0, step ** 2, 1.0), 0.0, 1.0)
         return [as_warm_start(x) for x in (nearer, b + share[:, None] * step, b + apart * step)]
+
+
+def _stacked(warm) -> np.ndarray:
+    """A warm start (normal (P,), tangent (P,)) N s as one (P, 2) float64 array."""
+    return np.stack(warm, axis=1).astype(np.float64)
+
+
+def _pushing(impulses: np.ndarray):
+    """(P, 2) N s as a warm start with no normal impulse below 0 (a contact only pushes)."""
+    return as_warm_start(np.column_stack([np.maximum(impulses[:, 0], 0.0), impulses[:, 1]]))

@@ -123,7 +123,7 @@ def test_a_gate_moves_builtin_toward_the_warm_start_only_where_that_nears_the_re
     b = (np.array([1.0, 1.0, 0.0]), np.array([0.0, 0.0, 0.0]))  # Box2D's warm start, N s
     w = (np.array([2.0, 2.0, 1.0]), np.array([0.0, 1.0, 0.0]))  # the model's
     e = (np.array([1.5, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]))  # the answer
-    nearer, share, apart = (np.column_stack(x) for x in Pick._gated(b, w, e))
+    nearer, share, apart = (np.column_stack(x) for x in Pick._gated(None, None, [b, w, e]))
     np.testing.assert_allclose(nearer, [[1, 0], [1, 0], [1, 0]])  # at the first point both lie 0.5 away: builtin
     np.testing.assert_allclose(share, [[1.5, 0], [1, 0], [1, 0]])
     np.testing.assert_allclose(apart, [[1.5, 0], [1, 1], [1, 0]])  # the second point's tangent alone moves
