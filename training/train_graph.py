@@ -236,6 +236,32 @@ def _schedule_arguments(parser) -> None:
                              "target channel times its sign under the reflection, the solver's geometry "
                              "reflected): the worlds are symmetric, the network is not built to be")
 
+def _count_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with --train-rounds or --sweeps, or None; sets args.round_counts and
+    args.sweeps (sorted tuples of ints)."""
+    args.round_counts = (args.rounds,)
+    if getattr(args, "train_rounds", None):
+        if not args.tied:
+            return "--train-rounds needs --tied (an untied network has one weight set per round)"
+        try:
+            low, high = (int(x) for x in str(args.train_rounds).split("-"))
+            if not 1 <= low <= high:
+                raise ValueError
+        except ValueError:
+            return f"--train-rounds takes a range of round counts like 4-12, got {args.train_rounds!r}"
+        args.round_counts = tuple(range(low, high + 1))
+    try:
+        args.sweeps = tuple(sorted({int(k) for k in str(args.sweeps).split(",")}))
+        if args.sweeps[0] < 0:
+            raise ValueError
+    except ValueError:
+        return f"--sweeps takes sweep counts >= 0 like 16,64,256, got {args.sweeps!r}"
+    if args.loss == "solver-projected-sweeps" and len(args.sweeps) < 2:
+        return ("--loss solver-projected-sweeps measures Box2D's pace between two --sweeps counts; "
+                f"give two or more, got {args.sweeps}")
+    return None
+
+
 def _argument_problem(args: argparse.Namespace) -> str | None:
     """The first thing wrong with the arguments, in a sentence, or None; sets args.omega
     (its default depends on --order), args.sweeps (a sorted tuple) and args.inputs."""
@@ -263,26 +289,9 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
         return "--epochs, --batch-size, --width, --rounds and --patience must be >= 1"
     if getattr(args, "probes", 0) < 0:
         return f"--probes must be 0 (none) or more, got {args.probes}"
-    args.round_counts = (args.rounds,)
-    if getattr(args, "train_rounds", None):
-        if not args.tied:
-            return "--train-rounds needs --tied (an untied network has one weight set per round)"
-        try:
-            low, high = (int(x) for x in str(args.train_rounds).split("-"))
-            if not 1 <= low <= high:
-                raise ValueError
-        except ValueError:
-            return f"--train-rounds takes a range of round counts like 4-12, got {args.train_rounds!r}"
-        args.round_counts = tuple(range(low, high + 1))
-    try:
-        args.sweeps = tuple(sorted({int(k) for k in str(args.sweeps).split(",")}))
-        if args.sweeps[0] < 0:
-            raise ValueError
-    except ValueError:
-        return f"--sweeps takes sweep counts >= 0 like 16,64,256, got {args.sweeps!r}"
-    if args.loss == "solver-projected-sweeps" and len(args.sweeps) < 2:
-        return ("--loss solver-projected-sweeps measures Box2D's pace between two --sweeps counts; "
-                f"give two or more, got {args.sweeps}")
+    problem = _count_problem(args)
+    if problem:
+        return problem
     extra = tuple(n for n in str(args.extra_inputs).split(",") if n)
     bad = [n for n in extra if n not in CHANNELS or CHANNELS[n].source != "contacts" or n in GRAPH_INPUTS]
     if bad or len(set(extra)) != len(extra):
@@ -742,11 +751,11 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     batch_loss = BatchLoss(net, args, scaling, residual_scales, spec.inputs, spec.targets)
     describe = _CardParts(spec, args, command=command, read_seconds=read_seconds, sources=sources,
                           val_sources=val_sources, train=train, val=val)
-    checkpoint = None
-    if getattr(args, "checkpoints", None) is not None:
-        def checkpoint(epoch: int, fitted_so_far: "Fitted") -> None:
-            _write_checkpoint(net, epoch, fitted_so_far, describe, scaling, val)
-    fitted, validate = _train(net, train, val, args, scaling, batch_loss, on_epoch=checkpoint)
+    def checkpoint(epoch: int, fitted_so_far: "Fitted") -> None:
+        _write_checkpoint(net, epoch, fitted_so_far, describe, scaling, val)
+    keep_epochs = getattr(args, "checkpoints", None) is not None
+    fitted, validate = _train(net, train, val, args, scaling, batch_loss,
+                              on_epoch=checkpoint if keep_epochs else None)
     return _write(net, fitted, validate, describe, scaling, val)
 
 
