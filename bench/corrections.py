@@ -14,7 +14,10 @@ Per group: points; RMS of the solver's correction (Builtin's error); RMS error
 of the served warm start; the share of points where a correction is served
 (non-zero); and, among those, the share whose sign agrees with the solver's
 (0.5 is a coin toss) and the share within half the solver's correction of it
-(what the oracles say a warm start needs to pay).
+(what the oracles say a warm start needs to pay). Pooled over the points: the
+share of the solver's squared correction explained, the least-squares scale of
+the served correction on the solver's (below 1: a shrunk answer) and their
+correlation (`fit_of`).
 
 `--reference oracle` compares with the step solved from zero to convergence
 instead (files from `generate --oracle`): the recorded solve stops at 1e-4 N s
@@ -152,6 +155,19 @@ def _part(bodies: np.ndarray, points: np.ndarray, correction: np.ndarray, part: 
     return (moves if part == "body-space" else correction - moves)[:, 0]
 
 
+def fit_of(served: np.ndarray, solver: np.ndarray) -> dict[str, float]:
+    """How the served corrections (P,) N s fit the solver's (P,) N s, pooled over points:
+    `explained` (1 - error^2 / correction^2), `scale` (the least-squares s in
+    served ~ s * solver: below 1 a shrunk answer, as a squared-error fit of an uncertain
+    target gives) and their `correlation` (nan where either is constant)."""
+    served, solver = np.asarray(served, np.float64), np.asarray(solver, np.float64)
+    size = max(float(np.sum(solver ** 2)), 1e-30)
+    spread = float(np.sqrt(np.sum(served ** 2) * size))
+    return {"explained": 1.0 - float(np.sum((served - solver) ** 2)) / size,
+            "scale": float(np.sum(served * solver)) / size,
+            "correlation": float(np.sum(served * solver)) / spread if spread > 0 else float("nan")}
+
+
 def replay(predictors, path: Path, max_steps: int, reference: str = "final", agree: float | None = None,
            part: str = "whole") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """(served, solver, new, where): the served and the solver's normal correction and the new-point
@@ -237,11 +253,12 @@ def run(args: argparse.Namespace) -> int:
         sign, half = ("–" if r[k] is None else f"{r[k]:.2f}" for k in ("sign_agreement", "within_half"))
         print(f"| {r['group']} | {r['points']} | {r['rms_correction']:.3g} | {r['rms_error']:.3g} | "
               f"{r['served_share']:.2f} | {sign} | {half} |")
-    explained = 1.0 - float(np.sum((served - solver) ** 2) / max(float(np.sum(solver ** 2)), 1e-30))
-    print(f"\nExplained: {explained:.3f} of the solver's squared correction (1 - error^2 / correction^2, "
-          f"{_rms(solver):.3g} N s RMS over {len(solver)} points)")
+    fit = fit_of(served, solver)
+    print(f"\nExplained: {fit['explained']:.3f} of the solver's squared correction (1 - error^2 / correction^2, "
+          f"{_rms(solver):.3g} N s RMS over {len(solver)} points); served = {fit['scale']:.3f} x the solver's "
+          f"+ the rest (least squares), correlation {fit['correlation']:.3f}")
     if args.json:
         write_json_atomic(args.json, {"model": args.model, "data": str(args.data), "reference": args.reference,
                                       "agree": args.agree, "where": args.where, "part": args.part, "points": total,
-                                      "explained": explained, "rows": rows})
+                                      **fit, "rows": rows})
     return 0

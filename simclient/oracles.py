@@ -59,6 +59,9 @@ start's value lies (docs/results.md). Not servable: each solves the step first.
                         each point and taken to body space (seeded), then admitted as above
     oracle:near-admissible-abs@S  the same with noise of S N s at each point, whatever the step's
                         correction: a model's error, which is not scaled to each step's own
+    oracle:near-admissible-scaled@S  oracle:near-admissible from the motion's correction times S (no
+                        noise): a motion right in direction and wrong in size, as a regression's
+                        shrunk answer is (S < 1)
 """
 
 from __future__ import annotations
@@ -79,7 +82,7 @@ ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES"
            "near-body-space", "near-self-stress", "near-previous", "near-release", "near-switch", "near-cone",
            "near-inside", "near-admissible", "near-admissible-open", "near-admissible-separating", "near-admissible-moving",
            "near-admissible-settled", "near-admissible@R",
-           "near-admissible-abs@S")
+           "near-admissible-abs@S", "near-admissible-scaled@S")
 #: Oracle variants that take a parameter after "@", and what it is.
 _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "small": "a correction size in N s, e.g. oracle:small@1",
@@ -88,7 +91,8 @@ _ORACLE_PARAMETERS = {"grid": "a grid spacing in m, e.g. oracle:grid@0.5",
                       "relnoisy": "a noise level relative to the correction, e.g. oracle:relnoisy@0.5",
                       "some": "a share of the points, 0 < F <= 1, e.g. oracle:some@0.5",
                       "near-admissible": "a noise level relative to the motion, e.g. oracle:near-admissible@0.5",
-                      "near-admissible-abs": "a noise level in N s, e.g. oracle:near-admissible-abs@0.2"}
+                      "near-admissible-abs": "a noise level in N s, e.g. oracle:near-admissible-abs@0.2",
+                      "near-admissible-scaled": "a scale of the motion, e.g. oracle:near-admissible-scaled@0.8"}
 #: oracle:near-admissible-separating: a point whose normal velocity after the motion is above this (m/s) lets go;
 #: a thousandth of a metre a second, ten times what the stopping rule's 1e-4 N s leaves at a point of about 1 kg.
 SEPARATING_SPEED = 1e-3
@@ -213,7 +217,9 @@ def _admissible(o: OracleMix, s: _Solved) -> np.ndarray:
     elif o.mix == "admissible-separating":
         physics = Physics(s.engine.config.dt, tuple(s.engine.world.gravity))
         released = contact_velocities(b, p, s.builtin + moves, physics)[:, 0] > SEPARATING_SPEED
-    if o.value:  # oracle:near-admissible@R, oracle:near-admissible-abs@S
+    if o.mix == "admissible-scaled":
+        moves = o.value * moves
+    elif o.value:  # oracle:near-admissible@R, oracle:near-admissible-abs@S
         size = 1.0 if o.mix == "admissible-abs" else np.sqrt(np.mean(moves ** 2))
         moves = body_space_part(b, p, moves + o._rng.normal(0.0, o.value * size, moves.shape))
     return nearest_admissible(b, p, s.builtin + moves, point_friction(o._friction, p), released)
@@ -262,7 +268,7 @@ _MIXES: dict[str, Mix] = {
     "cone": _exact_where(_at_cone),
     "inside": _exact_where(lambda o, s: ~_at_cone(o, s)),
     **{v: _admissible for v in ("admissible", "admissible-open", "admissible-separating", "admissible-abs",
-                                "admissible-moving", "admissible-settled")},
+                                "admissible-scaled", "admissible-moving", "admissible-settled")},
 }
 
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from bench.corrections import band_table, lost_contact
+from bench.corrections import band_table, fit_of, lost_contact
 from deepcontact.channels import Step
 from deepcontact.cli import main
 from deepcontact.kinematics import BODY_DYNAMIC
@@ -135,9 +135,21 @@ def test_bench_corrections_splits_each_correction_into_the_part_that_moves_the_b
         tables[part] = json.loads(out.read_text())
         assert tables[part]["part"] == part
         assert tables[part]["explained"] == 1.0  # the recorded solve's end, exact in every part
+        assert tables[part]["scale"] == pytest.approx(1.0) and tables[part]["correlation"] == pytest.approx(1.0)
     rms = {part: {r["group"]: r["rms_correction"] for r in t["rows"]}["persisting, all"] for part, t in tables.items()}
     assert 0.0 < rms["self-stress"] < rms["whole"]  # a pile has a self-stress, a share of the correction
     assert "self-stress part of each correction" in capsys.readouterr().out
     assert main(["bench", "corrections", "--models", str(model_dir), "--model", "recorded,recorded", "--agree", "0.2",
                  "--part", "self-stress", "--data", str(data)]) == 2
     assert "leave out --part" in capsys.readouterr().err
+
+
+def test_fit_of_reads_a_shrunk_answer_as_its_scale():
+    rng = np.random.default_rng(0)
+    solver = rng.normal(0.0, 0.3, 10_000)  # N s
+    fit = fit_of(0.7 * solver, solver)  # right in direction, 70 % of the size
+    assert fit["scale"] == pytest.approx(0.7) and fit["correlation"] == pytest.approx(1.0)
+    assert fit["explained"] == pytest.approx(1 - 0.3 ** 2)
+    noisy = fit_of(solver + rng.normal(0.0, 0.3, solver.shape), solver)  # unbiased noise as large as the answer
+    assert noisy["scale"] == pytest.approx(1.0, abs=0.05) and noisy["explained"] == pytest.approx(0.0, abs=0.05)
+    assert np.isnan(fit_of(np.zeros(3), np.ones(3))["correlation"])

@@ -97,9 +97,29 @@ def test_probe_warm_starts_check_their_parameter():
     for name, match in (("lastchange@x", "factor"), ("solve@0", "iterations"), ("oracle:small@0", "correction size"),
                         ("oracle:noisy@-1", "noise level"), ("oracle:some@1.5", "share of the points"),
                         ("oracle:near-admissible@0", "relative to the motion"),
-                        ("oracle:near-admissible-abs@-1", "noise level in N s")):
+                        ("oracle:near-admissible-abs@-1", "noise level in N s"),
+                        ("oracle:near-admissible-scaled@0", "scale of the motion")):
         with pytest.raises(ValueError, match=match):
             make_provider(name)
+
+
+def test_the_scaled_motion_oracle_at_scale_one_is_the_exact_motion_admitted():
+    # oracle:near-admissible-scaled@S admits S times the solution's motion: at S = 1 the plain
+    # oracle, at S = 0.5 a start between it and Box2D's warm start, inside the cones either way.
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+
+    def served(name):
+        provider = make_provider(name)
+        provider.prepare(engine)
+        return np.stack(provider.warm_start(engine, bodies, points, engine.step_index), axis=1).astype(np.float64)
+
+    exact, whole, half = (served(n) for n in ("oracle:near-admissible", "oracle:near-admissible-scaled@1",
+                                              "oracle:near-admissible-scaled@0.5"))
+    np.testing.assert_allclose(whole, exact, atol=1e-6)
+    assert (half[:, 0] >= 0).all() and (np.abs(half[:, 1]) <= 0.5 * half[:, 0] + 1e-6).all()  # friction 0.5
+    assert not np.allclose(half, exact, atol=1e-3)
 
 
 def test_rest_admissible_brings_the_slow_bodies_to_rest_inside_the_cones():
