@@ -59,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "keeps the cheapest each step, price:W1+W2+... serves builtin and prices W1, W2... on its "
                              "states (the same in every run: checkpoints and models compared apart), split:W serves W and prices "
                              "the part of its correction that moves the bodies and the self-stress apart, boost:W prices W with its "
-                             "self-stress part scaled, admit:W prices W moved inside the friction cones by a self-stress, graft:W1+W2 "
+                             "self-stress part scaled, admit:W prices W moved inside the friction cones by a self-stress, motion:W prices W's "
+                             "motion scaled and admitted, graft:W1+W2 "
                              "prices W1 with W2's moving bodies' motion, feedback:W prices W less shares of its previous step's error, "
                              "shrink:W+E serves builtin and prices W's error against E (e.g. oracle:near) scaled and its two parts halved, "
                              "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E; "
@@ -157,7 +158,7 @@ STAR = "server:*"
 def expand_served(names: list[str], target: str) -> list[str]:
     """`server:*` as every model the server at `target` serves (not its built-in providers such
     as zero or grid-identity), in natural order (NAME-e2 before NAME-e10): a top-level entry
-    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/graft:/feedback:/shrink:/gate: one candidate per model.
+    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate: one candidate per model.
     Raises ConnectionError when the server is away, ValueError when it serves no model."""
     import re
 
@@ -324,7 +325,8 @@ def pick_table(picks: dict) -> str:
     lines = []
     for name, p in picks.items():
         whose = {"shadow:": "the first candidate's", "split:": "the first candidate's", "boost:": "the first candidate's",
-                 "admit:": "the first candidate's", "graft:": "the first candidate's",
+                 "admit:": "the first candidate's", "motion:": "the first candidate's",
+                 "graft:": "the first candidate's",
                  "feedback:": "the first candidate's", "mean:": "the mean's",
                  "price:": "Builtin's", "shrink:": "Builtin's", "gate:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "

@@ -35,6 +35,11 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  and builtin plus W's motion at the moving bodies only, Box2D's at the others,
                  admitted (oracle:near-admissible-moving's split), and the same not admitted
                  (normal impulses clamped at 0 only): does the admission pay, or the split?
+    motion:W     serves W, as W alone would, and trial-solves builtin, W, and builtin plus W's
+                 motion (its body-space correction) times 1, 1.25 and 1.5, admitted, then the same
+                 for W's motion at the moving bodies only (Box2D's at the others): the exact
+                 motion admitted pays more a quarter too large than a quarter too small
+                 (oracle:near-admissible-scaled@S), so is a model's motion short in size?
     graft:W1+W2  serves W1, as W1 alone would, and trial-solves builtin, W1, W2, and W1 with W2's
                  motion at the moving bodies (W1 plus the least-norm change that moves them as W2
                  does and no other body), admitted and not: one model's self-stress and resting
@@ -73,11 +78,14 @@ class Pick(Provider):
 
     picks = True
 
-    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "graft", "feedback", "shrink", "gate")
+    MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "motion", "graft", "feedback", "shrink",
+             "gate")
     #: shrink:W+E: the factors W's whole error is priced at.
     SHRINKS = (0.75, 0.5, 0.25)
     #: boost:W: the factors its self-stress part is priced at.
     BOOSTS = (0.5, 1.5, 2.0, 3.0)
+    #: motion:W: the factors its motion is admitted at.
+    MOTION_SCALES = (1.0, 1.25, 1.5)
     #: feedback:W: the shares of its previous step's error it is priced less.
     FEEDBACKS = (0.25, 0.5, 1.0)
     PREFIXES = tuple(f"{m}:" for m in MODES)
@@ -93,11 +101,12 @@ class Pick(Provider):
         # split: serve the one candidate, price it and the two parts of its correction;
         # boost: serve the one candidate, price it with its self-stress part scaled;
         # admit: serve the one candidate, price it and its admissible forms;
+        # motion: serve the one candidate, price its motion scaled and admitted;
         # graft: serve the first, price it with the second's moving bodies' motion;
         # feedback: serve the one candidate, price it less shares of its last step's error
         # shrink: serve builtin, price the first candidate's error against the second scaled, and its parts
         # gate: serve builtin, price the first candidate gated per point against builtin, judged by the second
-        if mode in ("split", "boost", "admit", "feedback") and len(candidates) != 1:
+        if mode in ("split", "boost", "admit", "motion", "feedback") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
         if mode in ("shrink", "gate") and len(candidates) != 2:
             raise ValueError(f"{mode}: takes a warm start and its reference, e.g. {mode}:server:default+oracle:near, "
@@ -131,6 +140,8 @@ class Pick(Provider):
                  "admit": [f"{first} admissible", f"{first} body-space admissible",
                            f"{first} body-space admissible, separating open",
                            f"{first} moving bodies' motion admissible", f"{first} moving bodies' motion"],
+                 "motion": [f"{first} motion x{k:g} admissible" for k in self.MOTION_SCALES]
+                 + [f"{first} moving bodies' motion x{k:g} admissible" for k in self.MOTION_SCALES],
                  "graft": [f"{first} with {self.candidates[-1].name}'s moving bodies' motion admissible",
                            f"{first} with {self.candidates[-1].name}'s moving bodies' motion"],
                  "feedback": [f"{first} less {g:g} x its last error" for g in self.FEEDBACKS],
@@ -178,13 +189,13 @@ class Pick(Provider):
         candidates = [builtin] + [builtin if w is None else w for w in served]
         if self.mode == "feedback":
             self._answer = None if served[0] is None else (points["key"].copy(), _stacked(candidates[1]))
-        derive = {"mean": self._mean, "admit": self._admitted, "graft": self._grafted, "feedback": self._less_last_error,
+        derive = {"mean": self._mean, "admit": self._admitted, "motion": self._scaled_motion, "graft": self._grafted, "feedback": self._less_last_error,
                   "split": self._parts, "boost": self._parts, "shrink": self._shrunk, "gate": self._gated}.get(self.mode)
         if derive is not None:
             candidates += derive(engine, points, candidates)
         iterations = [engine.trial(*w) for w in candidates]
         self.trials.append(iterations)
-        if self.mode in ("shadow", "split", "boost", "admit", "graft", "feedback"):
+        if self.mode in ("shadow", "split", "boost", "admit", "motion", "graft", "feedback"):
             return candidates[1]
         if self.mode in ("price", "shrink", "gate"):
             return builtin  # the trials left the last candidate's as the step's warm start
@@ -215,6 +226,19 @@ class Pick(Provider):
         separating = contact_velocities(bodies, points, motion, physics)[:, 0] > SEPARATING_SPEED
         return [as_warm_start(nearest_admissible(bodies, points, w, mu, o))
                 for w, o in ((served, None), (motion, None), (motion, separating), (moving, None))] + [_pushing(moving)]
+
+    def _scaled_motion(self, engine, points, candidates) -> list:
+        """motion: Box2D's warm start plus the candidate's motion times each of MOTION_SCALES,
+        admitted; then its moving bodies' motion the same way."""
+        from deepcontact.kinematics import bodies_moving, body_space_part, body_space_part_of, nearest_admissible
+
+        bodies, mu = engine.bodies(), point_friction(self._friction, points)
+        start = _stacked(candidates[0])
+        correction = _stacked(candidates[1]) - start
+        motions = (body_space_part(bodies, points, correction),
+                   body_space_part_of(bodies, points, correction, bodies_moving(bodies)))
+        return [as_warm_start(nearest_admissible(bodies, points, start + k * m, mu))
+                for m in motions for k in self.MOTION_SCALES]
 
     def _grafted(self, engine, points, candidates) -> list:
         """graft: the first candidate with the second's motion at the moving bodies, admitted and not."""

@@ -150,6 +150,25 @@ def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
         make_provider("admit:oracle:near+oracle:half")
 
 
+def test_motion_serves_its_warm_start_and_prices_its_motion_scaled_and_admitted():
+    # Served: the solution's motion alone (oracle:near-body-space). Its motion admitted at its own
+    # size is the exact motion admitted, far fewer iterations than the motion served bare; too
+    # large, it is another start (on this forming pile, a costlier one).
+    provider = make_provider("motion:oracle:near-body-space")
+    w = "oracle:near-body-space"
+    assert provider.labels == ["builtin", w, *(f"{w} motion x{k} admissible" for k in ("1", "1.25", "1.5")),
+                               *(f"{w} moving bodies' motion x{k} admissible" for k in ("1", "1.25", "1.5"))]
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    trials = np.array(served["trials"])
+    assert trials[:, 1].tolist() == its  # serves the warm start itself
+    assert trials.shape[1] == 8 and trials.min() >= 1
+    assert trials[:, 2].sum() < 0.8 * trials[:, 1].sum()
+    assert trials[:, 3].tolist() != trials[:, 2].tolist()
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("motion:oracle:near+oracle:half")
+
+
 def test_graft_serves_the_first_and_prices_it_with_the_seconds_moving_bodies_motion():
     # The base has the solution's motion at the resting bodies only (oracle:near-admissible-settled),
     # the donor at every body (oracle:near-body-space). The donor's moving bodies' motion grafted
