@@ -153,7 +153,7 @@ def test_admit_serves_its_warm_start_and_prices_its_admissible_forms():
 def test_motion_serves_its_warm_start_and_prices_its_motion_scaled_and_admitted():
     # Served: the solution's motion alone (oracle:near-body-space). Its motion admitted at its own
     # size is the exact motion admitted, far fewer iterations than the motion served bare; too
-    # large, it is another start (on this forming pile, a costlier one).
+    # large, it is another start.
     provider = make_provider("motion:oracle:near-body-space")
     w = "oracle:near-body-space"
     assert provider.labels == ["builtin", w, *(f"{w} motion x{k} admissible" for k in ("1", "1.25", "1.5")),
