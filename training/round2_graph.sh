@@ -101,6 +101,12 @@
 #                              (training.ensemble --mirror), against the default served so (-r8-mirror)
 #   graph-projected-max-1-799-r8-e9-reflect-sym  the same from graph-mse-1-799-r8-e9-reflect's
 #                              weights (served as -r8-e9-reflect-sym-mirror): both uses of the symmetry
+#   graph-mse-1-799-r8-reflect6  graph-mse-1-799-r8's six epochs from random weights with half
+#                              their steps reflected left to right from the start (--mirror-augment;
+#                              the default's start saw reflected steps only in its last three);
+#                              about 70 min on two AVX2 cores
+#   graph-projected-max-1-799-r8-reflect6-sym  the default's symmetric stopping-rule stage from
+#                              graph-mse-1-799-r8-reflect6's weights (served as -mirror)
 #   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
 #                              the width that gained per state at three rounds, at the default's
 #                              eight; 6 epochs, 20-24 min each on two AVX2 cores (stopped after
@@ -388,6 +394,14 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
                 --mirror-augment --init runs/graph-cache/graph-mse-1-799-r8-e9-reflect.weights.npz ;;
+        graph-mse-1-799-r8-reflect6)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 8 --epochs 6 --patience 3 --mirror-augment ;;
+        graph-projected-max-1-799-r8-reflect6-sym)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --max-steps-per-file 3000 --epochs 2 --lr 5e-4 \
+                --symmetric --init runs/graph-cache/graph-mse-1-799-r8-reflect6.weights.npz
+            "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror" ;;
         graph-projected-max-1-799-r8-sym|graph-projected-max-1-799-r8-e9-reflect-sym)
             local start=graph-mse-1-799-r8
             [ "$1" = graph-projected-max-1-799-r8-e9-reflect-sym ] && start=graph-mse-1-799-r8-e9-reflect
