@@ -104,7 +104,7 @@
 #   graph-mse-1-799-r8-reflect6  graph-mse-1-799-r8's six epochs from random weights with half
 #                              their steps reflected left to right from the start (--mirror-augment;
 #                              the default's start saw reflected steps only in its last three);
-#                              about 70 min on two AVX2 cores
+#                              about 67 min on two AVX-512 cores
 #   graph-projected-max-1-799-r8-reflect6-sym  the default's symmetric stopping-rule stage from
 #                              graph-mse-1-799-r8-reflect6's weights (served as -mirror)
 #   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
