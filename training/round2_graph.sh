@@ -264,7 +264,9 @@ ASINH=vn_builtin_asinh,vt_builtin_asinh,jacobi_normal_asinh,jacobi_tangent_asinh
 variant() {  # NAME TRAIN-GRAPH-ARGS...
     local name=$1; shift
     SECONDS=0
-    "$DC" train-graph "${DATA[@]}" --out "$OUT/$name.onnx" "$@"
+    # A run stopped (a session's end, a kill) goes on from its last finished epoch when the recipe
+    # is run again, to the same weights; its state is removed once the model is written.
+    "$DC" train-graph "${DATA[@]}" --out "$OUT/$name.onnx" --resume "runs/resume/$name.state.npz" "$@"
     echo "$name: trained and exported in ${SECONDS} s"
 }
 

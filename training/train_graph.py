@@ -73,6 +73,10 @@ class WeightsMismatch(ValueError):
     """--init names the weights of another network."""
 
 
+class ResumeMismatch(ValueError):
+    """--resume names the state of a run with other arguments."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The command's arguments, in groups that --help lists apart."""
     for title, add in (("data and outputs", _data_arguments), ("the network and what it serves", _network_arguments),
@@ -231,6 +235,11 @@ def _schedule_arguments(parser) -> None:
                         help="start from these weights (the .weights.npz an earlier run left in --cache) instead of "
                              "random ones, for more epochs on a new schedule; same --width and --rounds, and the same "
                              "--train files, whose mean and std the weights were trained against")
+    parser.add_argument("--resume", type=Path, metavar="STATE",
+                        help="after every epoch write the run's state (the weights, Adam's moments, the step "
+                             "order's random state, the history) to this .npz, and if it exists when the run "
+                             "starts, go on after the epoch it holds: a run stopped and started again with the same "
+                             "arguments reaches the weights of one never stopped. Removed once the model is written")
     parser.add_argument("--mirror-augment", action="store_true",
                         help="reflect each training step left to right with probability 1/2 (every input and "
                              "target channel times its sign under the reflection, the solver's geometry "
@@ -342,7 +351,7 @@ def run(args: argparse.Namespace) -> int:
     except TrainingDiverged as exc:
         print(f"train-graph: {exc}", file=sys.stderr)
         return 1
-    except WeightsMismatch as exc:
+    except (WeightsMismatch, ResumeMismatch) as exc:
         print(f"train-graph: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}: validation loss "
@@ -724,6 +733,7 @@ class Fitted:
     history: list  # [epoch, mean training loss, validation loss] per epoch
     stop_reason: str
     seconds: float
+    resumed_after: list = dataclasses.field(default_factory=list)  # the epochs a --resume went on after
 
 
 def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_seconds: float,
@@ -756,7 +766,10 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     keep_epochs = getattr(args, "checkpoints", None) is not None
     fitted, validate = _train(net, train, val, args, scaling, batch_loss,
                               on_epoch=checkpoint if keep_epochs else None)
-    return _write(net, fitted, validate, describe, scaling, val)
+    card = _write(net, fitted, validate, describe, scaling, val)
+    if getattr(args, "resume", None) is not None:
+        Path(args.resume).unlink(missing_ok=True)  # the run is done: a new one with these arguments starts over
+    return card
 
 
 def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
@@ -869,8 +882,14 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     total_steps = args.epochs * len(batches)
     fitted = Fitted(net.weights(), np.inf, 0, [], "epochs", 0.0)
     t0 = time.perf_counter()
-    done = 0
-    for epoch in range(1, args.epochs + 1):
+    done, first, earlier_seconds = 0, 1, 0.0
+    resume = getattr(args, "resume", None)
+    if resume is not None and Path(resume).exists():
+        first, done, earlier_seconds = _restore(Path(resume), args, net, optimizer, rng, fitted)
+        if not args.quiet:
+            print(f"resuming from {resume} after epoch {first - 1} of {args.epochs} (delete it to start over)",
+                  file=sys.stderr, flush=True)
+    for epoch in range(first, args.epochs + 1):
         bar = None if args.quiet else _bar(len(batches), f"epoch {epoch}")
         losses = []
         for j in rng.permutation(len(batches)):  # loop over batches of steps
@@ -901,9 +920,64 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
             on_epoch(epoch, fitted)
         if epoch - fitted.epoch >= args.patience:
             fitted.stop_reason = f"no better validation loss for {args.patience} epochs"
+        if resume is not None:
+            _save_state(Path(resume), args, net, optimizer, rng, fitted, epoch, done,
+                        earlier_seconds + time.perf_counter() - t0)
+        if fitted.stop_reason != "epochs":
             break
-    fitted.seconds = time.perf_counter() - t0
+    fitted.seconds = earlier_seconds + time.perf_counter() - t0
     return fitted, validate
+
+
+# What a resumed run may change: where it reports, and where it keeps its state.
+_RESUME_FREE = ("resume", "quiet")
+
+
+def _settings(args) -> dict:
+    """The arguments a resumed run must share with the run that wrote its state, as JSON reads them back."""
+    return json.loads(json.dumps({k: v for k, v in sorted(vars(args).items())
+                                  if k not in _RESUME_FREE and not callable(v)}, default=str))
+
+
+def _save_state(path: Path, args, net, optimizer, rng: np.random.Generator, fitted: Fitted, epoch: int,
+                done: int, seconds: float) -> None:
+    """Everything the loop needs to go on after `epoch`, in one .npz written under a temporary name:
+    the weights now and the best epoch's, Adam's variables (its step count and moments, in
+    optimizer.variables' order), the step order's generator state, and the history."""
+    meta = {"settings": _settings(args), "epoch": epoch, "done": done, "seconds": seconds,
+            "rng": rng.bit_generator.state, "best_loss": fitted.loss, "best_epoch": fitted.epoch,
+            "history": fitted.history, "stop_reason": fitted.stop_reason, "resumed_after": fitted.resumed_after}
+    arrays = {f"net/{k}": v for k, v in net.weights().items()}
+    arrays |= {f"best/{k}": v for k, v in fitted.weights.items()}
+    arrays |= {f"adam/{i}": v.numpy() for i, v in enumerate(optimizer.variables)}
+    _save_npz(path, {**arrays, "meta": np.array(json.dumps(meta))})
+
+
+def _restore(path: Path, args, net, optimizer, rng: np.random.Generator, fitted: Fitted) -> tuple[int, int, float]:
+    """Load what _save_state wrote into the network, the optimizer, the generator and `fitted`;
+    returns (the first epoch still to run, optimizer steps taken, training seconds so far)."""
+    with np.load(path, allow_pickle=False) as f:
+        meta = json.loads(str(f["meta"]))
+        arrays = {k: f[k] for k in f.files if k != "meta"}
+    ours, theirs = _settings(args), meta["settings"]
+    differ = sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
+    if differ:
+        raise ResumeMismatch(f"{path} holds a run with other arguments (" +
+                             ", ".join(f"--{k.replace('_', '-')} {theirs.get(k)!r} there" for k in differ) +
+                             "): pass them as they were, or delete it to start over")
+    for k, v in net.variables.items():
+        v.assign(arrays[f"net/{k}"])
+    optimizer.build(net.trainable)
+    for i, v in enumerate(optimizer.variables):
+        v.assign(arrays[f"adam/{i}"])
+    rng.bit_generator.state = meta["rng"]
+    fitted.weights = {k[len("best/"):]: v for k, v in arrays.items() if k.startswith("best/")}
+    fitted.loss, fitted.epoch, fitted.history = meta["best_loss"], meta["best_epoch"], meta["history"]
+    fitted.stop_reason = meta["stop_reason"]
+    fitted.resumed_after = [*meta["resumed_after"], meta["epoch"]]
+    # A run the patience had stopped has nothing left to train.
+    first = meta["epoch"] + 1 if fitted.stop_reason == "epochs" else args.epochs + 1
+    return first, meta["done"], meta["seconds"]
 
 
 @dataclasses.dataclass
@@ -958,6 +1032,7 @@ class _CardParts:
                          if getattr(args, "second_pass", None) is not None else {}),
                       "lr_schedule": "cosine", "epochs_run": len(fitted.history), "best_epoch": fitted.epoch,
                       "stop_reason": fitted.stop_reason, "train_seconds": round(fitted.seconds, 1),
+                      **({"resumed_after_epochs": fitted.resumed_after} if fitted.resumed_after else {}),
                       "read_seconds": round(self.read_seconds, 1), "history": list(fitted.history),
                       "machine": machine.describe(), **training},
             validation={**validation, "points": int(sum(len(g.targets) for g in self.val))},

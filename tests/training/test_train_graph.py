@@ -530,6 +530,50 @@ def test_a_graph_model_refuses_requests_without_the_points_bodies(graph_models, 
     assert "each point's two bodies" in err.value.details()
 
 
+def test_a_run_stopped_mid_epoch_and_resumed_reaches_the_weights_of_one_never_stopped(data, tmp_path, monkeypatch,
+                                                                                      capsys):
+    from training import train_graph
+
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "3",
+              "--batch-size", "4", "--width", "8", "--rounds", "2", "--loss", "mse", "--mirror-augment",
+              "--cache", str(tmp_path / "cache"), "--quiet"]
+    assert main(common + ["--out", str(tmp_path / "whole.onnx")]) == 0
+
+    class Killed(Exception):
+        pass
+
+    # Killed in the second epoch, after one of its updates: that update is lost, epoch 1 is not.
+    saved, batches = [], []
+    save_state, batch = train_graph._save_state, train_graph.Scaling.batch
+    monkeypatch.setattr(train_graph, "_save_state", lambda *a: (save_state(*a), saved.append(a[6])))
+    def batch_until_killed(self, *a, **k):
+        if saved:
+            batches.append(1)
+            if len(batches) == 2:
+                raise Killed
+        return batch(self, *a, **k)
+    monkeypatch.setattr(train_graph.Scaling, "batch", batch_until_killed)
+    state = tmp_path / "resume" / "run.state.npz"
+    run = common + ["--out", str(tmp_path / "resumed.onnx"), "--resume", str(state)]
+    with pytest.raises(Killed):
+        main(run)
+    assert saved == [1] and state.exists() and not (tmp_path / "resumed.onnx").exists()
+    monkeypatch.undo()
+
+    # Started again with other arguments, it says which and leaves the state alone.
+    assert main([a if a != "mse" else "relative" for a in run]) == 2
+    assert "--loss 'mse' there" in capsys.readouterr().err and state.exists()
+
+    assert main(run) == 0
+    whole, resumed = (np.load(tmp_path / "cache" / f"{n}.weights.npz") for n in ("whole", "resumed"))
+    assert whole.files == resumed.files
+    for k in whole.files:
+        np.testing.assert_array_equal(resumed[k], whole[k], err_msg=k)
+    cards = [json.loads((tmp_path / f"{n}.json").read_text())["training"] for n in ("whole", "resumed")]
+    assert cards[1]["history"] == cards[0]["history"] and cards[1]["resumed_after_epochs"] == [1]
+    assert not state.exists()  # done: the same command now starts a new run
+
+
 def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins_states(data, tmp_path):
     checkpoints = tmp_path / "epochs"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"),
