@@ -109,8 +109,9 @@
 #                              graph-mse-1-799-r8-reflect6's weights (served as -mirror)
 #   graph-mse-1-799-w64-r8     graph-mse-1-799-r8 at twice the width (64 features per point):
 #                              the width that gained per state at three rounds, at the default's
-#                              eight; 6 epochs, 20-24 min each on two AVX2 cores (stopped after
-#                              3 once: docs/results.md, "Not done in round 2")
+#                              eight; 6 epochs, 20-24 min each on two AVX2 cores, about 18 on
+#                              two AVX-512 cores (6,866 s in all; docs/results.md, "Width 64 at
+#                              eight rounds")
 #   graph-projected-max-1-799-w64-r8  the default's second stage from graph-mse-1-799-w64-r8's
 #                              weights (with a -t1 card)
 #   graph-mse-1-799-tied8      one sweep repeated: graph-mse-1-799-r8's recipe with every round
