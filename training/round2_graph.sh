@@ -114,6 +114,13 @@
 #                              eight rounds")
 #   graph-projected-max-1-799-w64-r8  the default's second stage from graph-mse-1-799-w64-r8's
 #                              weights (with a -t1 card)
+#   graph-projected-max-1-799-w64-r8-sym  the default's symmetric stopping-rule stage from
+#                              graph-mse-1-799-w64-r8's weights (served as -mirror)
+#   graph-mse-1-799-w64-r8-e9-reflect  graph-mse-1-799-r8-e9-reflect's recipe at width 64: three
+#                              more squared-error epochs from graph-mse-1-799-w64-r8, half the steps
+#                              reflected
+#   graph-projected-max-1-799-w64-r8-e9-reflect-sym  the default's symmetric stage from it (served
+#                              as -mirror): the default's whole recipe at width 64
 #   graph-mse-1-799-tied8      one sweep repeated: graph-mse-1-799-r8's recipe with every round
 #                              sharing one set of weights (--tied) and reading the encoded inputs
 #                              (--recall), each batch run at 4 to 12 rounds (--train-rounds 4-12),
@@ -342,6 +349,17 @@ run() {
             variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w64-r8.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
+        graph-projected-max-1-799-w64-r8-sym|graph-projected-max-1-799-w64-r8-e9-reflect-sym)
+            local start=graph-mse-1-799-w64-r8
+            [ "$1" = graph-projected-max-1-799-w64-r8-e9-reflect-sym ] && start=graph-mse-1-799-w64-r8-e9-reflect
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \
+                --lr 5e-4 --symmetric --init "runs/graph-cache/$start.weights.npz"
+            "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror" ;;
+        graph-mse-1-799-w64-r8-e9-reflect)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 8 --width 64 --epochs 3 --patience 3 --lr 1e-3 --mirror-augment \
+                --init runs/graph-cache/graph-mse-1-799-w64-r8.weights.npz ;;
         graph-mse-1-799-r16-distill|graph-mse-1-799-r16-grown)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             local teach=()
