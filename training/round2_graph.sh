@@ -121,6 +121,15 @@
 #                              reflected
 #   graph-projected-max-1-799-w64-r8-e9-reflect-sym  the default's symmetric stage from it (served
 #                              as -mirror): the default's whole recipe at width 64
+#   graph-mse-1-799-r8-probes8  graph-mse-1-799-r8's recipe with the contact problem's operator
+#                              in every round (--probes 8): six squared-error epochs on every step
+#                              (5,623 s alone on two AVX-512 cores, about 16 min an epoch)
+#   graph-mse-1-799-r8-probes8-e9-reflect  three more, half the steps reflected (as -r8-e9-reflect)
+#   graph-projected-max-1-799-r8-probes8-sym  the default's symmetric stage from the six epochs
+#                              (served as -mirror), as -r8-sym is from graph-mse-1-799-r8
+#   graph-projected-max-1-799-r8-probes8-e9-reflect-sym  the default's symmetric stage from it
+#                              (served as -mirror): the default's whole recipe with probes
+#                              (docs/results.md, "The operator in every round, on every step")
 #   graph-mse-1-799-tied8      one sweep repeated: graph-mse-1-799-r8's recipe with every round
 #                              sharing one set of weights (--tied) and reading the encoded inputs
 #                              (--recall), each batch run at 4 to 12 rounds (--train-rounds 4-12),
@@ -349,17 +358,24 @@ run() {
             variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w64-r8.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
-        graph-projected-max-1-799-w64-r8-sym|graph-projected-max-1-799-w64-r8-e9-reflect-sym)
-            local start=graph-mse-1-799-w64-r8
-            [ "$1" = graph-projected-max-1-799-w64-r8-e9-reflect-sym ] && start=graph-mse-1-799-w64-r8-e9-reflect
+        graph-projected-max-1-799-w64-r8-sym|graph-projected-max-1-799-w64-r8-e9-reflect-sym|\
+        graph-projected-max-1-799-r8-probes8-sym|graph-projected-max-1-799-r8-probes8-e9-reflect-sym)
+            # The default's symmetric stage from the squared-error network of the same name.
+            local start=${1/graph-projected-max-/graph-mse-}; start=${start%-sym}
+            local shape=(--width 64); [[ $1 == *probes8* ]] && shape=(--probes 8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            variant "$1" --loss solver-projected-max --rounds 8 --width 64 --max-steps-per-file 3000 --epochs 2 \
+            variant "$1" --loss solver-projected-max --rounds 8 "${shape[@]}" --max-steps-per-file 3000 --epochs 2 \
                 --lr 5e-4 --symmetric --init "runs/graph-cache/$start.weights.npz"
             "$PY" -m training.ensemble "$OUT/$1.json" --mirror --name "$1-mirror" ;;
-        graph-mse-1-799-w64-r8-e9-reflect)
+        graph-mse-1-799-r8-probes8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
-            variant "$1" --loss mse --rounds 8 --width 64 --epochs 3 --patience 3 --lr 1e-3 --mirror-augment \
-                --init runs/graph-cache/graph-mse-1-799-w64-r8.weights.npz ;;
+            variant "$1" --loss mse --rounds 8 --probes 8 --epochs 6 --patience 3 ;;
+        graph-mse-1-799-w64-r8-e9-reflect|graph-mse-1-799-r8-probes8-e9-reflect)
+            # Three more squared-error epochs, half the steps reflected, from the six of the same name.
+            local shape=(--width 64); [[ $1 == *probes8* ]] && shape=(--probes 8)
+            local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
+            variant "$1" --loss mse --rounds 8 "${shape[@]}" --epochs 3 --patience 3 --lr 1e-3 --mirror-augment \
+                --init "runs/graph-cache/${1%-e9-reflect}.weights.npz" ;;
         graph-mse-1-799-r16-distill|graph-mse-1-799-r16-grown)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             local teach=()
