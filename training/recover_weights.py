@@ -108,10 +108,11 @@ def recover(card_path: Path) -> tuple[dict[str, np.ndarray], float]:
 
 def onnx_parity(config, weights: dict[str, np.ndarray], onnx_bytes: bytes) -> float:
     """The largest |TensorFlow - ONNX Runtime| (normalized units) of the network `config` with
-    `weights` against an ONNX file, on a random step: 40 points between 12 bodies, 10 dynamic;
-    divided by the largest output where that exceeds 1. Random inputs are far from any step's,
-    and a deep network can answer them with outputs of 1e8 (a tied one run past its training
-    depth does), where float32 alone differs by more than any absolute tolerance."""
+    `weights` against an ONNX file, on a random step: 40 points between 12 bodies, 10 dynamic
+    (with probes, random geometry and masses as well); divided by the largest output where that
+    exceeds 1. Random inputs are far from any step's, and a deep network can answer them with
+    outputs of 1e8 (a tied one run past its training depth does), where float32 alone differs
+    by more than any absolute tolerance."""
     import onnxruntime as ort
 
     from training.graph_model import ContactGraphNet
@@ -120,9 +121,19 @@ def onnx_parity(config, weights: dict[str, np.ndarray], onnx_bytes: bytes) -> fl
     points = rng.standard_normal((40, config.in_channels)).astype(np.float32)
     ends = rng.integers(0, 12, size=(40, 2)).astype(np.int32)
     dynamic = (np.arange(12) < 10).astype(np.float32)[:, None]
+    feed, physics = {"points": points, "ends": ends, "dynamic": dynamic}, None
+    if config.probes:
+        angle = rng.uniform(0.0, 2.0 * np.pi, 40)
+        normal = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        # (normal, tangent, lever arm from body a, from body b) (40, 8) m; masses (40, 2) kg;
+        # inverse mass and inertia (12, 2), 0 at the static bodies
+        geometry = np.concatenate([normal, normal[:, ::-1] * [1, -1], rng.uniform(-0.5, 0.5, (40, 4))], axis=1)
+        physics = (geometry.astype(np.float32), rng.uniform(0.1, 1.0, (40, 2)).astype(np.float32),
+                   (rng.uniform(0.5, 2.0, (12, 2)) * dynamic).astype(np.float32))
+        feed.update(zip(("geometry", "masses", "inverse"), physics))
     session = ort.InferenceSession(onnx_bytes, providers=["CPUExecutionProvider"])
-    onnx_out = session.run(None, {"points": points, "ends": ends, "dynamic": dynamic})[0]
-    tf_out = np.asarray(ContactGraphNet(config, weights)(points, ends, dynamic))
+    onnx_out = session.run(None, feed)[0]
+    tf_out = np.asarray(ContactGraphNet(config, weights)(points, ends, dynamic, physics=physics))
     return float(np.max(np.abs(onnx_out - tf_out)) / max(1.0, float(np.max(np.abs(tf_out)))))
 
 

@@ -30,6 +30,16 @@ def test_the_default_s_weights_come_back_and_init_accepts_them(tmp_path):
     assert all(np.array_equal(again[k], weights[k]) for k in weights)
 
 
+def test_a_network_with_probes_comes_back_through_its_physics_inputs(tmp_path):
+    card = SHIPPED / "graph-mse-20k-r8-probes8.json"
+    config = GraphConfig(**ModelCard.load(card).architecture["config"])
+    assert config.probes == 8   # its ONNX file reads geometry, masses and inverse too
+
+    weights, parity = recover(card)
+    assert parity < PARITY_TOLERANCE
+    assert sum(w.size for w in weights.values()) == ModelCard.load(card).parameters
+
+
 def test_a_grid_model_is_refused(tmp_path, capsys):
     assert main([str(SHIPPED / "pressure.json"), "--out", str(tmp_path / "x.npz")]) == 2
     assert "graph models only" in capsys.readouterr().err
