@@ -180,6 +180,14 @@ def build_graph_set(path: str | os.PathLike, inputs=GRAPH_INPUTS, targets=GRAPH_
     return gs
 
 
+def step_iterations(path: str | os.PathLike, max_steps: int | None = None, seed: int = 0) -> np.ndarray:
+    """(S,) int64: Box2D's recorded velocity iterations (its built-in warm start) at each step
+    build_graph_set(path, max_steps=max_steps, seed=seed) reads, in its order."""
+    with open_dataset(path) as ds:
+        steps = ds.steps
+    return steps["velocity_iterations"][select_steps(steps, max_steps, seed)].astype(np.int64)
+
+
 #: Steps whose channels build_graph_set computes in one call: about 40,000 points of the thesis world.
 STEPS_AT_ONCE = 256
 

@@ -38,7 +38,8 @@ from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard
 from training import machine
 from deepcontact.channels import CHANNELS, mirror_signs
-from training.contact_graph import GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set
+from training.contact_graph import (GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set,
+                                    step_iterations)
 from training.grids import GridDataError
 from training.second_pass import SecondPassError, moved
 from training.second_pass import check as check_second_pass
@@ -240,6 +241,11 @@ def _schedule_arguments(parser) -> None:
                              "order's random state, the history) to this .npz, and if it exists when the run "
                              "starts, go on after the epoch it holds: a run stopped and started again with the same "
                              "arguments reaches the weights of one never stopped. Removed once the model is written")
+    parser.add_argument("--draw", choices=("uniform", "iterations"), default="uniform",
+                        help="how each batch's training steps are drawn: uniformly (default), or in proportion to "
+                             "the velocity iterations Box2D's own warm start took there, as recorded: the mean "
+                             "iterations a step that the bench reports are mostly the hard steps', where the "
+                             "same error reduction saves the most iterations (not with --second-pass)")
     parser.add_argument("--mirror-augment", action="store_true",
                         help="reflect each training step left to right with probability 1/2 (every input and "
                              "target channel times its sign under the reflection, the solver's geometry "
@@ -298,6 +304,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
         return "--epochs, --batch-size, --width, --rounds and --patience must be >= 1"
     if getattr(args, "probes", 0) < 0:
         return f"--probes must be 0 (none) or more, got {args.probes}"
+    if getattr(args, "draw", "uniform") == "iterations" and getattr(args, "second_pass", None) is not None:
+        return "--draw iterations weighs the recorded steps; --second-pass adds steps that were not recorded"
     problem = _count_problem(args)
     if problem:
         return problem
@@ -343,11 +351,18 @@ def run(args: argparse.Namespace) -> int:
     except (GridDataError, ValueError) as exc:  # ValueError: --targets oracle on a file without the oracle,
         print(f"train-graph: {exc}", file=sys.stderr)  # or a --teacher that cannot answer these steps
         return 2
+    draw = None
+    if getattr(args, "draw", "uniform") == "iterations":
+        draw = [step_iterations(p, args.max_steps_per_file, args.seed) for p in args.train]
+        if any(len(d) != len(g) for d, g in zip(draw, train)):  # the cache and the file must hold the same steps
+            print("train-graph: a training file's steps and its cached graphs differ in number; delete the "
+                  "cache (--cache) and run again", file=sys.stderr)
+            return 2
     read_seconds = time.perf_counter() - t0
     try:
         card = fit(train, val, args, command=command, read_seconds=read_seconds,
                    sources=[str(p) for p in args.train], val_sources=[str(p) for p in args.val],
-                   normalize_with=recorded)
+                   normalize_with=recorded, draw=draw)
     except TrainingDiverged as exc:
         print(f"train-graph: {exc}", file=sys.stderr)
         return 1
@@ -737,10 +752,12 @@ class Fitted:
 
 
 def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_seconds: float,
-        sources: list[str], val_sources: list[str], normalize_with: list[GraphSet] | None = None) -> ModelCard:
+        sources: list[str], val_sources: list[str], normalize_with: list[GraphSet] | None = None,
+        draw: list[np.ndarray] | None = None) -> ModelCard:
     """Train a ContactGraphNet on `train`, keep the epoch best on `val`, and write the
     ONNX file and its card to args.out (see the module docstring). The normalization is
-    `normalize_with`'s (default `train`'s): the recorded sets when a teacher answered `train`."""
+    `normalize_with`'s (default `train`'s): the recorded sets when a teacher answered `train`.
+    draw: per training set, (S,) weights its steps are drawn in proportion to (None: uniformly)."""
     from training.graph_model import ContactGraphNet, GraphConfig
 
     spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names,
@@ -765,7 +782,7 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
         _write_checkpoint(net, epoch, fitted_so_far, describe, scaling, val)
     keep_epochs = getattr(args, "checkpoints", None) is not None
     fitted, validate = _train(net, train, val, args, scaling, batch_loss,
-                              on_epoch=checkpoint if keep_epochs else None)
+                              on_epoch=checkpoint if keep_epochs else None, draw=draw)
     card = _write(net, fitted, validate, describe, scaling, val)
     if getattr(args, "resume", None) is not None:
         Path(args.resume).unlink(missing_ok=True)  # the run is done: a new one with these arguments starts over
@@ -857,7 +874,8 @@ def _compiled_steps(net, batch_loss, lr: float, round_counts: tuple[int, ...] = 
     return optimizer, {k: train_step_at(k) for k in (round_counts or (net.config.rounds,))}, val_step
 
 
-def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss, on_epoch=None):
+def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scaling, batch_loss, on_epoch=None,
+           draw: list[np.ndarray] | None = None):
     """Adam on a cosine schedule over args.epochs, stopping after args.patience epochs
     without a better validation loss. Returns (Fitted, validate), validate() scoring
     the net's current weights on `val`. on_epoch(epoch, fitted) is called after each
@@ -880,6 +898,8 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     batches = [(i, chunk) for i, gs in enumerate(train)
                for chunk in np.array_split(np.arange(len(gs)), max(1, len(gs) // args.batch_size))]
     total_steps = args.epochs * len(batches)
+    # A step with no recorded iteration (a file written without them) is drawn as a step with one.
+    chances = None if draw is None else [np.maximum(w, 1) / np.maximum(w, 1).sum() for w in draw]
     fitted = Fitted(net.weights(), np.inf, 0, [], "epochs", 0.0)
     t0 = time.perf_counter()
     done, first, earlier_seconds = 0, 1, 0.0
@@ -894,7 +914,8 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
         losses = []
         for j in rng.permutation(len(batches)):  # loop over batches of steps
             i, _ = batches[j]
-            steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False)
+            steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False,
+                               p=None if draw is None else chances[i])
             reflect = rng.random(len(steps)) < 0.5 if mirror else None
             # Drawn only when there is a choice, so untied runs keep their step order to the bit.
             rounds = round_counts[rng.integers(len(round_counts))] if len(round_counts) > 1 else round_counts[0]
@@ -1022,6 +1043,7 @@ class _CardParts:
                                   | ({"recall": True} if getattr(args, "recall", False) else {})
                                   | ({"symmetric": True} if getattr(args, "symmetric", False) else {})
                                   | ({"mirror_augment": True} if getattr(args, "mirror_augment", False) else {})
+                                  | ({"draw": args.draw} if getattr(args, "draw", "uniform") != "uniform" else {})
                                   | ({"self_stress_weight": args.self_stress_weight,
                                       "self_stress_iterations": args.self_stress_iterations}
                                      if args.loss == "mse-self-stress" else {}),

@@ -889,3 +889,46 @@ def test_a_network_given_probes_starts_as_the_plain_one_and_is_served_what_train
     unmoved = session.run(None, {"points": x.astype(np.float32), "ends": ends, "dynamic": dynamic, **feed,
                                  "masses": np.zeros_like(feed["masses"])})[0]
     assert np.abs(unmoved - y).max() > 1e-4  # the answer reads the operator: the check above sees it
+
+
+def test_drawing_by_iterations_trains_on_the_hard_steps_more_often(data, tmp_path, monkeypatch):
+    # --draw iterations draws each step in proportion to the iterations Box2D's own warm start
+    # took there (the recorded file's count, read in the cache's step order), so the steps that
+    # make up most of the bench's mean are seen most.
+    from training import train_graph
+    from training.contact_graph import step_iterations
+    from training.grids import open_dataset
+
+    with open_dataset(data / "train.h5") as ds:
+        counts = ds.steps["point_count"]
+    iterations = step_iterations(data / "train.h5")
+    gs = build_graph_set(data / "train.h5")
+    assert len(iterations) == len(gs) == np.count_nonzero(counts) and iterations.min() >= 1
+
+    drawn = {}
+    batch = train_graph.Scaling.batch
+
+    def recording(self, gs, steps, **k):
+        drawn.setdefault(len(gs), []).extend(np.asarray(steps).tolist())
+        return batch(self, gs, steps, **k)
+
+    monkeypatch.setattr(train_graph.Scaling, "batch", recording)
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "20",
+              "--batch-size", "2", "--width", "8", "--rounds", "1", "--loss", "mse",
+              "--cache", str(tmp_path / "cache"), "--quiet"]
+    means = {}
+    for draw in ("uniform", "iterations"):
+        drawn.clear()
+        assert main(common + ["--draw", draw, "--out", str(tmp_path / f"{draw}.onnx")]) == 0
+        seen = drawn[len(gs)]
+        means[draw] = iterations[seen].mean()
+    assert means["iterations"] > means["uniform"]
+    assert json.loads((tmp_path / "iterations.json").read_text())["training"]["settings"]["draw"] == "iterations"
+    assert "draw" not in json.loads((tmp_path / "uniform.json").read_text())["training"]["settings"]
+
+
+def test_drawing_by_iterations_is_refused_beside_a_second_pass(data, tmp_path, capsys):
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"),
+                 "--second-pass", str(data / "train.h5"), "--draw", "iterations",
+                 "--out", str(tmp_path / "m.onnx"), "--quiet"]) == 2
+    assert "--second-pass" in capsys.readouterr().err
