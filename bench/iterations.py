@@ -64,7 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "prices W1 with W2's moving bodies' motion, feedback:W prices W less shares of its previous step's error, "
                              "shrink:W+E serves builtin and prices W's error against E (e.g. oracle:near) scaled and its two parts halved, "
                              "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E; "
-                             "all print a same-state table; "
+                             "all print a same-state table and one of the steps that end at the solver's cap; "
                              "server:* stands for every model the server serves, e.g. price:server:* "
                              "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
@@ -200,7 +200,9 @@ def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int
     """
     summaries = {name: pooled_summary(r) for name, r in runs.items()}
     ratios = ratios_to_builtin(runs)
-    picks = {name: p for name, r in runs.items() if (p := pick_summary(name, r, runs.get("builtin"))) is not None}
+    cap = spec.solver.velocity_iterations
+    picks = {name: p for name, r in runs.items()
+             if (p := pick_summary(name, r, runs.get("builtin"), cap=cap)) is not None}
     write_json_atomic(out / "summary.json", {
         "seeds": seeds, "scene": spec.name, "scene_spec": spec_to_dict(spec), "deadline_ms": deadline_ms,
         "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries,
@@ -283,7 +285,8 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
             for name, rs in runs.items()}
 
 
-def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = None) -> dict | None:
+def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = None,
+                 cap: int | None = None) -> dict | None:
     """What the trial solves of a `pick:`, `shadow:`, `mean:` or `price:` warm start saw, or None
     for another warm start.
 
@@ -299,6 +302,8 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     With `builtin` (its own runs on the same seeds), also `trajectory`: builtin's
     mean on this trajectory over its mean on its own, paired by seed. A
     closed-loop ratio is the candidate's same-state ratio times that.
+    With `cap` (the solver's most velocity iterations a step), also `at_cap`
+    (cap_summary): how much of it is in steps that end at the cap.
     """
     if not name.startswith(Pick.PREFIXES) or not any(r.get("trials") for r in results):
         return None
@@ -317,7 +322,33 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
             "better_than_builtin": (a < a[:, :1]).mean(axis=0).tolist(),
             "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist(),
             "trajectory": (ratio_interval([s[:, 0] for s in per_seed], [_iterations(b) for b in builtin]).to_dict()
-                           if builtin is not None and len(builtin) == len(per_seed) else None)}
+                           if builtin is not None and len(builtin) == len(per_seed) else None),
+            "at_cap": cap_summary(per_seed, cap) if cap else None}
+
+
+def cap_summary(per_seed: list[np.ndarray], cap: int) -> dict:
+    """Where the solver's cap on velocity iterations bounds what a warm start can show.
+
+    A step that ends at the cap is unconverged: a better start shows there only if it
+    brings the step under the cap. per_seed: (steps, candidates) iterations per seed,
+    builtin first. Returns the cap, Builtin's share of steps and of iterations at it,
+    and per candidate: its share of steps at the cap, the share of Builtin's capped
+    steps it ends under the cap, and its iterations over Builtin's on the steps
+    Builtin ends under the cap and on those it ends at it (intervals over seeds)."""
+    a = np.concatenate(per_seed)
+    capped = a[:, 0] >= cap
+    width = a.shape[1]
+
+    def over_builtin(where) -> list[dict]:
+        parts = [s[where(s[:, 0])] for s in per_seed]
+        return [ratio_interval([q[:, i] for q in parts], [q[:, 0] for q in parts]).to_dict() for i in range(width)]
+
+    return {"cap": int(cap), "builtin_steps": float(capped.mean()) if len(a) else 0.0,
+            "builtin_iterations": float(a[capped, 0].sum() / max(a[:, 0].sum(), 1)),
+            "steps": (a >= cap).mean(axis=0).tolist(),
+            "freed": ((a[capped] < cap).mean(axis=0) if capped.any() else np.zeros(width)).tolist(),
+            "over_builtin_under": over_builtin(lambda b: b < cap),
+            "over_builtin_at": over_builtin(lambda b: b >= cap)}
 
 
 def pick_table(picks: dict) -> str:
@@ -343,7 +374,23 @@ def pick_table(picks: dict) -> str:
         if p.get("trajectory"):
             lines += ["", f"Builtin on this trajectory / builtin on its own: {Ratio(**p['trajectory']).text()} "
                           "(paired by seed; the closed-loop ratio is a candidate's same-state ratio times this)."]
+        if p.get("at_cap"):
+            lines += cap_table(p["candidates"], p["at_cap"])
     return "\n".join(lines) + ("\n" if lines else "")
+
+
+def cap_table(candidates: list[str], c: dict) -> list[str]:
+    """Markdown lines for cap_summary's figures, one row per candidate."""
+    lines = ["", f"At the cap ({c['cap']} iterations): Builtin ends {c['builtin_steps']:.1%} of these steps there, "
+                 f"{c['builtin_iterations']:.1%} of its iterations; a start shows there only by ending under it.", "",
+             "| candidate | steps at the cap | of Builtin's capped steps, under the cap "
+             "| / builtin where Builtin ends under the cap | / builtin where Builtin ends at it |",
+             "|---|---|---|---|---|"]
+    for i, name in enumerate(candidates):
+        under, at = (Ratio(**c[k][i]) for k in ("over_builtin_under", "over_builtin_at"))
+        lines.append(f"| {name} | {c['steps'][i]:.1%} | {c['freed'][i]:.1%} | "
+                     f"{'1' if i == 0 else under.text()} | {'1' if i == 0 else at.text()} |")
+    return lines
 
 
 def markdown_table(summaries: dict, seeds: list[int], scene: str, ratios: dict | None = None) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from deepcontact.cli import main
@@ -134,3 +135,21 @@ def test_runs_on_seeds_models_saw_are_flagged_and_choosing_seeds_are_not(tmp_pat
         assert warnings == (["warning: seeds 848-849 are training or validation seeds (1-849): models were fitted "
                              "or stopped on them, so results there are not held out (choose on 850-899, report on "
                              "900-999)"] if flagged else [])
+
+
+def test_steps_at_the_cap_are_priced_apart_from_those_that_converge():
+    from bench.iterations import cap_summary, cap_table
+
+    # (steps, candidates) per seed, builtin first: one capped step a seed; the model
+    # brings the first seed's under the cap and halves the rest
+    per_seed = [np.array([[1000, 600], [200, 100], [100, 50]]), np.array([[1000, 1000], [300, 150]])]
+    c = cap_summary(per_seed, cap=1000)
+    assert c["cap"] == 1000 and c["builtin_steps"] == 2 / 5
+    assert c["builtin_iterations"] == 2000 / 2600
+    assert c["steps"] == [2 / 5, 1 / 5] and c["freed"] == [0.0, 0.5]
+    assert c["over_builtin_under"][1]["value"] == 0.5  # where Builtin converges, half its iterations
+    assert c["over_builtin_at"][1]["value"] == 1600 / 2000
+    assert c["over_builtin_at"][1]["seeds"] == 2
+    lines = cap_table(["builtin", "server:m"], c)
+    assert "Builtin ends 40.0% of these steps there, 76.9% of its iterations" in lines[1]
+    assert lines[-1].startswith("| server:m | 20.0% | 50.0% | 0.500 [")
