@@ -64,7 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "prices W1 with W2's moving bodies' motion, feedback:W prices W less shares of its previous step's error, "
                              "shrink:W+E serves builtin and prices W's error against E (e.g. oracle:near) scaled and its two parts halved, "
                              "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E; "
-                             "all print a same-state table and one of the steps that end at the solver's cap; "
+                             "all print a same-state table and one of the steps that end at the solver's cap (with each start's sweeps to Builtin's accuracy there); "
                              "server:* stands for every model the server serves, e.g. price:server:* "
                              "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
@@ -311,6 +311,10 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     width = len(candidates)
     per_seed = [np.array([t for t in r.get("trials", []) if len(t) == width], float).reshape(-1, width)
                 for r in results]  # (steps, candidates) iterations per seed
+    reach = [np.array([t for t in r.get("reach", []) if len(t) == width], float).reshape(-1, width)
+             for r in results]  # the same steps: sweeps to Builtin's accuracy (composites.sweeps_to_builtin)
+    if any(len(q) != len(s) for q, s in zip(reach, per_seed)):
+        reach = None  # results written before the trials traced their residuals
     a = np.concatenate(per_seed)
     best = a.argmin(axis=1)
     return {"candidates": candidates, "steps": len(a), "mean_iterations": a.mean(axis=0).tolist(),
@@ -323,10 +327,10 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
             "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist(),
             "trajectory": (ratio_interval([s[:, 0] for s in per_seed], [_iterations(b) for b in builtin]).to_dict()
                            if builtin is not None and len(builtin) == len(per_seed) else None),
-            "at_cap": cap_summary(per_seed, cap) if cap else None}
+            "at_cap": cap_summary(per_seed, cap, reach) if cap else None}
 
 
-def cap_summary(per_seed: list[np.ndarray], cap: int) -> dict:
+def cap_summary(per_seed: list[np.ndarray], cap: int, reach: list[np.ndarray] | None = None) -> dict:
     """Where the solver's cap on velocity iterations bounds what a warm start can show.
 
     A step that ends at the cap is unconverged: a better start shows there only if it
@@ -334,21 +338,30 @@ def cap_summary(per_seed: list[np.ndarray], cap: int) -> dict:
     builtin first. Returns the cap, Builtin's share of steps and of iterations at it,
     and per candidate: its share of steps at the cap, the share of Builtin's capped
     steps it ends under the cap, and its iterations over Builtin's on the steps
-    Builtin ends under the cap and on those it ends at it (intervals over seeds)."""
+    Builtin ends under the cap and on those it ends at it (intervals over seeds).
+    With `reach` (the same shape: each trial's sweeps to Builtin's accuracy,
+    composites.sweeps_to_builtin), also `reach_at`: those sweeps over Builtin's
+    own on the steps Builtin ends at the cap, and `reach_all`: the same over all
+    steps, its iterations counted where Builtin converges: what a start is worth
+    once the capped steps are counted by accuracy rather than by the cap."""
     a = np.concatenate(per_seed)
     capped = a[:, 0] >= cap
     width = a.shape[1]
 
-    def over_builtin(where) -> list[dict]:
-        parts = [s[where(s[:, 0])] for s in per_seed]
+    def over_builtin(where, values=per_seed) -> list[dict]:
+        parts = [v[where(s[:, 0])] for v, s in zip(values, per_seed)]
         return [ratio_interval([q[:, i] for q in parts], [q[:, 0] for q in parts]).to_dict() for i in range(width)]
 
-    return {"cap": int(cap), "builtin_steps": float(capped.mean()) if len(a) else 0.0,
-            "builtin_iterations": float(a[capped, 0].sum() / max(a[:, 0].sum(), 1)),
-            "steps": (a >= cap).mean(axis=0).tolist(),
-            "freed": ((a[capped] < cap).mean(axis=0) if capped.any() else np.zeros(width)).tolist(),
-            "over_builtin_under": over_builtin(lambda b: b < cap),
-            "over_builtin_at": over_builtin(lambda b: b >= cap)}
+    out = {"cap": int(cap), "builtin_steps": float(capped.mean()) if len(a) else 0.0,
+           "builtin_iterations": float(a[capped, 0].sum() / max(a[:, 0].sum(), 1)),
+           "steps": (a >= cap).mean(axis=0).tolist(),
+           "freed": ((a[capped] < cap).mean(axis=0) if capped.any() else np.zeros(width)).tolist(),
+           "over_builtin_under": over_builtin(lambda b: b < cap),
+           "over_builtin_at": over_builtin(lambda b: b >= cap)}
+    if reach is not None:
+        out["reach_at"] = over_builtin(lambda b: b >= cap, reach)
+        out["reach_all"] = over_builtin(lambda b: b >= 0, reach)
+    return out
 
 
 def pick_table(picks: dict) -> str:
@@ -384,12 +397,14 @@ def cap_table(candidates: list[str], c: dict) -> list[str]:
     lines = ["", f"At the cap ({c['cap']} iterations): Builtin ends {c['builtin_steps']:.1%} of these steps there, "
                  f"{c['builtin_iterations']:.1%} of its iterations; a start shows there only by ending under it.", "",
              "| candidate | steps at the cap | of Builtin's capped steps, under the cap "
-             "| / builtin where Builtin ends under the cap | / builtin where Builtin ends at it |",
-             "|---|---|---|---|---|"]
+             "| / builtin where Builtin ends under the cap | / builtin where Builtin ends at it |"
+             + (" sweeps to Builtin's accuracy where it ends at the cap, / builtin's | all steps, the capped ones so |"
+                if "reach_at" in c else ""),
+             "|---|---|---|---|---|" + ("---|---|" if "reach_at" in c else "")]
     for i, name in enumerate(candidates):
-        under, at = (Ratio(**c[k][i]) for k in ("over_builtin_under", "over_builtin_at"))
-        lines.append(f"| {name} | {c['steps'][i]:.1%} | {c['freed'][i]:.1%} | "
-                     f"{'1' if i == 0 else under.text()} | {'1' if i == 0 else at.text()} |")
+        keys = ("over_builtin_under", "over_builtin_at") + (("reach_at", "reach_all") if "reach_at" in c else ())
+        cells = ["1" if i == 0 else Ratio(**c[k][i]).text() for k in keys]
+        lines.append(f"| {name} | {c['steps'][i]:.1%} | {c['freed'][i]:.1%} | " + " | ".join(cells) + " |")
     return lines
 
 

@@ -122,6 +122,7 @@ class Pick(Provider):
         self.uses_server = any(c.uses_server for c in candidates)
         self.sends_oracle = False
         self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
+        self.reach: list[list[int]] = []  # the same steps: each one's sweeps to Builtin's accuracy (sweeps_to_builtin)
         # feedback: the candidate's answer this step, (keys (P,), impulses (P, 2) N s), until observe() scores it,
         # then its error at the previous step's points, sorted by key
         self._answer: tuple[np.ndarray, np.ndarray] | None = None
@@ -193,8 +194,10 @@ class Pick(Provider):
                   "split": self._parts, "boost": self._parts, "shrink": self._shrunk, "gate": self._gated}.get(self.mode)
         if derive is not None:
             candidates += derive(engine, points, candidates)
-        iterations = [engine.trial(*w) for w in candidates]
+        traces = [engine.trial_trace(*w) for w in candidates]
+        iterations = [len(t) for t in traces]
         self.trials.append(iterations)
+        self.reach.append(sweeps_to_builtin(traces, engine.config.velocity_threshold))
         if self.mode in ("shadow", "split", "boost", "admit", "motion", "graft", "feedback"):
             return candidates[1]
         if self.mode in ("price", "shrink", "gate"):
@@ -302,6 +305,26 @@ class Pick(Provider):
         share = np.clip(np.sum(step * want, axis=1) / np.where(length > 0, length, 1.0), 0.0, 1.0)
         apart = np.clip(step * want / np.where(step ** 2 > 0, step ** 2, 1.0), 0.0, 1.0)
         return [as_warm_start(x) for x in (nearer, b + share[:, None] * step, b + apart * step)]
+
+
+def sweeps_to_builtin(traces: list[np.ndarray], threshold: float) -> list[int]:
+    """Each trial's sweeps until it is as near converged as Builtin's trial ended.
+
+    traces: builtin's first, then each candidate's residual trace ((iterations,)
+    float32, N s: the largest impulse change of each sweep). Where Builtin
+    converges the mark is the stopping threshold, so each count is the trial's
+    iterations; where it ends at the cap the mark is its last change, which the
+    iteration count cannot see: a start that gets there sooner is worth those
+    sweeps. A trial that never reaches the mark counts all its sweeps (a lower
+    bound on what it would need).
+    """
+    last = float(traces[0][-1]) if len(traces[0]) else 0.0
+    mark = np.float32(max(last, threshold))
+    reach = []
+    for t in traces:
+        below = np.flatnonzero(t <= mark)
+        reach.append(int(below[0]) + 1 if below.size else len(t))
+    return reach
 
 
 def _stacked(warm) -> np.ndarray:

@@ -187,9 +187,18 @@ class Engine:
         them: call `set_warm_start` again before `solve()` to start elsewhere.
         Each trial costs a whole velocity solve.
         """
+        return len(self.trial_trace(normal, tangent))
+
+    def trial_trace(self, normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
+        """As `trial`, but the trial's residual trace: (iterations,) float32, N s,
+        the largest impulse change of each sweep over the islands still iterating
+        (as `StepStats.residual_trace` is for a solve). Its length is the
+        iteration count; at the cap, its last value is how far from converged
+        that start left the step.
+        """
         self.world.SetWarmStart(normal, tangent)
         stats = self.world.SolveTrial(self.config.dt, self.config.velocity_iterations, self.config.velocity_threshold)
-        return int(stats["velocity_iterations"])
+        return np.frombuffer(stats["residual_trace"], dtype=np.float32)
 
     # -- phase 2 ---------------------------------------------------------
     def solve(self) -> StepStats:

@@ -169,6 +169,7 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     result = {"per_step": _columns(records), "summary": summarize(records)}
     if provider.picks:
         result["trials"] = [list(t) for t in provider.trials]
+        result["reach"] = [list(t) for t in provider.reach]
     return result
 
 

@@ -153,3 +153,17 @@ def test_steps_at_the_cap_are_priced_apart_from_those_that_converge():
     lines = cap_table(["builtin", "server:m"], c)
     assert "Builtin ends 40.0% of these steps there, 76.9% of its iterations" in lines[1]
     assert lines[-1].startswith("| server:m | 20.0% | 50.0% | 0.500 [")
+
+
+def test_at_the_cap_a_start_is_also_priced_by_its_sweeps_to_builtins_accuracy():
+    from bench.iterations import cap_summary, cap_table
+
+    per_seed = [np.array([[1000, 1000], [200, 100]]), np.array([[1000, 1000], [300, 150]])]
+    # the same steps' sweeps to Builtin's accuracy: the model gets there in 400 and 600
+    reach = [np.array([[1000, 400], [200, 100]]), np.array([[800, 600], [300, 150]])]
+    c = cap_summary(per_seed, cap=1000, reach=reach)
+    assert c["over_builtin_at"][1]["value"] == 1.0  # the iteration count cannot see it
+    assert c["reach_at"][1]["value"] == 1000 / 1800
+    assert c["reach_all"][1]["value"] == 1250 / 2300
+    row = cap_table(["builtin", "server:m"], c)[-1]
+    assert row.startswith("| server:m | 50.0% | 0.0% | 0.500 [") and "| 0.556 [" in row and "| 0.543 [" in row

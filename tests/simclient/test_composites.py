@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simclient.composites import Pick
+from simclient.composites import Pick, sweeps_to_builtin
 from simclient.oracles import OracleMix
 from simclient.provider import Provider, as_warm_start
 from simclient.scene import SceneSpec
@@ -39,6 +39,25 @@ def test_price_steps_as_builtin_and_prices_each_candidate_on_builtins_states():
     # the same states in every run: a second run prices the same candidate the same way
     assert run_simulation(SHORT, 901, make_provider("price:jitter@0.01"))["trials"] == priced["trials"]
     assert [t[1] for t in priced["trials"]] != [t[1] for t in jitter["trials"]]  # jitter's own states differ
+
+
+def test_sweeps_to_builtins_accuracy_count_where_the_cap_hides_a_better_start():
+    f = lambda *r: np.array(r, np.float32)  # a trial's residual trace, N s a sweep
+    # Builtin converges in 3: every trial is counted by its own iterations under the threshold
+    assert sweeps_to_builtin([f(1, 0.1, 1e-5), f(0.5, 5e-5)], threshold=1e-4) == [3, 2]
+    # Builtin ends at the cap 0.2 from converged: a start there after one sweep is worth one;
+    # one that never gets there counts its sweeps, a lower bound
+    assert sweeps_to_builtin([f(1, 0.5, 0.2), f(0.2, 0.1, 0.05), f(3, 2, 1)], threshold=1e-4) == [3, 1, 3]
+
+
+def test_price_counts_each_candidates_sweeps_to_builtins_accuracy_at_the_cap():
+    capped = dataclasses.replace(SHORT, solver=dataclasses.replace(SHORT.solver, velocity_iterations=20))
+    priced = run_simulation(capped, 901, make_provider("price:jitter@0.01"))
+    trials, reach = np.array(priced["trials"]), np.array(priced["reach"])  # (steps, 2) each: builtin, jitter
+    at_cap = trials[:, 0] == 20
+    assert at_cap.any() and (~at_cap).any()
+    assert (reach[~at_cap] == trials[~at_cap]).all()  # where Builtin converges, the iterations themselves
+    assert (reach[at_cap] <= 20).all() and (reach[at_cap, 1] < 20).any()  # under the cap: a start that nears
 
 
 def test_mean_serves_the_candidates_mean_and_prices_it_beside_each_of_them():

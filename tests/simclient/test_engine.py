@@ -79,6 +79,26 @@ def test_a_trial_solve_costs_what_the_solve_does_and_changes_nothing(thesis_spec
     assert tried.bodies().tobytes() == plain.bodies().tobytes()
 
 
+def test_a_trial_solve_traces_the_residual_as_the_solve_does(thesis_spec):
+    engine = settled(thesis_spec)
+    engine.collide()
+    points = engine.contacts()
+    builtin = (np.ascontiguousarray(points["builtin"][:, 0]), np.ascontiguousarray(points["builtin"][:, 1]))
+    trace = engine.trial_trace(*builtin)  # (iterations,) N s, the largest impulse change of each sweep
+    assert len(trace) == engine.trial(*builtin)
+    assert trace[-1] <= engine.config.velocity_threshold < trace[:-1].min()  # the stopping rule's first sweep
+    engine.set_warm_start(*builtin)
+    assert np.array_equal(engine.solve().residual_trace, trace)
+
+
+def test_a_trial_at_the_cap_ends_unconverged_and_says_how_far(thesis_spec):
+    engine = settled(thesis_spec, velocity_iterations=3)
+    engine.collide()
+    zeros = np.zeros(len(engine.contacts()), np.float32)
+    trace = engine.trial_trace(zeros, zeros)  # from zero, three sweeps cannot converge a pile
+    assert len(trace) == 3 and trace[-1] > engine.config.velocity_threshold
+
+
 def test_a_trial_solve_needs_a_warm_start_first(thesis_spec):
     engine = settled(thesis_spec)
     engine.collide()
