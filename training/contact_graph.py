@@ -188,6 +188,17 @@ def step_iterations(path: str | os.PathLike, max_steps: int | None = None, seed:
     return steps["velocity_iterations"][select_steps(steps, max_steps, seed)].astype(np.int64)
 
 
+def step_converged(path: str | os.PathLike, max_steps: int | None = None, seed: int = 0) -> np.ndarray:
+    """(S,) bool, in step_iterations' order: whether Box2D's solve ended under its cap on
+    velocity iterations (the recorded scene's) at that step. Where it did not, the recorded
+    impulses, and so the step's targets, are the solver's unconverged iterate."""
+    from simclient.scene import spec_from_dict
+
+    with open_dataset(path) as ds:
+        cap = spec_from_dict(ds.scene).solver.velocity_iterations
+    return step_iterations(path, max_steps, seed) < cap
+
+
 #: Steps whose channels build_graph_set computes in one call: about 40,000 points of the thesis world.
 STEPS_AT_ONCE = 256
 

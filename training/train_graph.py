@@ -39,7 +39,7 @@ from deepcontact.modelcard import ModelCard
 from training import machine
 from deepcontact.channels import CHANNELS, mirror_signs
 from training.contact_graph import (GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set,
-                                    step_iterations)
+                                    step_converged, step_iterations)
 from training.grids import GridDataError
 from training.second_pass import SecondPassError, moved
 from training.second_pass import check as check_second_pass
@@ -241,11 +241,13 @@ def _schedule_arguments(parser) -> None:
                              "order's random state, the history) to this .npz, and if it exists when the run "
                              "starts, go on after the epoch it holds: a run stopped and started again with the same "
                              "arguments reaches the weights of one never stopped. Removed once the model is written")
-    parser.add_argument("--draw", choices=("uniform", "iterations"), default="uniform",
-                        help="how each batch's training steps are drawn: uniformly (default), or in proportion to "
+    parser.add_argument("--draw", choices=("uniform", "iterations", "converged"), default="uniform",
+                        help="how each batch's training steps are drawn: uniformly (default); in proportion to "
                              "the velocity iterations Box2D's own warm start took there, as recorded: the mean "
                              "iterations a step that the bench reports are mostly the hard steps', where the "
-                             "same error reduction saves the most iterations (not with --second-pass)")
+                             "same error reduction saves the most iterations; or uniformly among the steps "
+                             "Box2D's solve ended under its iteration cap, whose recorded impulses are converged "
+                             "(elsewhere the targets are an unconverged iterate). Not with --second-pass"),
     parser.add_argument("--mirror-augment", action="store_true",
                         help="reflect each training step left to right with probability 1/2 (every input and "
                              "target channel times its sign under the reflection, the solver's geometry "
@@ -304,8 +306,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
         return "--epochs, --batch-size, --width, --rounds and --patience must be >= 1"
     if getattr(args, "probes", 0) < 0:
         return f"--probes must be 0 (none) or more, got {args.probes}"
-    if getattr(args, "draw", "uniform") == "iterations" and getattr(args, "second_pass", None) is not None:
-        return "--draw iterations weighs the recorded steps; --second-pass adds steps that were not recorded"
+    if getattr(args, "draw", "uniform") != "uniform" and getattr(args, "second_pass", None) is not None:
+        return f"--draw {args.draw} weighs the recorded steps; --second-pass adds steps that were not recorded"
     problem = _count_problem(args)
     if problem:
         return problem
@@ -353,7 +355,15 @@ def run(args: argparse.Namespace) -> int:
         return 2
     draw = None
     if getattr(args, "draw", "uniform") == "iterations":
-        draw = [step_iterations(p, args.max_steps_per_file, args.seed) for p in args.train]
+        # A step with no recorded iteration (a file written without them) is drawn as a step with one.
+        draw = [np.maximum(step_iterations(p, args.max_steps_per_file, args.seed), 1) for p in args.train]
+    elif getattr(args, "draw", "uniform") == "converged":
+        draw = [step_converged(p, args.max_steps_per_file, args.seed).astype(np.float64) for p in args.train]
+        if not all(d.any() for d in draw):
+            print("train-graph: --draw converged: a training file has no step that Box2D's solve ended under "
+                  "its cap", file=sys.stderr)
+            return 2
+    if draw is not None:
         if any(len(d) != len(g) for d, g in zip(draw, train)):  # the cache and the file must hold the same steps
             print("train-graph: a training file's steps and its cached graphs differ in number; delete the "
                   "cache (--cache) and run again", file=sys.stderr)
@@ -757,7 +767,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     """Train a ContactGraphNet on `train`, keep the epoch best on `val`, and write the
     ONNX file and its card to args.out (see the module docstring). The normalization is
     `normalize_with`'s (default `train`'s): the recorded sets when a teacher answered `train`.
-    draw: per training set, (S,) weights its steps are drawn in proportion to (None: uniformly)."""
+    draw: per training set, (S,) weights its steps are drawn in proportion to (None: uniformly;
+    a zero weight: never)."""
     from training.graph_model import ContactGraphNet, GraphConfig
 
     spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names,
@@ -898,8 +909,7 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
     batches = [(i, chunk) for i, gs in enumerate(train)
                for chunk in np.array_split(np.arange(len(gs)), max(1, len(gs) // args.batch_size))]
     total_steps = args.epochs * len(batches)
-    # A step with no recorded iteration (a file written without them) is drawn as a step with one.
-    chances = None if draw is None else [np.maximum(w, 1) / np.maximum(w, 1).sum() for w in draw]
+    chances = None if draw is None else [w / w.sum() for w in draw]
     fitted = Fitted(net.weights(), np.inf, 0, [], "epochs", 0.0)
     t0 = time.perf_counter()
     done, first, earlier_seconds = 0, 1, 0.0
@@ -914,8 +924,8 @@ def _train(net, train: list[GraphSet], val: list[GraphSet], args, scaling: Scali
         losses = []
         for j in rng.permutation(len(batches)):  # loop over batches of steps
             i, _ = batches[j]
-            steps = rng.choice(len(train[i]), size=min(args.batch_size, len(train[i])), replace=False,
-                               p=None if draw is None else chances[i])
+            size = min(args.batch_size, len(train[i]) if draw is None else np.count_nonzero(chances[i]))
+            steps = rng.choice(len(train[i]), size=size, replace=False, p=None if draw is None else chances[i])
             reflect = rng.random(len(steps)) < 0.5 if mirror else None
             # Drawn only when there is a choice, so untied runs keep their step order to the bit.
             rounds = round_counts[rng.integers(len(round_counts))] if len(round_counts) > 1 else round_counts[0]

@@ -927,6 +927,44 @@ def test_drawing_by_iterations_trains_on_the_hard_steps_more_often(data, tmp_pat
     assert "draw" not in json.loads((tmp_path / "uniform.json").read_text())["training"]["settings"]
 
 
+def test_drawing_converged_steps_leaves_out_those_the_solver_ended_at_its_cap(data, tmp_path, monkeypatch):
+    # --draw converged trains only on steps whose recorded impulses are converged: where
+    # Box2D's solve ended at its cap (the recorded scene's), the targets are an unconverged
+    # iterate. A cap of 20 iterations gives a 60-step file both kinds.
+    import dataclasses
+
+    from simclient.scene import SceneSpec, spec_to_dict
+    from training import train_graph
+    from training.contact_graph import step_converged, step_iterations
+    from training.dataset import Writer
+    from training.generate import record_simulation
+
+    thesis = SceneSpec.thesis()
+    spec = dataclasses.replace(thesis, steps=60, solver=dataclasses.replace(thesis.solver, velocity_iterations=20))
+    arrays = record_simulation(spec, 1)
+    with Writer(tmp_path / "capped.h5", scene=spec_to_dict(spec), seeds=[1], command="test") as w:
+        w.append(arrays["steps"], arrays["bodies"], arrays["points"], arrays["trace"])
+    converged = step_converged(tmp_path / "capped.h5")  # (S,) bool, in the cache's step order
+    assert (converged == (step_iterations(tmp_path / "capped.h5") < 20)).all()
+    assert converged.any() and not converged.all()
+
+    drawn = []
+    batch = train_graph.Scaling.batch
+
+    def recording(self, gs, steps, **k):
+        if len(gs) == len(converged):
+            drawn.extend(np.asarray(steps).tolist())
+        return batch(self, gs, steps, **k)
+
+    monkeypatch.setattr(train_graph.Scaling, "batch", recording)
+    assert main(["train-graph", "--train", str(tmp_path / "capped.h5"), "--val", str(data / "val.h5"),
+                 "--epochs", "10", "--batch-size", "4", "--width", "8", "--rounds", "1", "--loss", "mse",
+                 "--draw", "converged", "--cache", str(tmp_path / "cache"),
+                 "--out", str(tmp_path / "m.onnx"), "--quiet"]) == 0
+    assert drawn and converged[drawn].all()
+    assert json.loads((tmp_path / "m.json").read_text())["training"]["settings"]["draw"] == "converged"
+
+
 def test_drawing_by_iterations_is_refused_beside_a_second_pass(data, tmp_path, capsys):
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"),
                  "--second-pass", str(data / "train.h5"), "--draw", "iterations",
