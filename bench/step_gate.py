@@ -2,19 +2,20 @@
 
 A perfect per-step choice between Box2D's warm start and the default's (`pick:server:default`,
 trial solves) needs 0.875x of Builtin's iterations closed loop where the default alone needs
-about 0.92x: the default loses at about a quarter of the steps. This screen asks whether a
-gate the server could compute (from the request and the model's own answer, nothing the solve
+about 0.92x: the default loses at about a quarter of the steps. This asks whether a
+gate the server computes (from the request and the model's own answer, nothing the solve
 tells) finds those steps.
 
     deepcontact bench step-gate --fit-seeds 800-849 --seeds 850-899 --json bench/results/r2-step-gate.json
 
 It simulates each seed in process with `shadow:` over the model (its own trajectory; each step
 also solved from Box2D's warm start, the world unchanged), records each step's features
-(`step_features`) and both iteration counts, fits a logistic gate on the fit seeds (each step
+(`deepcontact.step_gate.step_features`) and both iteration counts, fits a logistic gate on the fit seeds (each step
 weighted by what the choice is worth there, |iterations(model) - iterations(builtin)|), and
 prices it on the other seeds on the same states: the mean iterations when the gate serves
 Box2D's warm start where it predicts the model loses, beside the model alone and the perfect
-choice. Intervals are 95 % bootstrap over seeds.
+choice. Intervals are 95 % bootstrap over seeds. `--save-card NAME` writes the gate into an
+alias card that the server serves gated (deepcontact.modelcard, `step_gate`).
 """
 
 from __future__ import annotations
@@ -31,89 +32,32 @@ import numpy as np
 from bench.inprocess import InProcess
 from bench.stats import ratio_interval
 from deepcontact.io import write_json_atomic
+from deepcontact.modelcard import ModelCard
+from deepcontact.step_gate import FEATURES, StepGate, step_features
 from simclient.composites import Pick
 from simclient.scene import SceneSpec, add_scene_arguments, spec_from_args
 from simclient.seeds import parse_seeds
 from simclient.simulate import run_simulation
 
-#: the names of step_features' columns, in order
-FEATURES = (
-    "log points", "share of new points", "log |builtin| rms (N s)", "log |correction| rms (N s)",
-    "|correction| / |builtin|", "share of points corrected > 0.1 N s", "share corrected > 1 N s",
-    "log max |correction| (N s)", "share of normal answers at 0", "share of tangent signs flipped",
-    "log mean body speed (m/s)", "log max body speed (m/s)", "share of bodies moving > 0.1 m/s",
-    "log mean angular speed (rad/s)", "mean penetration (m)", "step / steps",
-)
-
-
-def step_features(bodies: np.ndarray, points: np.ndarray, answer: np.ndarray, step: float) -> np.ndarray:
-    """One step's gate features (len(FEATURES),), from what a server holds after its model ran.
-
-    bodies: (B,) BODY_DTYPE records; points: (P,) CONTACT_DTYPE records, P >= 1;
-    answer: (P, 2) the model's (normal, tangent) impulses (N s); step: the step's index over
-    the simulation's length, in [0, 1].
-    """
-    b = points["builtin"].astype(np.float64)
-    d = answer - b
-    nd, nb = np.linalg.norm(d, axis=1), np.linalg.norm(b, axis=1)
-    dyn = bodies[bodies["type"] == 2]
-    speed = np.linalg.norm(dyn["velocity"].astype(np.float64), axis=1) if len(dyn) else np.zeros(1)
-    spin = np.abs(dyn["angular_velocity"].astype(np.float64)) if len(dyn) else np.zeros(1)
-    tiny = 1e-6
-    return np.array([
-        np.log(len(points)), np.mean(nb == 0), np.log(np.sqrt(np.mean(nb ** 2)) + tiny),
-        np.log(np.sqrt(np.mean(nd ** 2)) + tiny), np.sqrt(np.sum(nd ** 2) / (np.sum(nb ** 2) + tiny)),
-        np.mean(nd > 0.1), np.mean(nd > 1.0), np.log(nd.max() + tiny), np.mean(answer[:, 0] <= 0),
-        np.mean(np.sign(answer[:, 1]) * np.sign(b[:, 1]) < 0), np.log(speed.mean() + tiny),
-        np.log(speed.max() + tiny), np.mean(speed > 0.1), np.log(spin.mean() + tiny),
-        np.mean(np.maximum(-points["separation"].astype(np.float64), 0)), step,
-    ])
-
-
 class _Recording(Pick):
     """shadow: over one model, keeping each step's features beside its trials."""
 
-    def __init__(self, candidate, steps: int):
+    def __init__(self, candidate):
         super().__init__([candidate], mode="shadow")
-        self.steps, self.features = steps, []
+        self.features = []
 
     def pick(self, engine, points, served):
         answer = np.stack(served[0], axis=1).astype(np.float64)
-        self.features.append(step_features(engine.bodies(), points, answer, len(self.trials) / self.steps))
+        self.features.append(step_features(engine.bodies(), points, answer))
         return super().pick(engine, points, served)
 
 
 def record_seed(models: str, model: str, spec: SceneSpec, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(features (S, F), iterations (S, 2): builtin's and the model's) at the model's own
     steps with contacts on (spec, seed)."""
-    provider = _Recording(InProcess.load(Path(models), model, spec), spec.steps)
+    provider = _Recording(InProcess.load(Path(models), model, spec))
     run_simulation(spec, seed, provider)
     return np.array(provider.features).reshape(-1, len(FEATURES)), np.array(provider.trials, float).reshape(-1, 2)
-
-
-def fit_gate(x: np.ndarray, serve_model: np.ndarray, weight: np.ndarray, l2: float = 1e-2,
-             iterations: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A weighted logistic regression (Newton steps): (mean (F,), scale (F,), coefficients (F + 1,)).
-
-    x: (S, F) features; serve_model: (S,) 1 where the model's warm start took fewer iterations;
-    weight: (S,) each step's worth (iterations). P(serve the model) = sigmoid(c0 + c . (x - mean) / scale).
-    """
-    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-9
-    z = np.hstack([np.ones((len(x), 1)), (x - mean) / scale])
-    w = weight / weight.mean()
-    c = np.zeros(z.shape[1])
-    for _ in range(iterations):
-        p = 1 / (1 + np.exp(-np.clip(z @ c, -30, 30)))
-        grad = z.T @ (w * (p - serve_model)) + l2 * c
-        hess = (z * (w * p * (1 - p))[:, None]).T @ z + l2 * np.eye(len(c))
-        c -= np.linalg.solve(hess, grad)
-    return mean, scale, c
-
-
-def gate_serves_model(x: np.ndarray, gate) -> np.ndarray:
-    """(S,) bool: where the gate (fit_gate's answer) serves the model."""
-    mean, scale, c = gate
-    return c[0] + ((x - mean) / scale) @ c[1:] > 0
 
 
 def _record_all(models: str, model: str, spec: SceneSpec, seeds: list[int], workers: int, what: str) -> list:
@@ -137,9 +81,9 @@ def measure(args, spec: SceneSpec) -> dict:
     x, its = np.vstack([f for f, _ in fit]), np.vstack([i for _, i in fit])
     if len(x) == 0 or not any(len(i) for _, i in test):
         raise ValueError("no steps with contacts on the fit seeds or on the priced seeds")
-    gate = fit_gate(x, (its[:, 1] < its[:, 0]).astype(float), np.abs(its[:, 1] - its[:, 0]) + 1e-3)
+    gate = StepGate.fit(x, (its[:, 1] < its[:, 0]).astype(float), np.abs(its[:, 1] - its[:, 0]) + 1e-3)
     # per priced seed, each step's iterations: builtin, the model, the gated choice, the perfect choice
-    per_seed = [np.stack([i[:, 0], i[:, 1], np.where(gate_serves_model(f, gate), i[:, 1], i[:, 0]), i.min(axis=1)])
+    per_seed = [np.stack([i[:, 0], i[:, 1], np.where(gate.serves_model(f), i[:, 1], i[:, 0]), i.min(axis=1)])
                 for f, i in test]
     rows = {}
     for k, name in enumerate(("builtin", args.model, f"{args.model} gated", "perfect choice")):
@@ -153,14 +97,14 @@ def measure(args, spec: SceneSpec) -> dict:
                       or [np.zeros((0, 2))])
     after_loss, after_win = pairs[pairs[:, 0] > 0, 1], pairs[pairs[:, 0] < 0, 1]
     gated_to_model = ratio_interval([s[2] for s in per_seed], [s[1] for s in per_seed])
-    served = np.concatenate([gate_serves_model(f, gate) for f, _ in test])
+    served = np.concatenate([gate.serves_model(f) for f, _ in test])
     return {"fit_seeds": args.fit_seeds, "seeds": args.seeds, "scene": spec.name, "model": args.model,
             "fit_steps": len(x), "priced_steps": len(served), "rows": rows, "gated_to_model": gated_to_model.to_dict(),
             "model_served_share": float(served.mean()), "features": list(FEATURES),
             "feature_correlations": correlations,
             "loses_after_a_loss": float(np.mean(after_loss > 0)) if len(after_loss) else None,
             "loses_after_a_win": float(np.mean(after_win > 0)) if len(after_win) else None,
-            "gate": {"mean": gate[0].tolist(), "scale": gate[1].tolist(), "coefficients": gate[2].tolist()},
+            "gate": gate.to_dict(),
             "wall_s": time.perf_counter() - t0}
 
 
@@ -196,6 +140,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                         help="simulations at once, one process each (default: the cores)")
     parser.add_argument("--json", metavar="FILE", help="write the figures and the fitted gate here")
+    parser.add_argument("--save-card", metavar="NAME",
+                        help="also write MODELS/NAME.json, an alias card that serves the model gated by the fitted "
+                             "gate (deepcontact.modelcard, step_gate)")
     add_scene_arguments(parser)
 
 
@@ -203,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.workers < 1:
             raise ValueError("--workers needs 1 or more")
+        if args.save_card and not args.save_card.replace("-", "").replace("_", "").replace(".", "").isalnum():
+            raise ValueError(f"--save-card {args.save_card!r}: a card name of letters, digits, '-', '_' and '.'")
         report = measure(args, spec_from_args(args))
     except (OSError, ValueError) as exc:
         print(f"deepcontact bench step-gate: {exc}", file=sys.stderr)
@@ -210,4 +159,16 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(report))
     if args.json:
         write_json_atomic(args.json, report)
+    if args.save_card:
+        print(f"wrote {save_card(Path(args.models), args.model, args.save_card, report)}")
     return 0
+
+
+def save_card(models: Path, model: str, name: str, report: dict) -> Path:
+    """MODELS/NAME.json: an alias of `model`'s card (of its target, if it is an alias itself)
+    that serves it with the report's gate."""
+    target = ModelCard.alias_target(models / f"{model}.json") or model
+    why = (f"{model} gated per step: fitted on seeds {report['fit_seeds']} of the {report['scene']} world, "
+           f"{report['rows'][f'{model} gated']['value']:.3f}x of Builtin on {report['seeds']} (bench step-gate)")
+    return write_json_atomic(models / f"{name}.json",
+                             {"name": name, "alias_of": target, "step_gate": report["gate"], "why": why})

@@ -49,6 +49,12 @@ get the best measured variant without choosing one:
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
+
+`step_gate` (graph models with combine "residual"; in a full card or an alias card, which
+then serves its target gated) holds a per-step gate (deepcontact.step_gate.StepGate.to_dict):
+at a step where it predicts that the model's warm start loses to Box2D's, the server serves
+Box2D's, the request's builtin impulses unchanged. `deepcontact bench step-gate --save-card
+NAME` fits one and writes such an alias.
 """
 
 from __future__ import annotations
@@ -62,10 +68,11 @@ from typing import Any
 
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
+from deepcontact.step_gate import StepGate
 
 CARD_VERSION = 1
 COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
-ALIAS_KEYS = frozenset({"name", "alias_of", "why"})
+ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate"})
 
 
 class ModelCardError(ValueError):
@@ -104,6 +111,7 @@ class ModelCard:
     correction_scale: float = 1.0  # "residual", "persisting", "moving": builtin + correction_scale x the model's correction
     correction_threshold: float = 0.0  # "residual", "persisting", "moving": drop corrections whose normal part is at most this (N s)
     passes: int = 1  # graph "residual" models: the network run this many times, each from the last one's warm start
+    step_gate: dict | None = None  # graph "residual" models: Box2D's warm start served at the steps it picks (see above)
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...
@@ -143,6 +151,13 @@ class ModelCard:
         if passes > 1 and (d["kind"] != "graph" or d.get("combine", "replace") != "residual"):
             raise ModelCardError(f"model card passes {passes}: only a graph model with combine \"residual\" "
                                  f"can start a pass from its last one's warm start")
+        if d.get("step_gate") is not None:
+            if d["kind"] != "graph" or d.get("combine", "replace") != "residual":
+                raise ModelCardError("model card step_gate: only a graph model with combine \"residual\" is gated")
+            try:
+                StepGate.from_dict(d["step_gate"])
+            except ValueError as exc:
+                raise ModelCardError(f"model card step_gate: {exc}") from None
         if d.get("combine", "replace") not in COMBINE:
             raise ModelCardError(f"model card combine {d['combine']!r}: use one of {', '.join(COMBINE)}")
         return cls(**d)
@@ -160,12 +175,14 @@ class ModelCard:
             unknown = set(data) - ALIAS_KEYS
             if unknown or not isinstance(data.get("name"), str) or not isinstance(data["alias_of"], str):
                 raise ModelCardError(f"{path}: an alias card holds a name and alias_of (strings) and "
-                                     f"optionally why; got keys {sorted(data)}")
+                                     f"optionally why and step_gate; got keys {sorted(data)}")
             target_path = path.with_name(f"{data['alias_of']}.json")
             target = _read_card(target_path)
             if isinstance(target, dict) and "alias_of" in target:
                 raise ModelCardError(f"{path}: alias of {target_path.name}, itself an alias; "
                                      f"name the card it points at ({target['alias_of']!r})")
+            if isinstance(target, dict) and "step_gate" in data:
+                target = {**target, "step_gate": data["step_gate"]}
             try:
                 card = cls.from_dict(target)
             except ModelCardError as exc:

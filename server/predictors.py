@@ -35,6 +35,7 @@ from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
 from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest
 from deepcontact.modelcard import ModelCard, ModelCardError
+from deepcontact.step_gate import StepGate, step_features
 from deepcontact.transfer import plan
 
 Domain = tuple[tuple[float, float], tuple[float, float]]
@@ -276,8 +277,10 @@ class GraphPredictor(Predictor):
         self.in_mean, self.in_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.inputs))
         self.out_mean, self.out_std = (a.astype(np.float32) for a in spec.normalization_arrays(spec.targets))
         physics_needs = ("point_bodies", "body_inertia") if self.physics else ()
+        self.gate = StepGate.from_dict(card.step_gate) if card.step_gate is not None else None
+        gate_needs = ("builtin", "point_separation") if self.gate is not None else ()
         self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",)
-                                         + physics_needs)))
+                                         + physics_needs + gate_needs)))
         self.new_point = self.inputs.index("new_point") if "new_point" in self.inputs else None
         self.infer = self.run_session
         first = (np.zeros((1, 8), np.float32), np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32))
@@ -328,6 +331,10 @@ class GraphPredictor(Predictor):
             if self.card.passes > 1:
                 warm = points.copy()
                 warm["builtin"] = impulses
+        if self.gate is not None:
+            if not self.gate.serves_model(step_features(bodies, points, impulses)):
+                impulses = points["builtin"].copy()  # Box2D's own warm start: the gate expects the model to lose here
+            stages["g2p"] += time.perf_counter() - t0
         # The wire names the stages around inference p2g and g2p; here they are the
         # point features and the output's denormalization and combination.
         return impulses.astype(np.float32, copy=False), stages

@@ -4,36 +4,26 @@ fitted on some seeds' steps and priced on others', on the model's own states."""
 from __future__ import annotations
 
 import json
+import shutil
+from pathlib import Path
 
-import numpy as np
 
-from bench.step_gate import FEATURES, fit_gate, gate_serves_model
 from deepcontact.cli import main
+from deepcontact.modelcard import ModelCard
+from deepcontact.step_gate import FEATURES
 
-
-def test_the_gate_learns_which_side_of_a_feature_the_model_wins_on():
-    rng = np.random.default_rng(0)
-    x = rng.normal(size=(400, 3))
-    model_wins = (x[:, 1] > 0.2).astype(float)
-    gate = fit_gate(x, model_wins, weight=np.ones(len(x)))
-    served = gate_serves_model(x, gate)
-    assert np.mean(served == model_wins.astype(bool)) > 0.95
-    assert np.argmax(np.abs(gate[2][1:])) == 1  # the deciding feature carries the weight
-
-
-def test_a_step_that_costs_nothing_either_way_does_not_move_the_gate():
-    x = np.array([[0.0], [1.0], [2.0], [3.0]])
-    wins = np.array([0.0, 0.0, 1.0, 1.0])
-    plain = fit_gate(x, wins, weight=np.ones(4))
-    # a contradicting step worth (almost) nothing leaves the fit where it was
-    padded = fit_gate(np.vstack([x, [[3.0]]]), np.append(wins, 0.0), weight=np.append(np.ones(4), 1e-9))
-    assert np.array_equal(gate_serves_model(x, plain), gate_serves_model(x, padded))
+SHIPPED = Path(__file__).parents[2] / "models"
 
 
 def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tmp_path):
     out = tmp_path / "gate.json"
-    assert main(["bench", "step-gate", "--fit-seeds", "800-801", "--seeds", "850", "--steps", "40",
-                 "--workers", "1", "--json", str(out)]) == 0
+    models = tmp_path / "models"
+    models.mkdir()
+    target = ModelCard.alias_target(SHIPPED / "default.json")
+    for name in ("default.json", f"{target}.json", f"{target}.onnx"):
+        shutil.copy(SHIPPED / name, models)
+    assert main(["bench", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
+                 "--steps", "40", "--workers", "1", "--json", str(out), "--save-card", "default-gated"]) == 0
     report = json.loads(out.read_text())
     assert report["features"] == list(FEATURES) and len(report["gate"]["coefficients"]) == len(FEATURES) + 1
     rows = report["rows"]
@@ -48,6 +38,10 @@ def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tm
     assert report["gated_to_model"]["value"] > 0
     assert len(report["feature_correlations"]) == len(FEATURES)
     assert all(-1 <= c <= 1 for c in report["feature_correlations"])
+    # the saved card serves the default's target with the fitted gate
+    card = ModelCard.load(models / "default-gated.json")
+    assert card.name == "default-gated" and card.onnx_file == f"{target}.onnx"
+    assert card.step_gate == report["gate"]
 
 
 def test_fitting_and_pricing_on_the_same_seeds_is_refused(capsys):

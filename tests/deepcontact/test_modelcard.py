@@ -6,6 +6,7 @@ import pytest
 
 from deepcontact.gridspec import GridSpec
 from deepcontact.modelcard import LIST_ALL_UP_TO, ModelCard, ModelCardError, unknown_model
+from deepcontact.step_gate import FEATURES, StepGate
 
 
 def _card(folder, name="residual-new-points"):
@@ -38,6 +39,30 @@ def test_a_broken_alias_says_what_is_wrong(tmp_path):
     (tmp_path / "odd.json").write_text(json.dumps({"name": "odd", "alias_of": "residual-new-points", "kind": "x"}))
     with pytest.raises(ModelCardError, match="alias card holds"):
         ModelCard.load(tmp_path / "odd.json")
+
+
+def _gate() -> dict:
+    f = len(FEATURES)
+    return StepGate((0.0,) * f, (1.0,) * f, (1.0,) + (0.0,) * f).to_dict()
+
+
+def test_an_alias_may_serve_its_graph_model_gated_and_only_a_residual_graph_model(tmp_path):
+    graph = ModelCard(name="graph", kind="graph", onnx_file="graph.onnx", gridspec=GridSpec.thesis(),
+                      fixed_grid=False, combine="residual")
+    graph.save(tmp_path / "graph.json")
+    (tmp_path / "gated.json").write_text(json.dumps({"name": "gated", "alias_of": "graph", "step_gate": _gate()}))
+    gated = ModelCard.load(tmp_path / "gated.json")
+    assert gated.name == "gated" and gated.onnx_file == "graph.onnx" and gated.step_gate == _gate()
+    assert ModelCard.load(tmp_path / "graph.json").step_gate is None  # the target itself is served plain
+    _card(tmp_path)  # a grid model: its impulses are not a correction to gate
+    (tmp_path / "grid-gated.json").write_text(json.dumps(
+        {"name": "grid-gated", "alias_of": "residual-new-points", "step_gate": _gate()}))
+    with pytest.raises(ModelCardError, match="only a graph model"):
+        ModelCard.load(tmp_path / "grid-gated.json")
+    (tmp_path / "bad.json").write_text(json.dumps({"name": "bad", "alias_of": "graph",
+                                                   "step_gate": {**_gate(), "mean": [0.0]}}))
+    with pytest.raises(ModelCardError, match="step_gate: a step gate holds"):
+        ModelCard.load(tmp_path / "bad.json")
 
 
 def test_an_unknown_model_is_told_with_every_name_when_there_are_few():

@@ -205,3 +205,38 @@ def test_the_shipped_models_include_default_an_alias_served_like_its_target():
     assert "default" in models and target in models
     assert models["default"].card.onnx_file == models[target].card.onnx_file
     assert models["default"].card.combine == models[target].card.combine
+
+
+@pytest.mark.parametrize("intercept", [-50.0, 50.0])
+def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_answer_elsewhere(
+        tmp_path, thesis_steps, intercept):
+    import json
+    import shutil
+    from pathlib import Path
+
+    from deepcontact.step_gate import FEATURES, StepGate
+    from server.predictors import load_model
+
+    shipped = Path(__file__).parents[2] / "models"
+    target = ModelCard.alias_target(shipped / "default.json")
+    for name in (f"{target}.json", f"{target}.onnx"):
+        shutil.copy(shipped / name, tmp_path)
+    f = len(FEATURES)  # a gate that answers the same at every step: its intercept alone decides
+    gate = StepGate((0.0,) * f, (1.0,) * f, (intercept,) + (0.0,) * f).to_dict()
+    (tmp_path / "gated.json").write_text(json.dumps({"name": "gated", "alias_of": target, "step_gate": gate}))
+    plain, gated = load_model(tmp_path / f"{target}.json"), load_model(tmp_path / "gated.json")
+    assert "point_separation" in gated.requires and "builtin" in gated.requires
+    world_msg, steps = thesis_steps
+    lower, upper, _ = wire.decode_world(world_msg)
+    world = World((lower, upper), wire.decode_physics(world_msg))
+    bodies, points = steps[0]
+    points = points.copy()
+    points["builtin"] = points["impulse"] * 0.9  # a warm start the model corrects
+    own, _ = plain.predict(bodies, points, world, 0)
+    served, stages = gated.predict(bodies, points, world, 0)
+    if intercept > 0:
+        np.testing.assert_array_equal(served, own)
+    else:
+        np.testing.assert_array_equal(served, points["builtin"])
+        assert not np.array_equal(own, points["builtin"])
+    assert stages["g2p"] > 0
