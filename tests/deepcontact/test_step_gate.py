@@ -49,3 +49,21 @@ def test_a_step_served_box2ds_own_warm_start_has_no_correction(thesis_steps):
     # the step's bodies and points, not the answer, give the rest
     rest = [at["log points"], at["share of new points"], at["log mean body speed (m/s)"], at["mean penetration (m)"]]
     assert np.array_equal(same[rest], moved[rest])
+
+
+def test_the_features_are_their_plain_definitions(thesis_steps):
+    _world, steps = thesis_steps
+    bodies, points = steps[2]
+    rng = np.random.default_rng(3)
+    answer = points["builtin"] + rng.normal(0, 0.3, (len(points), 2))
+    b = points["builtin"].astype(np.float64)
+    nd, nb = np.linalg.norm(answer - b, axis=1), np.linalg.norm(b, axis=1)
+    dyn = bodies[bodies["type"] == 2]
+    speed, spin = np.linalg.norm(dyn["velocity"], axis=1), np.abs(dyn["angular_velocity"])
+    plain = [np.log(len(points)), np.mean(nb == 0), np.log(np.sqrt(np.mean(nb ** 2)) + 1e-6),
+             np.log(np.sqrt(np.mean(nd ** 2)) + 1e-6), np.linalg.norm(nd) / np.sqrt(np.sum(nb ** 2) + 1e-6),
+             np.mean(nd > 0.1), np.mean(nd > 1), np.log(nd.max() + 1e-6), np.mean(answer[:, 0] <= 0),
+             np.mean(np.sign(answer[:, 1]) * np.sign(b[:, 1]) < 0),
+             np.log(speed.mean() + 1e-6), np.log(speed.max() + 1e-6), np.mean(speed > 0.1),
+             np.log(spin.mean() + 1e-6), np.mean(np.maximum(-points["separation"], 0))]
+    np.testing.assert_allclose(step_features(bodies, points, answer), plain, rtol=1e-5, atol=1e-7)
