@@ -16,12 +16,19 @@ prices it on the other seeds on the same states: the mean iterations when the ga
 Box2D's warm start where it predicts the model loses, beside the model alone and the perfect
 choice. Intervals are 95 % bootstrap over seeds. `--save-card NAME` writes the gate into an
 alias card that the server serves gated (deepcontact.modelcard, `step_gate`).
+
+A gate fitted on one world carries badly to others (the thesis world's costs 1.8 % on the
+200-body world's states). `--fit-also "SCENE ARGS"` adds another world's fit seeds to the fit,
+one quoted string of scene flags a world, repeatable; the gate is still priced on the main
+world's `--seeds` only, so pricing it on every world is one run per world with the others
+given as `--fit-also`.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -70,13 +77,35 @@ def _record_all(models: str, model: str, spec: SceneSpec, seeds: list[int], work
         return list(tqdm(pool.map(record_seed, *args), total=len(seeds), desc=what, unit="seed", file=sys.stderr, leave=False))
 
 
+class _WorldParser(argparse.ArgumentParser):
+    def error(self, message):  # a bad --fit-also is the caller's input error, not an exit
+        raise ValueError(message)
+
+
+def world_from_flags(flags: str) -> SceneSpec:
+    """The SceneSpec one `--fit-also` string of scene flags describes ("--radius 0.3 0.55 ...");
+    ValueError for flags that are not scene flags or describe no world."""
+    parser = _WorldParser(prog="--fit-also", add_help=False)
+    add_scene_arguments(parser)
+    try:
+        return spec_from_args(parser.parse_args(shlex.split(flags)))
+    except ValueError as exc:
+        raise ValueError(f"--fit-also {flags!r}: {exc}") from None
+
+
 def measure(args, spec: SceneSpec) -> dict:
     """The figures run() prints (see the module docstring)."""
     fit_seeds, seeds = parse_seeds(args.fit_seeds), parse_seeds(args.seeds)
     if set(fit_seeds) & set(seeds):
         raise ValueError("--fit-seeds and --seeds overlap: the gate would be priced on the steps it was fitted on")
+    also = [(flags, world_from_flags(flags)) for flags in args.fit_also or []]
     t0 = time.perf_counter()
     fit = _record_all(args.models, args.model, spec, fit_seeds, args.workers, "fit seeds")
+    fit_steps_per_world = [{"world": spec.name, "steps": sum(len(f) for f, _ in fit)}]
+    for flags, world in also:
+        more = _record_all(args.models, args.model, world, fit_seeds, args.workers, f"fit seeds, {flags}")
+        fit_steps_per_world.append({"world": flags, "steps": sum(len(f) for f, _ in more)})
+        fit += more
     test = _record_all(args.models, args.model, spec, seeds, args.workers, "priced seeds")
     x, its = np.vstack([f for f, _ in fit]), np.vstack([i for _, i in fit])
     if len(x) == 0 or not any(len(i) for _, i in test):
@@ -99,6 +128,7 @@ def measure(args, spec: SceneSpec) -> dict:
     gated_to_model = ratio_interval([s[2] for s in per_seed], [s[1] for s in per_seed])
     served = np.concatenate([gate.serves_model(f) for f, _ in test])
     return {"fit_seeds": args.fit_seeds, "seeds": args.seeds, "scene": spec.name, "model": args.model,
+            "fit_also": [flags for flags, _ in also], "fit_steps_per_world": fit_steps_per_world,
             "fit_steps": len(x), "priced_steps": len(served), "rows": rows, "gated_to_model": gated_to_model.to_dict(),
             "model_served_share": float(served.mean()), "features": list(FEATURES),
             "feature_correlations": correlations,
@@ -113,7 +143,8 @@ def _share(x: float | None) -> str:
 
 
 def format_report(report: dict) -> str:
-    lines = [f"{report['scene']}: gate fitted on seeds {report['fit_seeds']} ({report['fit_steps']} steps), "
+    pooled = "".join(f" and of {flags!r}" for flags in report.get("fit_also", []))
+    lines = [f"{report['scene']}: gate fitted on seeds {report['fit_seeds']}{pooled} ({report['fit_steps']} steps), "
              f"priced on {report['seeds']} ({report['priced_steps']} steps), on {report['model']}'s own states",
              "", "| warm start | mean iterations | / builtin [95 %] |", "|---|---|---|"]
     for name, r in report["rows"].items():
@@ -137,6 +168,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fit-seeds", default="800-849", help="seeds the gate is fitted on (default %(default)s, "
                                                                "the validation seeds)")
     parser.add_argument("--seeds", default="850-899", help="seeds it is priced on (default %(default)s, the choosing seeds)")
+    parser.add_argument("--fit-also", action="append", metavar="SCENE_ARGS",
+                        help="also fit on the fit seeds of another world, its scene flags in one quoted string "
+                             "(e.g. \"--radius 0.3 0.55 --friction 0.2 0.8\"); repeat for more worlds. The gate is "
+                             "priced on the main world only")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                         help="simulations at once, one process each (default: the cores)")
     parser.add_argument("--json", metavar="FILE", help="write the figures and the fitted gate here")
@@ -168,7 +203,8 @@ def save_card(models: Path, model: str, name: str, report: dict) -> Path:
     """MODELS/NAME.json: an alias of `model`'s card (of its target, if it is an alias itself)
     that serves it with the report's gate."""
     target = ModelCard.alias_target(models / f"{model}.json") or model
-    why = (f"{model} gated per step: fitted on seeds {report['fit_seeds']} of the {report['scene']} world, "
+    worlds = " and ".join([f"the {report['scene']} world"] + [repr(f) for f in report.get("fit_also", [])])
+    why = (f"{model} gated per step: fitted on seeds {report['fit_seeds']} of {worlds}, "
            f"{report['rows'][f'{model} gated']['value']:.3f}x of Builtin on {report['seeds']} (bench step-gate)")
     return write_json_atomic(models / f"{name}.json",
                              {"name": name, "alias_of": target, "step_gate": report["gate"], "why": why})

@@ -15,13 +15,19 @@ from deepcontact.step_gate import FEATURES
 SHIPPED = Path(__file__).parents[2] / "models"
 
 
-def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tmp_path):
-    out = tmp_path / "gate.json"
+def _shipped_default(tmp_path: Path) -> Path:
+    """A models folder holding the shipped default's alias, its card and its ONNX."""
     models = tmp_path / "models"
     models.mkdir()
     target = ModelCard.alias_target(SHIPPED / "default.json")
     for name in ("default.json", f"{target}.json", f"{target}.onnx"):
         shutil.copy(SHIPPED / name, models)
+    return models
+
+
+def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tmp_path):
+    out, models = tmp_path / "gate.json", _shipped_default(tmp_path)
+    target = ModelCard.alias_target(SHIPPED / "default.json")
     assert main(["bench", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
                  "--steps", "40", "--workers", "1", "--json", str(out), "--save-card", "default-gated"]) == 0
     report = json.loads(out.read_text())
@@ -47,3 +53,24 @@ def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tm
 def test_fitting_and_pricing_on_the_same_seeds_is_refused(capsys):
     assert main(["bench", "step-gate", "--fit-seeds", "800-801", "--seeds", "801-802", "--steps", "20"]) == 2
     assert "overlap" in capsys.readouterr().err
+
+
+def test_a_gate_fitted_on_two_worlds_counts_each_worlds_steps_and_names_them_in_its_card(tmp_path):
+    out, models = tmp_path / "gate.json", _shipped_default(tmp_path)
+    family = "--radius 0.3 0.55 --friction 0.2 0.8 --steps 40"
+    assert main(["bench", "step-gate", "--models", str(models), "--fit-seeds", "800", "--seeds", "850",
+                 "--steps", "40", "--workers", "1", "--fit-also", family, "--json", str(out),
+                 "--save-card", "pooled"]) == 0
+    report = json.loads(out.read_text())
+    assert report["fit_also"] == [family]
+    per_world = report["fit_steps_per_world"]
+    assert [w["world"] for w in per_world] == ["thesis-custom", family] and all(w["steps"] > 0 for w in per_world)
+    assert sum(w["steps"] for w in per_world) == report["fit_steps"]
+    assert family in json.loads((models / "pooled.json").read_text())["why"]
+
+
+def test_a_fit_world_that_is_not_scene_flags_is_refused_before_anything_runs(capsys):
+    assert main(["bench", "step-gate", "--fit-also", "--radius 0.3", "--steps", "20"]) == 2
+    assert "--radius" in capsys.readouterr().err
+    assert main(["bench", "step-gate", "--fit-also", "--bogus 3", "--steps", "20"]) == 2
+    assert "unrecognized" in capsys.readouterr().err
