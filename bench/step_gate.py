@@ -22,6 +22,11 @@ A gate fitted on one world carries badly to others (the thesis world's costs 1.8
 one quoted string of scene flags a world, repeatable; the gate is still priced on the main
 world's `--seeds` only, so pricing it on every world is one run per world with the others
 given as `--fit-also`.
+
+Beside the learned gate it prices a race, a gate the client could run with the solver instead:
+solve k sweeps from each start side by side, go on from the one whose k-th sweep changed the
+impulses least (its residual), and count the loser's k sweeps as spent (`raced k sweeps`; k in
+RACE_SWEEPS).
 """
 
 from __future__ import annotations
@@ -46,12 +51,21 @@ from simclient.scene import SceneSpec, add_scene_arguments, spec_from_args
 from simclient.seeds import parse_seeds
 from simclient.simulate import run_simulation
 
+#: the sweeps after which a race compares the two starts' residuals
+RACE_SWEEPS = (1, 3, 8)
+
+
 class _Recording(Pick):
-    """shadow: over one model, keeping each step's features beside its trials."""
+    """shadow: over one model, keeping each step's features beside its trials, and both trials'
+    residuals after each of RACE_SWEEPS sweeps (0 once a trial has converged)."""
 
     def __init__(self, candidate):
         super().__init__([candidate], mode="shadow")
         self.features = []
+        self.residuals = []
+
+    def traced(self, traces):
+        self.residuals.append([[t[k - 1] if len(t) >= k else 0.0 for k in RACE_SWEEPS] for t in traces])
 
     def pick(self, engine, points, served):
         answer = np.stack(served[0], axis=1).astype(np.float64)
@@ -59,12 +73,24 @@ class _Recording(Pick):
         return super().pick(engine, points, served)
 
 
-def record_seed(models: str, model: str, spec: SceneSpec, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(features (S, F), iterations (S, 2): builtin's and the model's) at the model's own
-    steps with contacts on (spec, seed)."""
+def record_seed(models: str, model: str, spec: SceneSpec, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(features (S, F), iterations (S, 2): builtin's and the model's, residuals (S, 2, K) N s:
+    theirs after each of RACE_SWEEPS sweeps) at the model's own steps with contacts on (spec, seed)."""
     provider = _Recording(InProcess.load(Path(models), model, spec))
     run_simulation(spec, seed, provider)
-    return np.array(provider.features).reshape(-1, len(FEATURES)), np.array(provider.trials, float).reshape(-1, 2)
+    return (np.array(provider.features).reshape(-1, len(FEATURES)), np.array(provider.trials, float).reshape(-1, 2),
+            np.array(provider.residuals, float).reshape(-1, 2, len(RACE_SWEEPS)))
+
+
+def raced(iterations: np.ndarray, residuals: np.ndarray, k: int) -> np.ndarray:
+    """(S,) each step's sweeps when both starts run side by side for up to k sweeps: the first
+    to converge ends the race (both ran its sweeps); else the one with the smaller residual
+    after k goes on (builtin on a tie), and the other's k sweeps are spent.
+    iterations (S, 2) and residuals (S, 2, K) as record_seed gives them."""
+    r = residuals[:, :, RACE_SWEEPS.index(k)]
+    winner = np.where(r[:, 1] < r[:, 0], iterations[:, 1], iterations[:, 0])
+    first = iterations.min(axis=1)
+    return np.where(first <= k, 2 * first, winner + k)
 
 
 def _record_all(models: str, model: str, spec: SceneSpec, seeds: list[int], workers: int, what: str) -> list:
@@ -101,32 +127,34 @@ def measure(args, spec: SceneSpec) -> dict:
     also = [(flags, world_from_flags(flags)) for flags in args.fit_also or []]
     t0 = time.perf_counter()
     fit = _record_all(args.models, args.model, spec, fit_seeds, args.workers, "fit seeds")
-    fit_steps_per_world = [{"world": spec.name, "steps": sum(len(f) for f, _ in fit)}]
+    fit_steps_per_world = [{"world": spec.name, "steps": sum(len(f) for f, _, _ in fit)}]
     for flags, world in also:
         more = _record_all(args.models, args.model, world, fit_seeds, args.workers, f"fit seeds, {flags}")
-        fit_steps_per_world.append({"world": flags, "steps": sum(len(f) for f, _ in more)})
+        fit_steps_per_world.append({"world": flags, "steps": sum(len(f) for f, _, _ in more)})
         fit += more
     test = _record_all(args.models, args.model, spec, seeds, args.workers, "priced seeds")
-    x, its = np.vstack([f for f, _ in fit]), np.vstack([i for _, i in fit])
-    if len(x) == 0 or not any(len(i) for _, i in test):
+    x, its = np.vstack([f for f, _, _ in fit]), np.vstack([i for _, i, _ in fit])
+    if len(x) == 0 or not any(len(i) for _, i, _ in test):
         raise ValueError("no steps with contacts on the fit seeds or on the priced seeds")
     gate = StepGate.fit(x, (its[:, 1] < its[:, 0]).astype(float), np.abs(its[:, 1] - its[:, 0]) + 1e-3)
     # per priced seed, each step's iterations: builtin, the model, the gated choice, the perfect choice
-    per_seed = [np.stack([i[:, 0], i[:, 1], np.where(gate.serves_model(f), i[:, 1], i[:, 0]), i.min(axis=1)])
-                for f, i in test]
+    per_seed = [np.stack([i[:, 0], i[:, 1], np.where(gate.serves_model(f), i[:, 1], i[:, 0]), i.min(axis=1),
+                          *(raced(i, r, k) for k in RACE_SWEEPS)])
+                for f, i, r in test]
     rows = {}
-    for k, name in enumerate(("builtin", args.model, f"{args.model} gated", "perfect choice")):
+    names = ("builtin", args.model, f"{args.model} gated", "perfect choice", *(f"raced {k} sweeps" for k in RACE_SWEEPS))
+    for k, name in enumerate(names):
         r = ratio_interval([s[k] for s in per_seed], [s[0] for s in per_seed])
         rows[name] = {"mean_iterations": float(np.mean(np.concatenate([s[k] for s in per_seed]))), **r.to_dict()}
     # what the fit steps say apart from the gate: each feature's correlation with the model's
     # iterations less builtin's, and whether a loss follows a loss (which a server cannot see)
     diff = its[:, 1] - its[:, 0]
     correlations = [float(np.corrcoef(x[:, k], diff)[0, 1]) if x[:, k].std() > 0 else 0.0 for k in range(x.shape[1])]
-    pairs = np.vstack([np.column_stack([i[:-1, 1] - i[:-1, 0], i[1:, 1] - i[1:, 0]]) for _, i in fit if len(i) > 1]
+    pairs = np.vstack([np.column_stack([i[:-1, 1] - i[:-1, 0], i[1:, 1] - i[1:, 0]]) for _, i, _ in fit if len(i) > 1]
                       or [np.zeros((0, 2))])
     after_loss, after_win = pairs[pairs[:, 0] > 0, 1], pairs[pairs[:, 0] < 0, 1]
     gated_to_model = ratio_interval([s[2] for s in per_seed], [s[1] for s in per_seed])
-    served = np.concatenate([gate.serves_model(f) for f, _ in test])
+    served = np.concatenate([gate.serves_model(f) for f, _, _ in test])
     return {"fit_seeds": args.fit_seeds, "seeds": args.seeds, "scene": spec.name, "model": args.model,
             "fit_also": [flags for flags, _ in also], "fit_steps_per_world": fit_steps_per_world,
             "fit_steps": len(x), "priced_steps": len(served), "rows": rows, "gated_to_model": gated_to_model.to_dict(),

@@ -198,6 +198,7 @@ class Pick(Provider):
         iterations = [len(t) for t in traces]
         self.trials.append(iterations)
         self.reach.append(sweeps_to_builtin(traces, engine.config.velocity_threshold))
+        self.traced(traces)
         if self.mode in ("shadow", "split", "boost", "admit", "motion", "graft", "feedback"):
             return candidates[1]
         if self.mode in ("price", "shrink", "gate"):
@@ -205,6 +206,10 @@ class Pick(Provider):
         if self.mode == "mean":
             return candidates[-1]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
+
+    def traced(self, traces: list[np.ndarray]) -> None:
+        """Called with each step's trial residual traces (builtin's first; (iterations,) N s
+        each); a subclass that needs more of them than their lengths keeps them here."""
 
     # Each mode's derived warm starts, priced after builtin and the candidates. Each takes the
     # engine (after collide()), the step's point records and the candidates so far (builtin

@@ -7,9 +7,12 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 
 from deepcontact.cli import main
 from deepcontact.modelcard import ModelCard
+from bench.step_gate import RACE_SWEEPS, raced
 from deepcontact.step_gate import FEATURES
 
 SHIPPED = Path(__file__).parents[2] / "models"
@@ -33,11 +36,13 @@ def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tm
     report = json.loads(out.read_text())
     assert report["features"] == list(FEATURES) and len(report["gate"]["coefficients"]) == len(FEATURES) + 1
     rows = report["rows"]
-    assert set(rows) == {"builtin", "default", "default gated", "perfect choice"}
+    assert set(rows) == {"builtin", "default", "default gated", "perfect choice",
+                         *(f"raced {k} sweeps" for k in RACE_SWEEPS)}
     perfect = rows["perfect choice"]["mean_iterations"]
     # the gate serves one of the two at every step, so it can do no better than the perfect choice
-    # and no worse than the worse of the two at every step
+    # and no worse than the worse of the two at every step; a race also pays for the loser's sweeps
     assert perfect <= rows["default gated"]["mean_iterations"]
+    assert all(perfect <= rows[f"raced {k} sweeps"]["mean_iterations"] for k in RACE_SWEEPS)
     assert perfect <= min(rows["builtin"]["mean_iterations"], rows["default"]["mean_iterations"])
     assert rows["builtin"]["value"] == 1.0
     assert 0.0 <= report["model_served_share"] <= 1.0 and report["priced_steps"] > 0
@@ -74,3 +79,14 @@ def test_a_fit_world_that_is_not_scene_flags_is_refused_before_anything_runs(cap
     assert "--radius" in capsys.readouterr().err
     assert main(["bench", "step-gate", "--fit-also", "--bogus 3", "--steps", "20"]) == 2
     assert "unrecognized" in capsys.readouterr().err
+
+
+def test_a_race_goes_on_from_the_smaller_residual_and_pays_the_losers_sweeps():
+    iterations = np.array([[100, 80], [100, 80], [5, 2]], float)  # builtin's, the model's
+    residuals = np.zeros((3, 2, len(RACE_SWEEPS)))
+    residuals[0, :, 0] = [2.0, 1.0]  # the model's first sweep changes less: it goes on
+    residuals[1, :, 0] = [1.0, 2.0]  # Box2D's does: it goes on, though the model would have won
+    residuals[2, :, 0] = [0.5, 0.1]
+    assert raced(iterations, residuals, 1).tolist() == [81, 101, 3]
+    # within 8 sweeps the model's start converges (at 2): the race ends there, both ran 2 sweeps
+    assert raced(iterations, residuals, 8)[2] == 2 + 2
