@@ -37,7 +37,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "soak"), "bench.soak", "a long load on one server: nothing lost, memory flat (RSS over time)"),
     (("bench", "order"), "bench.order", "does the order of the solver's sweep choose its answer? a Gauss-Seidel replica in several orders"),
     (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
-    (("bench", "step-gate"), "bench.step_gate", "a per-step gate between a model's warm start and Box2D's, fitted on some seeds, priced on others"),
+    (("bench", "step-gate"), "bench.step_gate", "a per-step gate between a model's warm start and Box2D's, fitted on some seeds (of one world or several), priced on others beside a race of the two starts' first sweeps"),
     (("bench", "surrogate"), "bench.surrogate", "does the training loss's score of a step follow the iterations a model saves there?"),
     (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
     (("bench", "walltime"), "bench.walltime", "whole step time with builtin, a served model and the same model in process, and the break-even, per world size"),
