@@ -69,18 +69,20 @@ class StepGate:
     """P(the model's warm start takes fewer iterations) = sigmoid(c0 + c . (x - mean) / scale).
 
     mean, scale: (F,) the fit steps' feature means and spreads; coefficients: (F + 1,), the
-    intercept first. F = len(FEATURES).
+    intercept first. names: the F features' names, FEATURES for a gate a server can compute;
+    a screen may fit one on more (bench.step_gate's --hidden), which no card can carry.
     """
 
     mean: tuple[float, ...]
     scale: tuple[float, ...]
     coefficients: tuple[float, ...]
+    names: tuple[str, ...] = FEATURES
 
     def __post_init__(self):
-        f = len(FEATURES)
+        f = len(self.names)
         if (len(self.mean), len(self.scale), len(self.coefficients)) != (f, f, f + 1):
             raise ValueError(f"a step gate holds {f} means, {f} scales and {f + 1} coefficients "
-                             f"(one per feature of deepcontact.step_gate.FEATURES, and the intercept); got "
+                             f"(one per feature it names, and the intercept); got "
                              f"{len(self.mean)}, {len(self.scale)} and {len(self.coefficients)}")
         values = np.array(self.mean + self.scale + self.coefficients, float)
         if not np.all(np.isfinite(values)) or min(self.scale) <= 0:
@@ -93,10 +95,10 @@ class StepGate:
 
     @classmethod
     def fit(cls, x: np.ndarray, model_won: np.ndarray, weight: np.ndarray, *, l2: float = 1e-2,
-            iterations: int = 50) -> "StepGate":
+            iterations: int = 50, names: tuple[str, ...] = FEATURES) -> "StepGate":
         """A weighted logistic regression by Newton steps.
 
-        x: (S, F) features; model_won: (S,) 1 where the model's warm start took fewer iterations
+        x: (S, F) features, named by names; model_won: (S,) 1 where the model's warm start took fewer iterations
         than Box2D's, else 0; weight: (S,) each step's worth (e.g. the iterations between them),
         at least one above 0. l2 keeps the fit finite where the steps separate.
         """
@@ -109,10 +111,10 @@ class StepGate:
             grad = z.T @ (w * (p - model_won)) + l2 * c
             hess = (z * (w * p * (1 - p))[:, None]).T @ z + l2 * np.eye(len(c))
             c -= np.linalg.solve(hess, grad)
-        return cls(tuple(mean.tolist()), tuple(scale.tolist()), tuple(c.tolist()))
+        return cls(tuple(mean.tolist()), tuple(scale.tolist()), tuple(c.tolist()), tuple(names))
 
     def to_dict(self) -> dict:
-        return {"features": list(FEATURES), "mean": list(self.mean), "scale": list(self.scale),
+        return {"features": list(self.names), "mean": list(self.mean), "scale": list(self.scale),
                 "coefficients": list(self.coefficients)}
 
     @classmethod

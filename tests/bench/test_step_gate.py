@@ -12,7 +12,7 @@ import numpy as np
 
 from deepcontact.cli import main
 from deepcontact.modelcard import ModelCard
-from bench.step_gate import RACE_SWEEPS, raced
+from bench.step_gate import RACE_SWEEPS, HiddenTap, raced
 from deepcontact.step_gate import FEATURES
 
 SHIPPED = Path(__file__).parents[2] / "models"
@@ -79,6 +79,47 @@ def test_a_fit_world_that_is_not_scene_flags_is_refused_before_anything_runs(cap
     assert "--radius" in capsys.readouterr().err
     assert main(["bench", "step-gate", "--fit-also", "--bogus 3", "--steps", "20"]) == 2
     assert "unrecognized" in capsys.readouterr().err
+
+
+def test_a_gate_on_the_networks_inner_state_is_priced_beside_the_plain_one(tmp_path):
+    out, models = tmp_path / "gate.json", _shipped_default(tmp_path)
+    tensor = "m0/add_49:0"  # the shipped default's last point states, rows for the points and their mirror images
+    assert main(["bench", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
+                 "--steps", "40", "--workers", "1", "--hidden", tensor, "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    rows = report["rows"]
+    inner, in_sample = "default gated on its inner state too", "default gated on its inner state too, fitted on these steps (in sample)"
+    assert {"default gated", inner, in_sample} <= set(rows)
+    assert all(rows["perfect choice"]["mean_iterations"] <= rows[name]["mean_iterations"] for name in (inner, in_sample))
+    names = report["hidden_gate"]["features"]
+    assert names[:len(FEATURES)] == list(FEATURES) and names[len(FEATURES)] == f"{tensor} mean[0]"
+    assert len(names) > len(FEATURES) and report["hidden"] == [tensor]
+    assert report["hidden_gate_to_gate"]["value"] > 0
+
+
+def test_the_tap_hands_the_network_its_answer_and_keeps_the_pooled_state():
+    from server.predictors import load_model
+
+    predictor = load_model(SHIPPED / "default.json")
+    rng = np.random.default_rng(0)
+    feed = (rng.normal(size=(5, len(predictor.inputs))).astype(np.float32),
+            np.array([[0, 1], [1, 2], [2, 0], [0, 3], [3, 1]], np.int32), np.ones((4, 1), np.float32))
+    plain = predictor.run_session(*feed)
+    tap = HiddenTap(predictor, ModelCard.load(SHIPPED / "default.json").onnx_path(SHIPPED / "default.json"),
+                    ["m0/add_49:0"])
+    assert predictor.infer == tap.infer and np.array_equal(predictor.infer(*feed), plain)
+    width = tap.widths[0]
+    assert tap.last.shape == (2 * width,) and len(tap.names()) == 2 * width
+    assert np.all(tap.last[width:] >= tap.last[:width])  # each column's max over the rows is at least its mean
+
+
+def test_a_tensor_the_model_does_not_hold_and_a_card_for_a_screens_gate_are_refused(tmp_path, capsys):
+    models = _shipped_default(tmp_path)
+    assert main(["bench", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "no/such:0"]) == 2
+    assert "no/such:0" in capsys.readouterr().err
+    assert main(["bench", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "m0/add_49:0",
+                 "--save-card", "x"]) == 2
+    assert "--save-card with --hidden" in capsys.readouterr().err
 
 
 def test_a_race_goes_on_from_the_smaller_residual_and_pays_the_losers_sweeps():

@@ -37,6 +37,15 @@ def test_a_gate_goes_through_its_card_form_unchanged_and_refuses_other_features(
         StepGate(gate.mean, (0.0,) + gate.scale[1:], gate.coefficients)
 
 
+def test_a_gate_fitted_on_more_features_names_them_and_no_card_serves_it():
+    names = FEATURES + ("inner state mean[0]",)
+    x = np.random.default_rng(2).normal(size=(60, len(names)))
+    gate = StepGate.fit(x, (x[:, -1] > 0).astype(float), np.ones(60), names=names)
+    assert gate.to_dict()["features"] == list(names) and gate.serves_model(x).shape == (60,)
+    with pytest.raises(ValueError, match="other features"):  # a server computes FEATURES only
+        StepGate.from_dict(gate.to_dict())
+
+
 def test_a_step_served_box2ds_own_warm_start_has_no_correction(thesis_steps):
     _world, steps = thesis_steps
     bodies, points = steps[0]
