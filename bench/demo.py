@@ -1,6 +1,6 @@
 """`deepcontact demo` (and `make demo`): the main job in one command.
 
-Starts `deepcontact serve` with the shipped models on a free loopback port,
+Starts `deepcontact serve` with the shipped models on a Unix socket of its own,
 waits for its health check, runs the thesis world on a held-out seed with
 `none`, `builtin` and the shipped models through the server (the thesis-style
 `pressure` and `default`, the best measured variant: models/default.json says
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         "--models", str(args.models), "--out", str(args.out),
     ])
     print(f"deepcontact demo: thesis world, seed {args.seed}; warm starts none, builtin, {servers}, and "
-          f"{shadow} (the same states priced for each) (a server on a free loopback port)", file=sys.stderr)
+          f"{shadow} (the same states priced for each) (a server on a Unix socket of its own)", file=sys.stderr)
     code = iterations.run(bench_args)
     if code == 0:
         print(f"figures and table in {args.out}/ (fig20_contacts_iterations.png, fig21_convergence.png, "

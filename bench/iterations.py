@@ -69,8 +69,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
-                             "over replicas); server: warm starts with --ray ADDRESS need it, as the cluster's "
-                             "workers cannot reach the one started on this machine's loopback")
+                             "over replicas, unix:PATH dials a Unix socket); server: warm starts with --ray ADDRESS need it, as the cluster's "
+                             "workers cannot reach the one started here, on a Unix socket of this machine")
     parser.add_argument("--models", type=Path, default=Path("models"), help="models for the server started here (default models/)")
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
                         help=f"per-step deadline for server replies (default {DEFAULT_DEADLINE_MS:g})")
@@ -114,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
         from server.process import ServerProcess
 
         try:
-            server_proc = ServerProcess(args.models, log=args.out / "server.log").start()
+            # only this machine's tasks dial it: a Unix socket, shorter round trips than loopback TCP
+            server_proc = ServerProcess(args.models, log=args.out / "server.log", local_socket=True).start()
         except (RuntimeError, TimeoutError) as exc:
             print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
             return 2

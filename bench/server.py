@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rounds", type=int, default=4, help="times the recorded steps are streamed (default 4)")
     parser.add_argument("--intra-op-threads", type=int, default=1,
                         help="the server's ONNX Runtime threads per inference (default 1, serve's default)")
+    parser.add_argument("--bind", default="127.0.0.1:0",
+                        help="where the server listens (default %(default)s, a free loopback port; unix:PATH "
+                             "for a Unix socket)")
     parser.add_argument("--json", metavar="FILE", help="write the results here as JSON")
 
 
@@ -95,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
               f"{args.seed} (bodies still falling); give more --steps", file=sys.stderr)
         return 2
     try:
-        server = ServerProcess(args.models, "--intra-op-threads", str(args.intra_op_threads)).start()
+        server = ServerProcess(args.models, "--intra-op-threads", str(args.intra_op_threads), bind=args.bind).start()
     except (RuntimeError, TimeoutError) as exc:
         print(f"deepcontact bench server: {exc}", file=sys.stderr)
         return 2
@@ -118,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     n_points = [len(p) for _, p in recorded]
     result = {
         "model": args.model, "seed": args.seed, "steps": len(recorded), "rounds": args.rounds,
-        "intra_op_threads": args.intra_op_threads,
+        "intra_op_threads": args.intra_op_threads, "bind": args.bind,
         "median_contact_points": statistics.median(n_points),
         "server_us_median": {k: statistics.median(v) for k, v in stages.items()},
         "server_us_p90": {k: float(np.percentile(v, 90)) for k, v in stages.items()},

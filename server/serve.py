@@ -56,8 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", type=Path, default=Path("models"),
                         help="folder of *.onnx models with *.json cards (default models/)")
     parser.add_argument("--bind", default="127.0.0.1:50051",
-                        help="address to listen on (default 127.0.0.1:50051; port 0 picks a free one)")
-    parser.add_argument("--port-file", type=Path, help="write the bound port here once serving")
+                        help="address to listen on (default 127.0.0.1:50051; port 0 picks a free one; "
+                             "unix:PATH listens on a Unix socket, which clients dial as the same unix:PATH)")
+    parser.add_argument("--port-file", type=Path, help="write the bound port here once serving (1 for a Unix socket)")
     parser.add_argument("--max-concurrent", type=int, default=64,
                         help="concurrent RPCs (streams count while open); more get RESOURCE_EXHAUSTED (default 64)")
     parser.add_argument("--max-queue", type=int, default=256,
@@ -137,11 +138,16 @@ class Server:
             self.port = self.grpc.add_secure_port(bind, credentials)
         if self.port == 0:
             raise OSError(f"cannot bind {bind}")
-        self.host = bind.rsplit(":", 1)[0]
+        # A Unix socket (unix:PATH) has no host or port: gRPC answers 1 for a bound one. Clients
+        # dial the bind string itself, and the metrics endpoint, which is HTTP on TCP, stays on loopback.
+        self.unix = bind.startswith(("unix:", "unix-abstract:"))
+        self.host = "127.0.0.1" if self.unix else bind.rsplit(":", 1)[0]
+        self.bind = bind
 
     @property
     def address(self) -> str:
-        return f"{self.host}:{self.port}"
+        """What a client dials: host:port, or the unix: address as bound."""
+        return self.bind if self.unix else f"{self.host}:{self.port}"
 
     def start(self) -> "Server":
         self.grpc.start()

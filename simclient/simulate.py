@@ -237,7 +237,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "probes and oracles (oracle:VARIANT, solve@K, jitter@S, pick:W1+W2...) "
                              "are listed in simclient/warmstarts.py, oracles.py and composites.py")
     parser.add_argument("--server", metavar="HOST:PORT",
-                        help="warm-start server for server:MODEL (any gRPC target, e.g. dns:///server:50051)")
+                        help="warm-start server for server:MODEL (any gRPC target, e.g. dns:///server:50051, or unix:PATH for a server on a Unix socket)")
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
                         help=f"per-step deadline for the server's reply; later replies fall back to builtin "
                              f"(default {DEFAULT_DEADLINE_MS:g})")

@@ -21,3 +21,11 @@ def test_bench_server_reports_every_stage_and_the_round_trip(tmp_path, model_dir
 def test_bench_server_refuses_a_model_it_does_not_have(model_dir, capsys):
     assert main(["bench", "server", "--models", str(model_dir), "--model", "nope", "--steps", "80"]) == 2
     assert "no model 'nope'" in capsys.readouterr().err
+
+
+def test_bench_server_times_a_server_on_a_unix_socket(tmp_path, model_dir):
+    out, bind = tmp_path / "server.json", f"unix:{tmp_path / 'warmstart.sock'}"
+    assert main(["bench", "server", "--models", str(model_dir), "--model", "tiny", "--steps", "80",
+                 "--rounds", "2", "--bind", bind, "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["bind"] == bind and result["steps"] > 0 and result["round_trip_ms_median"] > 0

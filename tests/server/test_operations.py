@@ -139,6 +139,19 @@ def test_tls(model_dir, tmp_path, thesis_steps):
         server.stop()
 
 
+def test_a_server_on_a_unix_socket_is_dialled_at_its_bind_address(model_dir, tmp_path, thesis_steps):
+    bind = f"unix:{tmp_path / 'warmstart.sock'}"
+    server = Server(models=model_dir, bind=bind).start()
+    try:
+        assert server.address == bind and server.host == "127.0.0.1"  # the metrics endpoint stays on loopback
+        with grpc.insecure_channel(server.address) as channel:
+            world, steps = thesis_steps
+            reply = pb_grpc.WarmStartStub(channel).Predict(wire.encode_step(0, "bad", *steps[0], world=world))
+            assert reply.point_count == len(steps[0][1])
+    finally:
+        server.stop()
+
+
 def test_reflection_lists_the_service(server):
     with grpc.insecure_channel(server.address) as channel:
         services = ProtoReflectionDescriptorDatabase(channel).get_services()
