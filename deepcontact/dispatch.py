@@ -237,8 +237,32 @@ class _NpzPath(str):
     """A pool worker's result, written to this .npz (told apart from a str result)."""
 
 
+#: starts of a local Ray before giving up: on two busy cores one start in a few timed out
+LOCAL_RAY_STARTS = 2
+
+
 class _Ray:
     """Ray tasks with one retry; a local Ray is started here and stopped in close()."""
+
+    def _start_local(self, workers: int | None) -> None:
+        ray = self._ray
+        # No network at run time: no usage-stats reporter, no dashboard.
+        os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+        # Ray waits 30 s for its GCS to write its port file; on two cores busy with training,
+        # a start took longer (a CI run of 2026-11-27 failed so). A user's setting wins.
+        os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
+        # Its wait for the raylet to register is a fixed 30 s, which a start beside another Ray on
+        # two busy cores also overran (a CI run of 2026-11-30): a second start, from nothing, then.
+        for attempt in range(LOCAL_RAY_STARTS):
+            try:
+                ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
+                         log_to_driver=False, logging_level=logging.WARNING)
+                return
+            except Exception:  # noqa: BLE001 - Ray raises a bare Exception for the timeout
+                ray.shutdown()
+                if attempt == LOCAL_RAY_STARTS - 1:
+                    raise
+                print("a local Ray did not start; starting it once more", file=sys.stderr)
 
     def __init__(self, address: str, workers: int | None):
         import ray
@@ -246,19 +270,14 @@ class _Ray:
         self._ray = ray
         try:
             if address == "local":
-                # No network at run time: no usage-stats reporter, no dashboard.
-                os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
-                # Ray waits 30 s for its GCS to write its port file; on two cores busy with training,
-                # a start took longer (a CI run of 2026-11-27 failed so). A user's setting wins.
-                os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
-                ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
-                         log_to_driver=False, logging_level=logging.WARNING)
+                self._start_local(workers)
             else:
                 ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
         except Exception as exc:  # noqa: BLE001 - unreachable, refused, bad token: all end the run the same way
             ray.shutdown()
             if address == "local":
-                raise DispatchError(f"could not start a local Ray: {_reason(exc)}") from exc
+                raise DispatchError(f"could not start a local Ray (tried {LOCAL_RAY_STARTS} times): "
+                                    f"{_reason(exc)}") from exc
             # Ray sends no token to an address named explicitly unless told to (it does for auto); a refused token
             # then looks like a timeout.
             hint = ("" if address == "auto" or os.environ.get("RAY_AUTH_MODE") else

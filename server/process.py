@@ -1,4 +1,4 @@
-"""Run `deepcontact serve` as a child process on a free loopback port.
+"""Run `deepcontact serve` as a child process on a free loopback port (or a Unix socket).
 
 Used by commands that need a server and were given none (the demo, the
 iteration and load benchmarks) and by tests:

@@ -1,4 +1,5 @@
-"""deepcontact.dispatch: what the process pool leaves behind when its caller dies.
+"""deepcontact.dispatch: what the process pool leaves behind when its caller dies, and a
+local Ray that does not start at once.
 
 (Results in task order, failures named, Ray's retry: tests/training/test_generate.py, which
 drives the dispatcher through `deepcontact generate`.)"""
@@ -9,6 +10,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pytest
+
+from deepcontact import dispatch
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -66,3 +71,32 @@ def test_pool_workers_stop_when_the_caller_is_killed(tmp_path):
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_local_ray_that_does_not_start_is_started_once_more(monkeypatch, capsys):
+    # Ray's own start timeout cannot be provoked on demand, so the first start is made to fail
+    # as it does (a bare Exception); the second is Ray's real start.
+    ray = pytest.importorskip("ray")
+
+    real_init, calls = ray.init, []
+
+    def init_failing_once(*args, **kwargs):
+        calls.append(kwargs)
+        if len(calls) == 1:
+            raise Exception("The current node timed out during startup.")
+        return real_init(*args, **kwargs)
+
+    monkeypatch.setattr(ray, "init", init_failing_once)
+    with dispatch.Dispatcher(workers=1, ray="local") as dispatcher:
+        assert list(dispatcher.map(str, [dispatch.Task("one", (7,))])) == ["7"]
+    assert len(calls) == 2 and "starting it once more" in capsys.readouterr().err
+
+    def init_failing(*args, **kwargs):
+        calls.append(kwargs)
+        raise Exception("The current node timed out during startup.")
+
+    calls.clear()
+    monkeypatch.setattr(ray, "init", init_failing)
+    with pytest.raises(dispatch.DispatchError, match=f"tried {dispatch.LOCAL_RAY_STARTS} times"):
+        dispatch.Dispatcher(workers=1, ray="local").__enter__()
+    assert len(calls) == dispatch.LOCAL_RAY_STARTS
