@@ -79,7 +79,11 @@ class HiddenTap:
         known = {name for node in graph.graph.node for name in node.output}
         missing = [t for t in tensors if t not in known]
         if missing:
-            raise ValueError(f"--hidden: {', '.join(missing)} is not a tensor of {onnx_path.name}")
+            # the last float tensors before the output are the network's latest states: name a few
+            late = [name for node in graph.graph.node[-40:] if node.op_type in ("Add", "Relu")
+                    for name in node.output][-6:]
+            raise ValueError(f"--hidden: {', '.join(missing)} is not a tensor of {onnx_path.name} "
+                             f"(some of its late ones: {', '.join(late)})")
         for t in tensors:
             graph.graph.output.append(onnx.helper.make_tensor_value_info(t, onnx.TensorProto.FLOAT, None))
         options = ort.SessionOptions()
