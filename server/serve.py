@@ -132,12 +132,15 @@ class Server:
         self.health = HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc)
         reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.grpc)
-        if credentials is None:
-            self.port = self.grpc.add_insecure_port(bind)
-        else:
-            self.port = self.grpc.add_secure_port(bind, credentials)
+        try:
+            if credentials is None:
+                self.port = self.grpc.add_insecure_port(bind)
+            else:
+                self.port = self.grpc.add_secure_port(bind, credentials)
+        except RuntimeError:  # gRPC raises for an address it cannot bind (a missing folder, a foreign host)
+            self.port = 0
         if self.port == 0:
-            raise OSError(f"cannot bind {bind}")
+            raise OSError(f"cannot bind {bind} (a local address, and for unix:PATH a folder that exists)")
         # A Unix socket (unix:PATH) has no host or port: gRPC answers 1 for a bound one. Clients
         # dial the bind string itself, and the metrics endpoint, which is HTTP on TCP, stays on loopback.
         self.unix = bind.startswith(("unix:", "unix-abstract:"))

@@ -152,6 +152,15 @@ def test_a_server_on_a_unix_socket_is_dialled_at_its_bind_address(model_dir, tmp
         server.stop()
 
 
+def test_an_address_it_cannot_bind_is_refused_with_the_address(model_dir, tmp_path, capsys):
+    from deepcontact.cli import main
+
+    bind = f"unix:{tmp_path / 'no-such-folder' / 'warmstart.sock'}"
+    assert main(["serve", "--models", str(model_dir), "--bind", bind]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("deepcontact serve: cannot bind ") and bind in err
+
+
 def test_reflection_lists_the_service(server):
     with grpc.insecure_channel(server.address) as channel:
         services = ProtoReflectionDescriptorDatabase(channel).get_services()
