@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         from server.process import ServerProcess
 
         try:
-            # only this machine's tasks dial it: a Unix socket, shorter round trips than loopback TCP
+            # only this machine's tasks dial it: a Unix socket (no port to find, nothing other hosts can reach)
             server_proc = ServerProcess(args.models, log=args.out / "server.log", local_socket=True).start()
         except (RuntimeError, TimeoutError) as exc:
             print(f"deepcontact bench iterations: {exc}", file=sys.stderr)

@@ -3,8 +3,8 @@
     deepcontact bench walltime --sizes thesis,100,400,1600 --seeds 901-903 --out bench/results/walltime
 
 For each world size, simulates the same seeds with `builtin` and with a served
-model (`server:MODEL`, one `deepcontact serve` process on loopback started
-here) and times every step's parts (simclient.simulate.StepRecord):
+model (`server:MODEL`, one `deepcontact serve` process started here, on loopback
+TCP or, with `--bind unix:PATH`, on a Unix socket) and times every step's parts (simclient.simulate.StepRecord):
 
     builtin:     collide + solve                                 (what Box2D alone does)
     learned:     collide + export + round trip + inject + solve  (the round trip includes
@@ -67,6 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also simulate with the model called in this process, no gRPC (default on)")
     parser.add_argument("--out", type=Path, default=Path("bench/results/walltime"),
                         help="output folder (default bench/results/walltime)")
+    parser.add_argument("--bind", default="127.0.0.1:0",
+                        help="where the server started here listens (default %(default)s, a free loopback port; "
+                             "unix:PATH for a Unix socket)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -172,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
         print("deepcontact bench walltime: give at least one size and --steps >= 1", file=sys.stderr)
         return 2
     try:
-        server = ServerProcess(args.models).start()
+        server = ServerProcess(args.models, bind=args.bind).start()
     except (RuntimeError, TimeoutError) as exc:
         print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
         return 2
@@ -195,7 +198,8 @@ def run(args: argparse.Namespace) -> int:
         server.stop()
     args.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.out / "walltime.json", {
-        "command": "deepcontact " + " ".join(sys.argv[1:]), "model": args.model, "seeds": seeds, "sizes": rows})
+        "command": "deepcontact " + " ".join(sys.argv[1:]), "model": args.model, "bind": args.bind, "seeds": seeds,
+        "sizes": rows})
     table = markdown_table(rows, args.model, seeds)
     tmp = args.out / ".walltime.md.part"
     tmp.write_text(table)

@@ -6,10 +6,9 @@ iteration and load benchmarks) and by tests:
     with ServerProcess("models/") as server:
         client = WarmStartClient(server.address)
 
-`local_socket=True` binds a Unix socket in the process's own temporary folder instead: for a
-server only this machine's clients dial (the iteration benchmark and the demo), it takes about
-a quarter off a lone stream's round trip, less under load (`deepcontact bench server --bind
-unix:PATH`, docs/performance.md).
+`local_socket=True` binds a Unix socket in the process's own temporary folder instead, the
+plain choice for a server only this machine's clients dial (the iteration benchmark and the
+demo); it saves a few per cent of the round trip at most (docs/performance.md).
 """
 
 from __future__ import annotations

@@ -57,3 +57,11 @@ def test_bench_walltime_can_leave_the_in_process_run_out(tmp_path, model_dir):
     result = json.loads((tmp_path / "walltime.json").read_text())
     assert "in_process" not in result["sizes"]["thesis"]
     assert "in-process" not in (tmp_path / "walltime.md").read_text()
+
+
+def test_bench_walltime_serves_over_a_unix_socket_when_told_to(tmp_path, model_dir):
+    bind = f"unix:{tmp_path / 'warmstart.sock'}"
+    assert main(["bench", "walltime", "--sizes", "thesis", "--seeds", "901", "--steps", "30", "--no-in-process",
+                 "--models", str(model_dir), "--model", "tiny", "--bind", bind, "--out", str(tmp_path), "--quiet"]) == 0
+    result = json.loads((tmp_path / "walltime.json").read_text())
+    assert result["bind"] == bind and result["sizes"]["thesis"]["learned"]["round_trip_ms"] > 0
