@@ -37,6 +37,13 @@ past them the answers get worse (docs/results.md, "One sweep, repeated"). With
 `recall`, every round's update also reads the encoded inputs, so however many
 rounds run, the last still sees the step it is answering.
 
+With `body_state`, every body keeps a state of its own from round to round (B, W), as the
+nodes of an encode-process-decode network do: each round adds to it what the round's sums
+make of it (static bodies keep none), and points read their bodies' states instead of the
+round's bare sums. Why: what the solver settles at a body is its motion, accumulated over its
+sweeps from every contact; a plain round forgets each body's sum once its points have read it,
+so the motion has to be carried in the points' states, split over a body's contacts.
+
 With `probes` = C > 0, every round also asks the physics a question: the round's state
 makes C trial impulses at each point (a normal and a tangent part each), and the round
 reads back, at each point and for each trial, the relative (normal, tangent) velocity that
@@ -81,6 +88,7 @@ class GraphConfig:
     tied: bool = False  # every round uses round 0's weights; `rounds` is then how many the export runs
     recall: bool = False  # each round's update also reads the encoded inputs
     probes: int = 0  # trial impulses a round sends through the contact problem's operator (0: none)
+    body_state: bool = False  # each body keeps a state across rounds, updated from the round's sums
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
@@ -92,6 +100,9 @@ def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
         shapes[f"round{r}_to_b"] = (w, w)
         if c.probes:
             shapes[f"round{r}_probe"] = (w, 2 * c.probes)
+        if c.body_state:
+            shapes[f"round{r}_body0"] = (2 * w, w)
+            shapes[f"round{r}_body1"] = (w, w)
         shapes[f"round{r}_update0"] = ((3 + c.pooled + c.recall) * w + 2 * c.probes, w)
         shapes[f"round{r}_update1"] = (w, w)
     shapes["decode0"] = (w, w)
@@ -186,6 +197,7 @@ class ContactGraphNet:
         at_a = at_b = None
         if self.incidence == "matmul":
             at_a, at_b = tf.one_hot(a, n_bodies), tf.one_hot(b, n_bodies)  # (P, B)
+        body = tf.zeros([n_bodies, self.config.width], h.dtype) if self.config.body_state else None  # (B, W)
         for r in range(self.config.rounds if rounds is None else rounds):  # loop over rounds, not points
             r = 0 if self.config.tied else r
             # Pre-norm: the residual stream h is summed, never normalized, so deep stacks keep
@@ -195,6 +207,11 @@ class ContactGraphNet:
             to_b = self._dense(x, f"round{r}_to_b")
             load = (self._sum_at_bodies(to_a, a, at_a, n_bodies)
                     + self._sum_at_bodies(to_b, b, at_b, n_bodies)) * dynamic
+            if body is not None:
+                # Residual like the points' own: the body's state grows by what this round adds.
+                step = self._dense(self._dense(tf.concat([body, load], axis=1), f"round{r}_body0"),
+                                   f"round{r}_body1", relu=False)
+                load = body = body + step * dynamic
             u = tf.concat([x, self._read_bodies(load, a, at_a), self._read_bodies(load, b, at_b)], axis=1)
             if self.config.pooled:
                 u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
@@ -274,9 +291,10 @@ class ContactGraphNet:
 
 
 def config_to_dict(c: GraphConfig) -> dict[str, Any]:
-    """The config as a card records it; `tied`, `recall` and `probes` only where set, so other cards read as before them."""
+    """The config as a card records it; `tied`, `recall`, `probes` and `body_state` only where set, so other cards
+    read as before them."""
     d = dataclasses.asdict(c)
-    for key in ("tied", "recall", "probes"):
+    for key in ("tied", "recall", "probes", "body_state"):
         if not d[key]:
             del d[key]
     return d

@@ -155,6 +155,10 @@ def _network_arguments(parser) -> None:
                              "the export then takes the points' geometry and masses and the bodies' inverse masses, "
                              "which the server computes. With --init from a network without them, their reads start "
                              "at 0, so the network starts as exactly that one (default %(default)s: none)")
+    parser.add_argument("--body-state", action="store_true",
+                        help="every body keeps a state across the rounds, updated from each round's sums, and its "
+                             "points read that state (training/graph_model.py); trained from nothing only: --init "
+                             "needs a network that has one")
     parser.add_argument("--passes", type=int, default=1, metavar="K",
                         help="train the network as a card with `passes: K` serves it: run K times, each pass "
                              "reading the channels at the warm start the last one made (recomputed inside the "
@@ -777,7 +781,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
                          rounds=args.rounds, pooled=args.pooled,
                          layer_norm=getattr(args, "layer_norm", False), tied=getattr(args, "tied", False),
-                         recall=getattr(args, "recall", False), probes=getattr(args, "probes", 0))
+                         recall=getattr(args, "recall", False), probes=getattr(args, "probes", 0),
+                         body_state=getattr(args, "body_state", False))
     if args.init is not None:
         net = ContactGraphNet(config, initial_weights(args.init, config))
     else:
@@ -841,7 +846,7 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
         raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
                          f"{config.rounds}{' --tied' if config.tied else ''}{' --recall' if config.recall else ''}"
                          f"{' --pooled' if config.pooled else ''}{f' --probes {config.probes}' if config.probes else ''}"
-                         f"{' --layer-norm' if config.layer_norm else ''} "
+                         f"{' --layer-norm' if config.layer_norm else ''}{' --body-state' if config.body_state else ''} "
                          f"with {config.in_channels} inputs")
     return weights
 

@@ -61,3 +61,34 @@ def test_the_screen_trains_the_control_and_the_probed_network_the_same_way(data,
     assert probed["weights"] == control["weights"] + 2 * (8 * 4 + 4) + 2 * (4 * 8)  # the probe layers and their reads
     assert [h[0] for h in control["history"]] == [h[0] for h in probed["history"]] == [1, 2]
     assert "| 2 |" in capsys.readouterr().out
+
+
+def test_a_body_state_is_kept_by_the_bodies_that_take_impulses_only(graphs):
+    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict, init_weights
+
+    plain = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2)
+    kept = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, body_state=True)
+    rng = np.random.default_rng(0)
+    weights = {k: (0.5 * rng.standard_normal(v.shape)).astype(np.float32) for k, v in init_weights(kept).items()}
+    x, _, e, d = graphs.batch([3])
+    with_state = ContactGraphNet(kept, weights)
+    without = ContactGraphNet(plain, {k: v for k, v in weights.items() if "_body" not in k})
+    assert not np.allclose(with_state(x, e, d).numpy(), without(x, e, d).numpy())
+    # Where every body is static no body keeps anything, so the state changes nothing.
+    static = np.zeros_like(d)
+    np.testing.assert_allclose(with_state(x, e, static).numpy(), without(x, e, static).numpy(), rtol=1e-5, atol=1e-6)
+    assert "body_state" not in config_to_dict(plain) and config_to_dict(kept)["body_state"] is True
+    assert sum(w.size for w in weights.values()) - sum(w.size for w in without.weights().values()) \
+        == 2 * ((2 * 8 * 8 + 8) + (8 * 8 + 8))  # each round's two layers that update the state
+
+
+def test_the_screen_with_a_body_state_records_it_beside_the_probes(data, tmp_path, capsys):
+    from training.probe_screen import main
+
+    out = tmp_path / "screen.json"
+    assert main(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--probes", "0", "--body-state",
+                 "--epochs", "1", "--width", "8", "--rounds", "2", "--batch-size", "4", "--price-steps", "0",
+                 "--cache", str(tmp_path / "cache"), "--json", str(out), "--quiet"]) == 0
+    (row,) = json.loads(out.read_text())["networks"]
+    assert row["body_state"] is True and row["probes"] == 0
+    assert "| 0 | yes |" in capsys.readouterr().out

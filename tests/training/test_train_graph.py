@@ -338,6 +338,23 @@ def test_a_run_goes_on_from_an_earlier_runs_weights(data, tmp_path, capsys):
     assert not (tmp_path / "wide.onnx").exists()
 
 
+def test_a_network_with_a_body_state_is_exported_and_goes_on_only_from_a_network_that_has_one(data, tmp_path, capsys):
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--width", "8", "--rounds", "2", "--loss", "mse", "--cache", str(tmp_path / "cache"),
+              "--quiet"]
+    assert main(common + ["--body-state", "--out", str(tmp_path / "kept.onnx")]) == 0
+    card = json.loads((tmp_path / "kept.json").read_text())
+    assert card["architecture"]["config"]["body_state"] is True and card["parity_max_abs_error"] < 1e-4
+    assert main(common + ["--body-state", "--out", str(tmp_path / "more.onnx"),
+                          "--init", str(tmp_path / "cache" / "kept.weights.npz")]) == 0
+    assert main(common + ["--out", str(tmp_path / "plain.onnx")]) == 0
+    capsys.readouterr()
+    assert main(common + ["--body-state", "--out", str(tmp_path / "grown.onnx"),
+                          "--init", str(tmp_path / "cache" / "plain.weights.npz")]) == 2
+    assert "--body-state" in capsys.readouterr().err
+    assert not (tmp_path / "grown.onnx").exists()
+
+
 def test_a_pooled_network_starts_as_the_plain_one_and_pools_each_step_alone(graphs, data, tmp_path):
     from training.graph_model import ContactGraphNet, GraphConfig, init_weights
 
@@ -775,12 +792,13 @@ def _random_net(config, rng: np.random.Generator, incidence: str = "segments"):
     return ContactGraphNet(config, weights, incidence=incidence)
 
 
-@pytest.mark.parametrize("layer_norm,pooled", [(False, False), (True, False), (True, True)])
-def test_a_scatter_export_computes_what_tensorflow_computes_on_bodies_shared_by_points(layer_norm, pooled):
+@pytest.mark.parametrize("layer_norm,pooled,body_state", [(False, False, False), (True, False, False),
+                                                          (True, True, False), (False, False, True)])
+def test_a_scatter_export_computes_what_tensorflow_computes_on_bodies_shared_by_points(layer_norm, pooled, body_state):
     from training.graph_model import ContactGraphNet, GraphConfig, to_onnx
 
     rng = np.random.default_rng(3)
-    config = GraphConfig(in_channels=5, width=8, rounds=3, layer_norm=layer_norm, pooled=pooled)
+    config = GraphConfig(in_channels=5, width=8, rounds=3, layer_norm=layer_norm, pooled=pooled, body_state=body_state)
     net = _random_net(config, rng)
     points, ends, dynamic = _shared_body_step(config.in_channels, rng)
     expected = np.asarray(net(points, ends, dynamic))
