@@ -42,7 +42,9 @@ nodes of an encode-process-decode network do: each round adds to it what the rou
 make of it (static bodies keep none), and points read their bodies' states instead of the
 round's bare sums. Why: what the solver settles at a body is its motion, accumulated over its
 sweeps from every contact; a plain round forgets each body's sum once its points have read it,
-so the motion has to be carried in the points' states, split over a body's contacts.
+so the motion has to be carried in the points' states, split over a body's contacts. With
+`body_plus_sums` as well, the points read the round's sums plus their bodies' states: a network
+whose state layers end at zero is then exactly the plain network, so a trained one can grow one.
 
 With `probes` = C > 0, every round also asks the physics a question: the round's state
 makes C trial impulses at each point (a normal and a tangent part each), and the round
@@ -89,6 +91,7 @@ class GraphConfig:
     recall: bool = False  # each round's update also reads the encoded inputs
     probes: int = 0  # trial impulses a round sends through the contact problem's operator (0: none)
     body_state: bool = False  # each body keeps a state across rounds, updated from the round's sums
+    body_plus_sums: bool = False  # with body_state, points read the round's sums plus the state, not the state alone
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
@@ -211,7 +214,8 @@ class ContactGraphNet:
                 # Residual like the points' own: the body's state grows by what this round adds.
                 step = self._dense(self._dense(tf.concat([body, load], axis=1), f"round{r}_body0"),
                                    f"round{r}_body1", relu=False)
-                load = body = body + step * dynamic
+                body = body + step * dynamic
+                load = load + body if self.config.body_plus_sums else body
             u = tf.concat([x, self._read_bodies(load, a, at_a), self._read_bodies(load, b, at_b)], axis=1)
             if self.config.pooled:
                 u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
@@ -291,10 +295,10 @@ class ContactGraphNet:
 
 
 def config_to_dict(c: GraphConfig) -> dict[str, Any]:
-    """The config as a card records it; `tied`, `recall`, `probes` and `body_state` only where set, so other cards
-    read as before them."""
+    """The config as a card records it; `tied`, `recall`, `probes` and the body state's two flags only where set, so
+    other cards read as before them."""
     d = dataclasses.asdict(c)
-    for key in ("tied", "recall", "probes", "body_state"):
+    for key in ("tied", "recall", "probes", "body_state", "body_plus_sums"):
         if not d[key]:
             del d[key]
     return d

@@ -155,10 +155,11 @@ def _network_arguments(parser) -> None:
                              "the export then takes the points' geometry and masses and the bodies' inverse masses, "
                              "which the server computes. With --init from a network without them, their reads start "
                              "at 0, so the network starts as exactly that one (default %(default)s: none)")
-    parser.add_argument("--body-state", action="store_true",
-                        help="every body keeps a state across the rounds, updated from each round's sums, and its "
-                             "points read that state (training/graph_model.py); trained from nothing only: --init "
-                             "needs a network that has one")
+    parser.add_argument("--body-state", nargs="?", const="state", choices=("state", "sums"),
+                        help="every body keeps a state across the rounds, updated from each round's sums "
+                             "(training/graph_model.py); its points read that state ('state', the default when the "
+                             "flag is given alone) or the round's sums plus it ('sums': with --init from a network "
+                             "without one, the state starts at zero, so the network starts as exactly that one)")
     parser.add_argument("--passes", type=int, default=1, metavar="K",
                         help="train the network as a card with `passes: K` serves it: run K times, each pass "
                              "reading the channels at the warm start the last one made (recomputed inside the "
@@ -782,7 +783,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
                          rounds=args.rounds, pooled=args.pooled,
                          layer_norm=getattr(args, "layer_norm", False), tied=getattr(args, "tied", False),
                          recall=getattr(args, "recall", False), probes=getattr(args, "probes", 0),
-                         body_state=getattr(args, "body_state", False))
+                         body_state=bool(getattr(args, "body_state", None)),
+                         body_plus_sums=getattr(args, "body_state", None) == "sums")
     if args.init is not None:
         net = ContactGraphNet(config, initial_weights(args.init, config))
     else:
@@ -835,6 +837,10 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
             if k.endswith("_update0/kernel") and k in expected and v.shape[0] == expected[k][0] - 2 * config.probes:
                 weights[k] = np.concatenate([v, np.zeros((2 * config.probes, v.shape[1]), v.dtype)])
         weights.update({k: v for k, v in fresh.items() if "_probe/" in k})
+    if config.body_plus_sums and not any("_body0/" in k for k in weights):
+        # A network without a body state: each round gains its state layers, the last at zero, so
+        # the state stays zero and the points read the bare sums: exactly the network it grew from.
+        weights.update({k: np.zeros_like(v) if "_body1/" in k else v for k, v in fresh.items() if "_body" in k})
     if config.pooled:
         # A network without the summary: its update layers gain zero rows for it, so the
         # pooled network starts as exactly that network.
@@ -846,7 +852,7 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
         raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
                          f"{config.rounds}{' --tied' if config.tied else ''}{' --recall' if config.recall else ''}"
                          f"{' --pooled' if config.pooled else ''}{f' --probes {config.probes}' if config.probes else ''}"
-                         f"{' --layer-norm' if config.layer_norm else ''}{' --body-state' if config.body_state else ''} "
+                         f"{' --layer-norm' if config.layer_norm else ''}{(' --body-state sums' if config.body_plus_sums else ' --body-state') if config.body_state else ''} "
                          f"with {config.in_channels} inputs")
     return weights
 

@@ -355,6 +355,20 @@ def test_a_network_with_a_body_state_is_exported_and_goes_on_only_from_a_network
     assert not (tmp_path / "grown.onnx").exists()
 
 
+def test_a_body_state_read_beside_the_sums_grows_from_a_plain_network_as_exactly_that_network(data, tmp_path):
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--width", "8", "--rounds", "2", "--loss", "mse", "--cache", str(tmp_path / "cache"),
+              "--quiet"]
+    assert main(common + ["--out", str(tmp_path / "plain.onnx")]) == 0
+    # With a learning rate of nothing the grown network stays where it starts: the plain one.
+    assert main(common + ["--body-state", "sums", "--out", str(tmp_path / "grown.onnx"), "--lr", "1e-12",
+                          "--init", str(tmp_path / "cache" / "plain.weights.npz")]) == 0
+    plain, grown = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("plain", "grown"))
+    assert grown["architecture"]["config"]["body_plus_sums"] is True and grown["parity_max_abs_error"] < 1e-4
+    assert grown["validation"]["loss"] == pytest.approx(plain["validation"]["loss"], rel=1e-4)
+    assert grown["parameters"] == plain["parameters"] + 2 * ((2 * 8 * 8 + 8) + (8 * 8 + 8))
+
+
 def test_a_pooled_network_starts_as_the_plain_one_and_pools_each_step_alone(graphs, data, tmp_path):
     from training.graph_model import ContactGraphNet, GraphConfig, init_weights
 
@@ -792,13 +806,14 @@ def _random_net(config, rng: np.random.Generator, incidence: str = "segments"):
     return ContactGraphNet(config, weights, incidence=incidence)
 
 
-@pytest.mark.parametrize("layer_norm,pooled,body_state", [(False, False, False), (True, False, False),
-                                                          (True, True, False), (False, False, True)])
-def test_a_scatter_export_computes_what_tensorflow_computes_on_bodies_shared_by_points(layer_norm, pooled, body_state):
+@pytest.mark.parametrize("layer_norm,pooled,body", [(False, False, ""), (True, False, ""), (True, True, ""),
+                                                     (False, False, "state"), (False, False, "sums")])
+def test_a_scatter_export_computes_what_tensorflow_computes_on_bodies_shared_by_points(layer_norm, pooled, body):
     from training.graph_model import ContactGraphNet, GraphConfig, to_onnx
 
     rng = np.random.default_rng(3)
-    config = GraphConfig(in_channels=5, width=8, rounds=3, layer_norm=layer_norm, pooled=pooled, body_state=body_state)
+    config = GraphConfig(in_channels=5, width=8, rounds=3, layer_norm=layer_norm, pooled=pooled,
+                         body_state=bool(body), body_plus_sums=body == "sums")
     net = _random_net(config, rng)
     points, ends, dynamic = _shared_body_step(config.in_channels, rng)
     expected = np.asarray(net(points, ends, dynamic))
