@@ -40,7 +40,10 @@ The two steps run as one batch of two disjoint graphs (the reflected step's
 bodies numbered after the sent one's), so the price is one larger inference,
 not two. Why: the worlds are symmetric under the reflection and the networks
 are not built to be; their answer and their mirror image's differ by about a
-fifth of the answer, and the mean of the two errs less than either.
+fifth of the answer, and the mean of the two errs less than either. A pooled
+member (`pooled`: each round reads the mean state of all points it is given)
+runs twice instead, in two copies, since in one batch its summary would span
+both steps.
 
 Members with probes (training/graph_model.py) also read the contact problem's
 operator: geometry (P, 8), masses (P, 2), inverse (B, 2), which the ensemble then
@@ -65,6 +68,7 @@ from deepcontact.modelcard import ModelCard, ModelCardError
 
 GRAPH_INPUTS = ("points", "ends", "dynamic")
 PHYSICS_INPUTS = ("geometry", "masses", "inverse")  # a network with probes's three more
+PARITY_TOLERANCE = 1e-3  # N s; float32 sums in two orders differ by about 1e-6 here
 
 
 def _member(path: Path) -> ModelCard:
@@ -99,12 +103,18 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
                                  f"{', '.join(PHYSICS_INPUTS)}) and returns {card.output_name!r}; this one takes {got}")
         for opset in model.opset_import:
             opsets[opset.domain] = max(opsets.get(opset.domain, 0), opset.version)
-        p = f"m{i}/"
-        member_nodes, member_initializers, member_corrections = _member_graph(
-            compose.add_prefix(model, p), card, p, mirror, "geometry" in got)
-        nodes += member_nodes
-        initializers += member_initializers
-        corrections += member_corrections
+        if mirror and _pooled(card):
+            # A pooled member's summary is the mean over every point it is given, so the step
+            # and its reflection batched together would share one: each runs in its own copy.
+            parts = [(f"m{i}/", False, False), (f"m{i}r/", False, True)]
+        else:
+            parts = [(f"m{i}/", mirror, False)]
+        for p, batched, reflected in parts:
+            member_nodes, member_initializers, member_corrections = _member_graph(
+                compose.add_prefix(model, p), card, p, batched, "geometry" in got, reflected)
+            nodes += member_nodes
+            initializers += member_initializers
+            corrections += member_corrections
     if agree is None:
         nodes.append(helper.make_node("Mean", corrections, ["impulses"]))
     else:
@@ -127,11 +137,19 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
     return proto
 
 
-def _member_graph(model, card: ModelCard, p: str, mirror: bool, physics: bool = False) -> tuple[list, list, list[str]]:
+def _pooled(card: ModelCard) -> bool:
+    """Whether a member's rounds read a graph-wide summary (training.graph_model, `pooled`)."""
+    return bool((card.architecture or {}).get("config", {}).get("pooled"))
+
+
+def _member_graph(model, card: ModelCard, p: str, mirror: bool, physics: bool = False,
+                  reflected: bool = False) -> tuple[list, list, list[str]]:
     """One member's part of the ensemble: its nodes with their names prefixed by `p` (already
     so in `model`), from the shared raw inputs through its own normalization to its
     denormalized correction(s), N s; its initializers; the names of its corrections, one, or
-    two with `mirror` (its answer to the step and to the step reflected, reflected back).
+    two with `mirror` (its answer to the step and to the step reflected, reflected back, run
+    as one batch of two steps). `reflected` without `mirror`: its one answer is to the step
+    reflected, reflected back (for a pooled member, whose two answers cannot share a batch).
     physics: the member has probes, and reads geometry, masses and inverse too."""
     from onnx import helper, numpy_helper
 
@@ -146,7 +164,7 @@ def _member_graph(model, card: ModelCard, p: str, mirror: bool, physics: bool = 
     denormalize = [helper.make_node("Mul", [p + card.output_name, p + "out_std"], [p + "scaled"]),
                    helper.make_node("Add", [p + "scaled", p + "out_mean"],
                                     [p + ("both" if mirror else "correction")])]
-    if not mirror:
+    if not mirror and not reflected:
         nodes = [helper.make_node("Sub", ["points", p + "in_mean"], [p + "points_centred"]),
                  helper.make_node("Div", [p + "points_centred", p + "in_std"], [p + "points"]),
                  helper.make_node("Identity", ["ends"], [p + "ends"]),
@@ -154,6 +172,22 @@ def _member_graph(model, card: ModelCard, p: str, mirror: bool, physics: bool = 
                  *(helper.make_node("Identity", [name], [p + name]) for name in (PHYSICS_INPUTS if physics else ())),
                  *model.graph.node, *denormalize]
         corrections = [p + "correction"]
+    elif not mirror:
+        initializers += [numpy_helper.from_array(value, p + name)
+                         for name, value in (("mirror_in", mirror_signs(inputs)), ("mirror_out", mirror_signs(targets)))]
+        nodes = [helper.make_node("Mul", ["points", p + "mirror_in"], [p + "reflected_raw"]),
+                 helper.make_node("Sub", [p + "reflected_raw", p + "in_mean"], [p + "points_centred"]),
+                 helper.make_node("Div", [p + "points_centred", p + "in_std"], [p + "points"]),
+                 helper.make_node("Identity", ["ends"], [p + "ends"]),
+                 helper.make_node("Identity", ["dynamic"], [p + "dynamic"])]
+        if physics:
+            initializers.append(numpy_helper.from_array(MIRROR_GEOMETRY, p + "mirror_geometry"))
+            nodes += [helper.make_node("Mul", ["geometry", p + "mirror_geometry"], [p + "geometry"]),
+                      helper.make_node("Identity", ["masses"], [p + "masses"]),
+                      helper.make_node("Identity", ["inverse"], [p + "inverse"])]
+        nodes += [*model.graph.node, *denormalize,
+                  helper.make_node("Mul", [p + "correction", p + "mirror_out"], [p + "reflected_back"])]
+        corrections = [p + "reflected_back"]
     else:
         initializers += [numpy_helper.from_array(value, p + name)
                          for name, value in (("mirror_in", mirror_signs(inputs)), ("mirror_out", mirror_signs(targets)))]
@@ -317,6 +351,9 @@ def build_ensemble(card_paths: list[Path], name: str, out_dir: Path | None = Non
     out_dir = Path(out_dir) if out_dir is not None else members[0][1].parent
     data = ensemble_onnx(members, agree, mirror).SerializeToString()
     parity = _parity(data, members, agree=agree, mirror=mirror)
+    if not parity <= PARITY_TOLERANCE:
+        raise ValueError(f"the ensemble's graph answers up to {parity:.3g} N s from its members' mean run one by one "
+                         f"(allowed {PARITY_TOLERANCE:g}): nothing written")
     onnx_path = write_bytes_atomic(out_dir / f"{name}.onnx", data)
     described = [{"name": card.name, "parameters": card.parameters,
                   "onnx_sha256": hashlib.sha256(card.onnx_path(path).read_bytes()).hexdigest(),

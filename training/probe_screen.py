@@ -14,7 +14,8 @@ to the solver's replica (training.gauss_seidel) on --price-steps steps of the fi
 file: the mean sweeps from them over those from Box2D's warm start, the same steps for every
 network. With `--body-state` every network screened also keeps a state per body across its
 rounds (training.graph_model, `body_state`): the same question for that change, whose control
-is the same command without it. Nothing is exported here: `deepcontact train-graph --probes C` trains one to serve
+is the same command without it; `--pooled` asks it of a graph-wide summary in every round
+(`pooled`). Nothing is exported here: `deepcontact train-graph --probes C` trains one to serve
 (the server computes what it reads, deepcontact.kinematics.contact_physics).
 """
 
@@ -45,6 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--body-state", action="store_true",
                         help="every network keeps a state per body across its rounds (its control: the same "
                              "command without this)")
+    parser.add_argument("--pooled", action="store_true",
+                        help="every network's rounds also read the mean state of its step's points (a graph-wide "
+                             "summary; its control: the same command without this)")
     parser.add_argument("--epochs", type=int, default=4, help="epochs (default %(default)s)")
     parser.add_argument("--batch-size", type=int, default=DEFAULTS["batch_size"], help="steps a batch (default %(default)s)")
     parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak learning rate (default %(default)s)")
@@ -69,13 +73,13 @@ def main(argv: list[str] | None = None) -> int:
     val = [cached_graph_set(p, args.max_val_steps, args.seed, args.cache, args.quiet) for p in args.val]
     pricing = Pricing(val[0], args) if args.price_steps > 0 else None
     rows = [screen(train, val, args, p, pricing) for p in probes]
-    print("| probes | body state | weights | " + " | ".join(f"epoch {e} train / val" for e in range(1, args.epochs + 1))
+    print("| probes | body state | pooled | weights | " + " | ".join(f"epoch {e} train / val" for e in range(1, args.epochs + 1))
           + " | seconds | replica sweeps / Builtin's |")
-    print("|---|---|---|" + "---|" * args.epochs + "---|---|")
+    print("|---|---|---|---|" + "---|" * args.epochs + "---|---|")
     for r in rows:
         priced = f"{r['price']['ratio']:.3f} ({r['price']['sweeps']:.1f} / {r['price']['builtin_sweeps']:.1f})" \
             if "price" in r else "–"
-        print(f"| {r['probes']} | {'yes' if r['body_state'] else 'no'} | {r['weights']:,} | "
+        print(f"| {r['probes']} | {'yes' if r['body_state'] else 'no'} | {'yes' if r['pooled'] else 'no'} | {r['weights']:,} | "
               + " | ".join(f"{t:.4f} / {v:.4f}" for _, t, v in r["history"]) + f" | {r['seconds']:.0f} | {priced} |")
     if args.json:
         write_json_atomic(args.json, {"command": " ".join(sys.argv), "networks": rows})
@@ -117,8 +121,9 @@ class Pricing:
         return self._solve(self.problem, self.colour, threshold=1e-4, max_sweeps=1000, start=start)[1]
 
     def __call__(self, net, scaling) -> dict:
-        x, e, d, _, geometry, masses, inverse = scaling.batch(self.gs, self.steps)[:7]
-        correction = net(x, e, d, physics=(geometry, masses, inverse)).numpy() * scaling.out_std + scaling.out_mean
+        x, e, d, _, geometry, masses, inverse, step_of = scaling.batch(self.gs, self.steps)[:8]
+        # step_of: a pooled network's summary is each step's own, not the whole batch's.
+        correction = net(x, e, d, step_of, physics=(geometry, masses, inverse)).numpy() * scaling.out_std + scaling.out_mean
         start = self.problem.builtin + correction
         start[:, 0] = np.maximum(start[:, 0], 0.0)  # as the server serves it
         sweeps = self.solve(start)
@@ -136,16 +141,16 @@ def screen(train, val, args, probes: int, pricing: "Pricing | None" = None) -> d
     spec = GridSpec.thesis(inputs=train[0].inputs, targets=train[0].target_names, normalization=normalization(train))
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
-                         rounds=args.rounds, probes=probes, body_state=args.body_state)
+                         rounds=args.rounds, probes=probes, body_state=args.body_state, pooled=args.pooled)
     net = ContactGraphNet(config, seed=args.seed)
     net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)  # as train-graph starts
     net.tf.random.set_seed(args.seed)
     loop = argparse.Namespace(lr=args.lr, seed=args.seed, batch_size=args.batch_size, epochs=args.epochs,
                               patience=args.epochs, quiet=args.quiet)
-    print(f"probes {probes}{', body state' if args.body_state else ''}:", flush=True)
+    print(f"probes {probes}{', body state' if args.body_state else ''}{', pooled' if args.pooled else ''}:", flush=True)
     t0 = time.perf_counter()
     fitted, _ = _train(net, train, val, loop, scaling, _SquaredError(net))
-    row = {"probes": probes, "body_state": args.body_state, "weights": count_parameters(net.weights()), "history": fitted.history,
+    row = {"probes": probes, "body_state": args.body_state, "pooled": args.pooled, "weights": count_parameters(net.weights()), "history": fitted.history,
            "seconds": time.perf_counter() - t0}
     if pricing is not None:
         row["price"] = pricing(ContactGraphNet(config, fitted.weights), scaling)

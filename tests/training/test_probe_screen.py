@@ -82,13 +82,29 @@ def test_a_body_state_is_kept_by_the_bodies_that_take_impulses_only(graphs):
         == 2 * ((2 * 8 * 8 + 8) + (8 * 8 + 8))  # each round's two layers that update the state
 
 
-def test_the_screen_with_a_body_state_records_it_beside_the_probes(data, tmp_path, capsys):
+def one_network_screened(data, tmp_path, *flags: str) -> dict:
+    """The screen's row for one small network (width 8, two rounds, one epoch) trained with `flags`."""
     from training.probe_screen import main
 
     out = tmp_path / "screen.json"
-    assert main(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--probes", "0", "--body-state",
-                 "--epochs", "1", "--width", "8", "--rounds", "2", "--batch-size", "4", "--price-steps", "0",
-                 "--cache", str(tmp_path / "cache"), "--json", str(out), "--quiet"]) == 0
+    assert main(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), *flags, "--epochs", "1",
+                 "--width", "8", "--rounds", "2", "--batch-size", "4", "--cache", str(tmp_path / "cache"),
+                 "--json", str(out), "--quiet"]) == 0
     (row,) = json.loads(out.read_text())["networks"]
+    return row
+
+
+def test_the_screen_with_a_body_state_records_it_beside_the_probes(data, tmp_path, capsys):
+    row = one_network_screened(data, tmp_path, "--probes", "0", "--body-state", "--price-steps", "0")
     assert row["body_state"] is True and row["probes"] == 0
     assert "| 0 | yes |" in capsys.readouterr().out
+
+
+def test_the_screen_with_a_graph_wide_summary_prices_each_step_by_its_own(data, tmp_path, capsys):
+    row = one_network_screened(data, tmp_path, "--probes", "2", "--pooled", "--price-steps", "4")
+    assert row["pooled"] is True and row["body_state"] is False
+    # Each round's update reads one more state: the step's mean, W more rows.
+    assert row["weights"] == 8 * 14 + 8 + 8 * 8 + 8 + 2 * (3 * (8 * 8 + 8) + (8 * 4 + 4) + ((4 * 8 + 4) * 8 + 8)) \
+        + (8 * 8 + 8) + (8 * 2 + 2)
+    assert row["price"]["steps"] == 4 and row["price"]["sweeps"] > 0
+    assert "| 2 | no | yes |" in capsys.readouterr().out
