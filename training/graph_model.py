@@ -46,6 +46,12 @@ so the motion has to be carried in the points' states, split over a body's conta
 `body_plus_sums` as well, the points read the round's sums plus their bodies' states: a network
 whose state layers end at zero is then exactly the plain network, so a trained one can grow one.
 
+With `global_state` as well as `pooled`, every step keeps a state of its own from round to
+round (S, W), grown each round by two dense layers from that state and the round's mean, and
+its points read that state where a pooled network reads the bare mean. Why: a pooled summary
+lowers the iterations more than its fit suggests (docs/results.md, "A summary of the step"):
+what a pile's slow, pile-wide modes need is a pile-wide memory, not one recomputed each round.
+
 With `probes` = C > 0, every round also asks the physics a question: the round's state
 makes C trial impulses at each point (a normal and a tangent part each), and the round
 reads back, at each point and for each trial, the relative (normal, tangent) velocity that
@@ -92,6 +98,7 @@ class GraphConfig:
     probes: int = 0  # trial impulses a round sends through the contact problem's operator (0: none)
     body_state: bool = False  # each body keeps a state across rounds, updated from the round's sums
     body_plus_sums: bool = False  # with body_state, points read the round's sums plus the state, not the state alone
+    global_state: bool = False  # with pooled, each step keeps a state across rounds, which its points read
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
@@ -106,6 +113,9 @@ def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
         if c.body_state:
             shapes[f"round{r}_body0"] = (2 * w, w)
             shapes[f"round{r}_body1"] = (w, w)
+        if c.global_state:
+            shapes[f"round{r}_global0"] = (2 * w, w)
+            shapes[f"round{r}_global1"] = (w, w)
         shapes[f"round{r}_update0"] = ((3 + c.pooled + c.recall) * w + 2 * c.probes, w)
         shapes[f"round{r}_update1"] = (w, w)
     shapes["decode0"] = (w, w)
@@ -157,6 +167,9 @@ class ContactGraphNet:
         # The same sums every way.
         if incidence not in INCIDENCE_MODES:
             raise ValueError(f"incidence {incidence!r} is not one of {', '.join(INCIDENCE_MODES)}")
+        if config.global_state and not config.pooled:
+            raise ValueError("a step's state (global_state) is read where a pooled network reads its summary: "
+                             "it needs pooled")
         self.incidence = incidence
         weights = init_weights(config, seed) if weights is None else weights
         self.variables = {k: tf.Variable(v, name=k.replace("/", "_")) for k, v in sorted(weights.items())}
@@ -201,6 +214,7 @@ class ContactGraphNet:
         if self.incidence == "matmul":
             at_a, at_b = tf.one_hot(a, n_bodies), tf.one_hot(b, n_bodies)  # (P, B)
         body = tf.zeros([n_bodies, self.config.width], h.dtype) if self.config.body_state else None  # (B, W)
+        glob = tf.zeros_like(self._per_step(h, step_of)) if self.config.global_state else None  # (S, W)
         for r in range(self.config.rounds if rounds is None else rounds):  # loop over rounds, not points
             r = 0 if self.config.tied else r
             # Pre-norm: the residual stream h is summed, never normalized, so deep stacks keep
@@ -217,7 +231,12 @@ class ContactGraphNet:
                 body = body + step * dynamic
                 load = load + body if self.config.body_plus_sums else body
             u = tf.concat([x, self._read_bodies(load, a, at_a), self._read_bodies(load, b, at_b)], axis=1)
-            if self.config.pooled:
+            if glob is not None:
+                # As a body's state: the step's grows by what its points' mean this round adds.
+                glob = glob + self._dense(self._dense(tf.concat([glob, self._per_step(x, step_of)], axis=1),
+                                                      f"round{r}_global0"), f"round{r}_global1", relu=False)
+                u = tf.concat([u, self._at_points(glob, step_of, x)], axis=1)
+            elif self.config.pooled:
                 u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
             if self.config.recall:
                 u = tf.concat([u, encoded], axis=1)
@@ -276,13 +295,24 @@ class ContactGraphNet:
 
     def _step_mean(self, h, step_of):
         """(P, W): the mean of h over each point's step."""
+        return self._at_points(self._per_step(h, step_of), step_of, h)
+
+    def _per_step(self, h, step_of):
+        """h (P, W) -> (S, W): its mean over each step's points; one row where step_of is None
+        (the whole input is one step, as the server runs it)."""
         tf = self.tf
         if step_of is None:
-            return tf.zeros_like(h) + tf.reduce_mean(h, axis=0, keepdims=True)
+            return tf.reduce_mean(h, axis=0, keepdims=True)
         n_steps = tf.reduce_max(step_of) + 1
         total = tf.math.unsorted_segment_sum(h, step_of, n_steps)
         count = tf.math.unsorted_segment_sum(tf.ones_like(h[:, :1]), step_of, n_steps)
-        return tf.gather(total / tf.maximum(count, 1.0), step_of)
+        return total / tf.maximum(count, 1.0)
+
+    def _at_points(self, per_step, step_of, h):
+        """per_step (S, W) -> (P, W), h's rows: each point's step's row."""
+        if step_of is None:
+            return self.tf.zeros_like(h) + per_step
+        return self.tf.gather(per_step, step_of)
 
     def signature(self) -> list:
         tf = self.tf
@@ -295,10 +325,10 @@ class ContactGraphNet:
 
 
 def config_to_dict(c: GraphConfig) -> dict[str, Any]:
-    """The config as a card records it; `tied`, `recall`, `probes` and the body state's two flags only where set, so
+    """The config as a card records it; `tied`, `recall`, `probes`, the body state's two flags and `global_state` only where set, so
     other cards read as before them."""
     d = dataclasses.asdict(c)
-    for key in ("tied", "recall", "probes", "body_state", "body_plus_sums"):
+    for key in ("tied", "recall", "probes", "body_state", "body_plus_sums", "global_state"):
         if not d[key]:
             del d[key]
     return d

@@ -160,6 +160,10 @@ def _network_arguments(parser) -> None:
                              "(training/graph_model.py); its points read that state ('state', the default when the "
                              "flag is given alone) or the round's sums plus it ('sums': with --init from a network "
                              "without one, the state starts at zero, so the network starts as exactly that one)")
+    parser.add_argument("--global-state", action="store_true",
+                        help="every step keeps a state across the rounds, grown from each round's mean of its "
+                             "points, and its points read that state where --pooled reads the bare mean "
+                             "(training/graph_model.py); implies --pooled")
     parser.add_argument("--passes", type=int, default=1, metavar="K",
                         help="train the network as a card with `passes: K` serves it: run K times, each pass "
                              "reading the channels at the warm start the last one made (recomputed inside the "
@@ -780,7 +784,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
                            normalization=normalization(normalize_with or train))
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
-                         rounds=args.rounds, pooled=args.pooled,
+                         rounds=args.rounds, pooled=args.pooled or getattr(args, "global_state", False),
+                         global_state=getattr(args, "global_state", False),
                          layer_norm=getattr(args, "layer_norm", False), tied=getattr(args, "tied", False),
                          recall=getattr(args, "recall", False), probes=getattr(args, "probes", 0),
                          body_state=bool(getattr(args, "body_state", None)),
@@ -852,7 +857,8 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
         raise WeightsMismatch(f"{path} holds another network's weights than --width {config.width} --rounds "
                          f"{config.rounds}{' --tied' if config.tied else ''}{' --recall' if config.recall else ''}"
                          f"{' --pooled' if config.pooled else ''}{f' --probes {config.probes}' if config.probes else ''}"
-                         f"{' --layer-norm' if config.layer_norm else ''}{(' --body-state sums' if config.body_plus_sums else ' --body-state') if config.body_state else ''} "
+                         f"{' --layer-norm' if config.layer_norm else ''}{(' --body-state sums' if config.body_plus_sums else ' --body-state') if config.body_state else ''}"
+                         f"{' --global-state' if config.global_state else ''} "
                          f"with {config.in_channels} inputs")
     return weights
 
@@ -1062,6 +1068,7 @@ class _CardParts:
                                   | ({"tied": True, "train_rounds": list(args.round_counts)}
                                      if getattr(args, "tied", False) else {})
                                   | ({"recall": True} if getattr(args, "recall", False) else {})
+                                  | ({"global_state": True} if getattr(args, "global_state", False) else {})
                                   | ({"symmetric": True} if getattr(args, "symmetric", False) else {})
                                   | ({"mirror_augment": True} if getattr(args, "mirror_augment", False) else {})
                                   | ({"draw": args.draw} if getattr(args, "draw", "uniform") != "uniform" else {})

@@ -108,3 +108,22 @@ def test_the_screen_with_a_graph_wide_summary_prices_each_step_by_its_own(data, 
         + (8 * 8 + 8) + (8 * 2 + 2)
     assert row["price"]["steps"] == 4 and row["price"]["sweeps"] > 0
     assert "| 2 | no | yes |" in capsys.readouterr().out
+
+
+def test_a_state_per_step_is_each_steps_own_and_the_screen_offers_it(graphs, data, tmp_path, capsys):
+    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict
+
+    with pytest.raises(ValueError, match="pooled"):
+        ContactGraphNet(GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, global_state=True))
+    config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, pooled=True, global_state=True)
+    net = ContactGraphNet(config, seed=1)
+    net.variables["decode1/kernel"].assign(np.random.default_rng(0).normal(size=(8, 2)).astype(np.float32))
+    x, _, e, d = graphs.batch([3, 5])
+    step_of = np.repeat([0, 1], np.diff(graphs.point_offsets)[[3, 5]]).astype(np.int32)
+    alone = np.concatenate([net(*graphs.batch([k])[::2], graphs.batch([k])[3]).numpy() for k in (3, 5)])
+    np.testing.assert_allclose(net(x, e, d, step_of).numpy(), alone, rtol=1e-4, atol=1e-5)  # one batch, two steps
+    assert config_to_dict(config)["global_state"] is True and "global_state" not in config_to_dict(
+        GraphConfig(in_channels=14, pooled=True))
+    row = one_network_screened(data, tmp_path, "--probes", "0", "--global-state", "--price-steps", "0")
+    assert row["global_state"] is True and row["pooled"] is True
+    assert "| 0 | no | a state |" in capsys.readouterr().out
