@@ -48,9 +48,11 @@ whose state layers end at zero is then exactly the plain network, so a trained o
 
 With `global_state` as well as `pooled`, every step keeps a state of its own from round to
 round (S, W), grown each round by two dense layers from that state and the round's mean, and
-its points read that state where a pooled network reads the bare mean. Why: a pooled summary
-lowers the iterations more than its fit suggests (docs/results.md, "A summary of the step"):
-what a pile's slow, pile-wide modes need is a pile-wide memory, not one recomputed each round.
+its points read that state where a pooled network reads the bare mean. Why it was tried: a
+pooled summary lowers the solver's sweeps more than its fit suggests, and a pile's slow,
+pile-wide modes might want a pile-wide memory rather than a mean recomputed each round.
+Screened, it fits a little better than the bare mean and prices no better (docs/results.md,
+"A summary of the step at eight rounds").
 
 With `probes` = C > 0, every round also asks the physics a question: the round's state
 makes C trial impulses at each point (a normal and a tangent part each), and the round
