@@ -103,7 +103,7 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
                                  f"{', '.join(PHYSICS_INPUTS)}) and returns {card.output_name!r}; this one takes {got}")
         for opset in model.opset_import:
             opsets[opset.domain] = max(opsets.get(opset.domain, 0), opset.version)
-        if mirror and _pooled(card):
+        if mirror and _reads_whole_step(card):
             # A pooled member's summary is the mean over every point it is given, so the step
             # and its reflection batched together would share one: each runs in its own copy.
             parts = [(f"m{i}/", False, False), (f"m{i}r/", False, True)]
@@ -137,9 +137,11 @@ def ensemble_onnx(members: list[tuple[ModelCard, Path]], agree: float | None = N
     return proto
 
 
-def _pooled(card: ModelCard) -> bool:
-    """Whether a member's rounds read a graph-wide summary (training.graph_model, `pooled`)."""
-    return bool((card.architecture or {}).get("config", {}).get("pooled"))
+def _reads_whole_step(card: ModelCard) -> bool:
+    """Whether a member's rounds read all the points they are given (training.graph_model:
+    `pooled`, `attention`)."""
+    config = (card.architecture or {}).get("config", {})
+    return bool(config.get("pooled") or config.get("attention"))
 
 
 def _member_graph(model, card: ModelCard, p: str, mirror: bool, physics: bool = False,

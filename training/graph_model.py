@@ -54,6 +54,15 @@ pile-wide modes might want a pile-wide memory rather than a mean recomputed each
 Screened, it fits a little better than the bare mean and prices no better (docs/results.md,
 "A summary of the step at eight rounds").
 
+With `attention` = H > 0, every round also reads a weighted mean of its step's points
+(linear attention, H heads of W/H features): a point asks with a query, every point of the
+step answers with a key and a value, and the point reads the values weighted by the match of
+its query and their keys (positive feature maps elu + 1, so the mean over the step is
+normalized as softmax's, and the cost grows with the points, not their square). The bare
+mean of `pooled` is the case where every weight is equal. Why it was tried: the step's mean
+lowers the solver's sweeps more than its fit suggests; a read that chooses whose state it
+averages can carry a pile's load from where it is to where it is needed in one round.
+
 With `probes` = C > 0, every round also asks the physics a question: the round's state
 makes C trial impulses at each point (a normal and a tangent part each), and the round
 reads back, at each point and for each trial, the relative (normal, tangent) velocity that
@@ -83,6 +92,7 @@ from training.models import import_tensorflow
 
 
 LAYER_NORM_EPS = 1e-5
+ATTENTION_TINY = 1e-30  # the smallest match attention divides by (float32's smallest normal is 1.2e-38)
 INCIDENCE_MODES = ("segments", "matmul", "scatter")
 
 
@@ -101,6 +111,13 @@ class GraphConfig:
     body_state: bool = False  # each body keeps a state across rounds, updated from the round's sums
     body_plus_sums: bool = False  # with body_state, points read the round's sums plus the state, not the state alone
     global_state: bool = False  # with pooled, each step keeps a state across rounds, which its points read
+    attention: int = 0  # heads of linear attention over the step's points each round reads (0: none)
+
+    @property
+    def reads_whole_step(self) -> bool:
+        """Whether a point's answer depends on every point of its step, not only on those its rounds reach:
+        such a network must be run one step at a time (or with step_of)."""
+        return self.pooled or self.attention > 0
 
 
 def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
@@ -118,7 +135,10 @@ def _dense_shapes(c: GraphConfig) -> dict[str, tuple[int, int]]:
         if c.global_state:
             shapes[f"round{r}_global0"] = (2 * w, w)
             shapes[f"round{r}_global1"] = (w, w)
-        shapes[f"round{r}_update0"] = ((3 + c.pooled + c.recall) * w + 2 * c.probes, w)
+        if c.attention:
+            for part in ("query", "key", "value"):
+                shapes[f"round{r}_{part}"] = (w, w)
+        shapes[f"round{r}_update0"] = ((3 + c.pooled + (c.attention > 0) + c.recall) * w + 2 * c.probes, w)
         shapes[f"round{r}_update1"] = (w, w)
     shapes["decode0"] = (w, w)
     shapes["decode1"] = (w, c.out_channels)
@@ -172,6 +192,8 @@ class ContactGraphNet:
         if config.global_state and not config.pooled:
             raise ValueError("a step's state (global_state) is read where a pooled network reads its summary: "
                              "it needs pooled")
+        if config.attention < 0 or (config.attention and config.width % config.attention):
+            raise ValueError(f"attention heads must divide the width {config.width}; got {config.attention}")
         self.incidence = incidence
         weights = init_weights(config, seed) if weights is None else weights
         self.variables = {k: tf.Variable(v, name=k.replace("/", "_")) for k, v in sorted(weights.items())}
@@ -240,6 +262,8 @@ class ContactGraphNet:
                 u = tf.concat([u, self._at_points(glob, step_of, x)], axis=1)
             elif self.config.pooled:
                 u = tf.concat([u, self._step_mean(x, step_of)], axis=1)
+            if self.config.attention:
+                u = tf.concat([u, self._attend(x, step_of, f"round{r}")], axis=1)
             if self.config.recall:
                 u = tf.concat([u, encoded], axis=1)
             if self.config.probes:
@@ -295,6 +319,27 @@ class ContactGraphNet:
             return self.tf.matmul(one_hot, load)
         return self.tf.gather(load, body)
 
+    def _attend(self, x, step_of, name: str):
+        """x (P, W) -> (P, W): for each point and head, the mean of its step's values weighted by
+        the match of its query with their keys (linear attention, see the module docstring)."""
+        tf, heads, w = self.tf, self.config.attention, self.config.width
+        d = w // heads
+        query = tf.reshape(tf.nn.elu(self._dense(x, f"{name}_query", relu=False)) + 1.0, [-1, heads, d])
+        key = tf.reshape(tf.nn.elu(self._dense(x, f"{name}_key", relu=False)) + 1.0, [-1, heads, d])
+        value = tf.reshape(self._dense(x, f"{name}_value", relu=False), [-1, heads, d])
+        # Per step and head: the mean over points of key (x) value, (d, d), and of key, (d,);
+        # means, not sums, so a step's size does not scale them (their ratio is the same).
+        pairs = tf.reshape(key[:, :, :, None] * value[:, :, None, :], [-1, heads * d * d])
+        per_step = self._per_step(tf.concat([pairs, tf.reshape(key, [-1, w])], axis=1), step_of)  # (S, H d d + W)
+        at = tf.gather(per_step, tf.zeros_like(x[:, 0], tf.int32)) if step_of is None else tf.gather(per_step, step_of)
+        kv = tf.reshape(at[:, :heads * d * d], [-1, heads, d, d])
+        k = tf.reshape(at[:, heads * d * d:], [-1, heads, d])
+        numerator = tf.reduce_sum(query[:, :, :, None] * kv, axis=2)  # (P, H, d)
+        # >= 0: elu + 1 underflows to 0 below about -17, and a query or key mean of zeros then
+        # reads nothing (0) rather than 0 / 0.
+        denominator = tf.maximum(tf.reduce_sum(query * k, axis=2, keepdims=True), ATTENTION_TINY)  # (P, H, 1)
+        return tf.reshape(numerator / denominator, [-1, w])
+
     def _step_mean(self, h, step_of):
         """(P, W): the mean of h over each point's step."""
         return self._at_points(self._per_step(h, step_of), step_of, h)
@@ -327,10 +372,10 @@ class ContactGraphNet:
 
 
 def config_to_dict(c: GraphConfig) -> dict[str, Any]:
-    """The config as a card records it; `tied`, `recall`, `probes`, the body state's two flags and `global_state` only where set, so
+    """The config as a card records it; `tied`, `recall`, `probes`, the body state's two flags, `global_state` and `attention` only where set, so
     other cards read as before them."""
     d = dataclasses.asdict(c)
-    for key in ("tied", "recall", "probes", "body_state", "body_plus_sums", "global_state"):
+    for key in ("tied", "recall", "probes", "body_state", "body_plus_sums", "global_state", "attention"):
         if not d[key]:
             del d[key]
     return d

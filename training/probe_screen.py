@@ -15,7 +15,8 @@ file: the mean sweeps from them over those from Box2D's warm start, the same ste
 network. With `--body-state` every network screened also keeps a state per body across its
 rounds (training.graph_model, `body_state`): the same question for that change, whose control
 is the same command without it; `--pooled` asks it of a graph-wide summary in every round
-(`pooled`), and `--global-state` of a state per step kept across the rounds (`global_state`).
+(`pooled`), `--global-state` of a state per step kept across the rounds (`global_state`), and
+`--attention H` of a weighted mean of the step's points each round reads (`attention`).
 Nothing is exported here: `deepcontact train-graph --probes C` trains one to serve
 (the server computes what it reads, deepcontact.kinematics.contact_physics).
 """
@@ -53,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--global-state", action="store_true",
                         help="with --pooled: every step keeps a state across the rounds, which its points read "
                              "instead of the bare mean (its control: --pooled alone)")
+    parser.add_argument("--attention", type=int, default=0, metavar="H",
+                        help="every network's rounds also read H heads of linear attention over its step's points "
+                             "(default 0: none; its controls: the same command without it, and with --pooled)")
     parser.add_argument("--epochs", type=int, default=4, help="epochs (default %(default)s)")
     parser.add_argument("--batch-size", type=int, default=DEFAULTS["batch_size"], help="steps a batch (default %(default)s)")
     parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak learning rate (default %(default)s)")
@@ -72,18 +76,20 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--probes takes counts joined by commas, e.g. 0,8; got {args.probes!r}")
     if any(p < 0 for p in probes) or args.epochs < 1 or args.rounds < 1 or args.width < 1:
         parser.error("--probes must be 0 or more, --epochs, --rounds and --width 1 or more")
+    if args.attention < 0 or (args.attention and args.width % args.attention):
+        parser.error(f"--attention must be 0 or a number of heads that divides --width {args.width}")
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
     train = [cached_graph_set(p, args.max_steps_per_file, args.seed, args.cache, args.quiet) for p in args.train]
     val = [cached_graph_set(p, args.max_val_steps, args.seed, args.cache, args.quiet) for p in args.val]
     pricing = Pricing(val[0], args) if args.price_steps > 0 else None
     rows = [screen(train, val, args, p, pricing) for p in probes]
-    print("| probes | body state | pooled | weights | " + " | ".join(f"epoch {e} train / val" for e in range(1, args.epochs + 1))
+    print("| probes | body state | pooled | attention heads | weights | " + " | ".join(f"epoch {e} train / val" for e in range(1, args.epochs + 1))
           + " | seconds | replica sweeps / Builtin's |")
-    print("|---|---|---|---|" + "---|" * args.epochs + "---|---|")
+    print("|---|---|---|---|---|" + "---|" * args.epochs + "---|---|")
     for r in rows:
         priced = f"{r['price']['ratio']:.3f} ({r['price']['sweeps']:.1f} / {r['price']['builtin_sweeps']:.1f})" \
             if "price" in r else "–"
-        print(f"| {r['probes']} | {'yes' if r['body_state'] else 'no'} | {('a state' if r.get('global_state') else 'yes') if r['pooled'] else 'no'} | {r['weights']:,} | "
+        print(f"| {r['probes']} | {'yes' if r['body_state'] else 'no'} | {('a state' if r.get('global_state') else 'yes') if r['pooled'] else 'no'} | {r.get('attention', 0)} | {r['weights']:,} | "
               + " | ".join(f"{t:.4f} / {v:.4f}" for _, t, v in r["history"]) + f" | {r['seconds']:.0f} | {priced} |")
     if args.json:
         write_json_atomic(args.json, {"command": " ".join(sys.argv), "networks": rows})
@@ -146,17 +152,18 @@ def screen(train, val, args, probes: int, pricing: "Pricing | None" = None) -> d
     scaling = Scaling.of(spec)
     config = GraphConfig(in_channels=len(spec.inputs), out_channels=len(spec.targets), width=args.width,
                          rounds=args.rounds, probes=probes, body_state=args.body_state,
-                         pooled=args.pooled or args.global_state, global_state=args.global_state)
+                         pooled=args.pooled or args.global_state, global_state=args.global_state,
+                         attention=args.attention)
     net = ContactGraphNet(config, seed=args.seed)
     net.variables["decode1/bias"].assign((0 - scaling.out_mean) / scaling.out_std)  # as train-graph starts
     net.tf.random.set_seed(args.seed)
     loop = argparse.Namespace(lr=args.lr, seed=args.seed, batch_size=args.batch_size, epochs=args.epochs,
                               patience=args.epochs, quiet=args.quiet)
-    print(f"probes {probes}{', body state' if args.body_state else ''}{', pooled' if args.pooled else ''}{', a state per step' if args.global_state else ''}:", flush=True)
+    print(f"probes {probes}{', body state' if args.body_state else ''}{', pooled' if args.pooled else ''}{', a state per step' if args.global_state else ''}{f', {args.attention} attention heads' if args.attention else ''}:", flush=True)
     t0 = time.perf_counter()
     fitted, _ = _train(net, train, val, loop, scaling, _SquaredError(net))
     row = {"probes": probes, "body_state": args.body_state, "pooled": args.pooled or args.global_state,
-           "global_state": args.global_state, "weights": count_parameters(net.weights()), "history": fitted.history,
+           "global_state": args.global_state, "attention": args.attention, "weights": count_parameters(net.weights()), "history": fitted.history,
            "seconds": time.perf_counter() - t0}
     if pricing is not None:
         row["price"] = pricing(ContactGraphNet(config, fitted.weights), scaling)

@@ -164,6 +164,10 @@ def _network_arguments(parser) -> None:
                         help="every step keeps a state across the rounds, grown from each round's mean of its "
                              "points, and its points read that state where --pooled reads the bare mean "
                              "(training/graph_model.py); implies --pooled")
+    parser.add_argument("--attention", type=int, default=0, metavar="H",
+                        help="each round also reads H heads of linear attention over the step's points: a mean "
+                             "weighted by the match of each point's query and the others' keys (training/graph_model.py; "
+                             "default %(default)s: none)")
     parser.add_argument("--passes", type=int, default=1, metavar="K",
                         help="train the network as a card with `passes: K` serves it: run K times, each pass "
                              "reading the channels at the warm start the last one made (recomputed inside the "
@@ -789,7 +793,8 @@ def fit(train: list[GraphSet], val: list[GraphSet], args, *, command: str, read_
                          layer_norm=getattr(args, "layer_norm", False), tied=getattr(args, "tied", False),
                          recall=getattr(args, "recall", False), probes=getattr(args, "probes", 0),
                          body_state=bool(getattr(args, "body_state", None)),
-                         body_plus_sums=getattr(args, "body_state", None) == "sums")
+                         body_plus_sums=getattr(args, "body_state", None) == "sums",
+                         attention=getattr(args, "attention", 0))
     if args.init is not None:
         net = ContactGraphNet(config, initial_weights(args.init, config))
     else:
@@ -858,7 +863,8 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
                          f"{config.rounds}{' --tied' if config.tied else ''}{' --recall' if config.recall else ''}"
                          f"{' --pooled' if config.pooled else ''}{f' --probes {config.probes}' if config.probes else ''}"
                          f"{' --layer-norm' if config.layer_norm else ''}{(' --body-state sums' if config.body_plus_sums else ' --body-state') if config.body_state else ''}"
-                         f"{' --global-state' if config.global_state else ''} "
+                         f"{' --global-state' if config.global_state else ''}"
+                         f"{f' --attention {config.attention}' if config.attention else ''} "
                          f"with {config.in_channels} inputs")
     return weights
 

@@ -127,3 +127,41 @@ def test_a_state_per_step_is_each_steps_own_and_the_screen_offers_it(graphs, dat
     row = one_network_screened(data, tmp_path, "--probes", "0", "--global-state", "--price-steps", "0")
     assert row["global_state"] is True and row["pooled"] is True
     assert "| 0 | no | a state |" in capsys.readouterr().out
+
+
+def test_attention_weighs_its_steps_points_and_with_equal_weights_is_the_steps_mean(graphs, data, tmp_path, capsys):
+    from training.graph_model import ContactGraphNet, GraphConfig, config_to_dict, init_weights, to_onnx
+
+    with pytest.raises(ValueError, match="divide"):
+        ContactGraphNet(GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, attention=3))
+    config = GraphConfig(in_channels=len(GRAPH_INPUTS), width=8, rounds=2, attention=2)
+    rng = np.random.default_rng(0)
+    weights = {k: (0.5 * rng.standard_normal(v.shape)).astype(np.float32) for k, v in init_weights(config).items()}
+    net = ContactGraphNet(config, weights)
+    x, _, e, d = graphs.batch([3, 5])
+    step_of = np.repeat([0, 1], np.diff(graphs.point_offsets)[[3, 5]]).astype(np.int32)
+    alone = np.concatenate([net(*graphs.batch([k])[::2], graphs.batch([k])[3]).numpy() for k in (3, 5)])
+    np.testing.assert_allclose(net(x, e, d, step_of).numpy(), alone, rtol=1e-4, atol=1e-5)  # one batch, two steps
+    # Queries and keys that match every point equally read the step's plain mean: the pooled network.
+    flat = {k: (np.zeros_like(v) if "_query" in k or "_key" in k else v) for k, v in weights.items()}
+    attending = ContactGraphNet(config, flat)
+    x1, _, e1, d1 = graphs.batch([3])
+    h = attending._dense(attending._dense(x1, "encode0"), "encode1")
+    np.testing.assert_allclose(attending._attend(h, None, "round0").numpy(),
+                               np.broadcast_to(attending._dense(h, "round0_value", relu=False).numpy().mean(axis=0),
+                                               h.shape), rtol=1e-4, atol=1e-5)
+    # Exported, it answers one step as TensorFlow does.
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(to_onnx(net), providers=["CPUExecutionProvider"])
+    (got,) = session.run(None, {"points": x1, "ends": e1, "dynamic": d1})
+    np.testing.assert_allclose(got, net(x1, e1, d1).numpy(), rtol=1e-4, atol=1e-4)
+    # Far-out inputs drive some queries' feature maps to 0 (elu + 1 underflows): the step still
+    # gets finite answers, where an unguarded 0 / 0 would spread NaN to every point of it.
+    (far,) = session.run(None, {"points": x1 * 1e3, "ends": e1, "dynamic": d1})
+    assert np.isfinite(far).all()
+    assert config.reads_whole_step and config_to_dict(config)["attention"] == 2
+    assert "attention" not in config_to_dict(GraphConfig(in_channels=14))
+    row = one_network_screened(data, tmp_path, "--probes", "0", "--attention", "2", "--price-steps", "0")
+    assert row["attention"] == 2 and row["weights"] == sum(v.size for v in init_weights(config).values())
+    assert "| 0 | no | no | 2 |" in capsys.readouterr().out
