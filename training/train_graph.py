@@ -319,6 +319,9 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
         return "--epochs, --batch-size, --width, --rounds and --patience must be >= 1"
     if getattr(args, "probes", 0) < 0:
         return f"--probes must be 0 (none) or more, got {args.probes}"
+    heads = getattr(args, "attention", 0)
+    if heads < 0 or (heads and args.width % heads):
+        return f"--attention must be 0 (none) or a number of heads that divides --width {args.width}, got {heads}"
     if getattr(args, "draw", "uniform") != "uniform" and getattr(args, "second_pass", None) is not None:
         return f"--draw {args.draw} weighs the recorded steps; --second-pass adds steps that were not recorded"
     problem = _count_problem(args)

@@ -291,6 +291,8 @@ def test_train_graph_refuses_what_it_cannot_use(data, tmp_path, capsys):
     assert main(["train-graph", "--train", str(tmp_path / "none.h5"), "--val", str(data / "val.h5"),
                  "--out", str(tmp_path / "m.onnx")]) == 2
     assert "no such file" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "m.onnx"), "--attention", "3"]) == 2  # heads split the width, 32
+    assert "--attention" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "m.onnx"), "--omega", "1.5"]) == 2
     assert "--omega" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "m.onnx"), "--omega", "1"]) == 2  # Jacobi's diverge undamped
