@@ -17,7 +17,7 @@ import sys
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("demo",), "bench.demo", "run the main job: server, simulations, results table"),
     (("generate",), "training.generate", "record simulations into an HDF5 training file"),
-    (("train",), "training.train", "fit a Pressure or Peak model on recorded simulations (resumable)"),
+    (("train",), "training.train", "fit a grid CNN (Pressure, U-Net or Peak) on recorded simulations (resumable)"),
     (("train-graph",), "training.train_graph", "fit the contact-graph model (message passing on the contact points) and export it"),
     (("export",), "training.export", "export a finished training run to ONNX with its model card"),
     (("evaluate",), "training.evaluate", "score exported models on recorded data with ONNX Runtime"),

@@ -101,7 +101,8 @@ class TrainError(Exception):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", choices=("pressure", "unet", "peak"), default=None,
-                        help="architecture (default pressure; thesis §7.2, a UNet with skips, thesis §7.1)")
+                        help="architecture: pressure (thesis §7.2, the default; any grid), unet (a U-Net with skips; any grid) "
+                             "or peak (thesis §7.1; the fixed grid it was trained on, 17.5 M weights)")
     parser.add_argument("--train", type=Path, action="append",
                         help="training data, an HDF5 file from `deepcontact generate`; repeat for several worlds")
     parser.add_argument("--val", type=Path, action="append",
