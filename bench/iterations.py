@@ -121,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
         target = server_proc.address
     try:
-        from simclient.simulate import connect
+        from simclient.client import Refused
+        from simclient.simulate import connect, declare_world
 
         if any(STAR in _candidates(n) for n in names):
             try:
@@ -131,9 +132,18 @@ def run(args: argparse.Namespace) -> int:
                 return 2
             remote = [p for p in (make_provider(n) for n in names) if p.uses_server]
         for provider in remote:
-            # Fail before any work if the server is away or lacks a model; each task connects on its own.
+            # Fail before any work if the server is away, lacks a model or refuses one for this
+            # world (every seed's world has the scene's domain); each task connects on its own.
             try:
-                connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False).close()
+                client = connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False)
+                try:
+                    declare_world(client, spec, provider.models)
+                finally:
+                    client.close()
+            except Refused as exc:
+                print(f"deepcontact bench iterations: the server refuses {provider.name} for this world: {exc}",
+                      file=sys.stderr)
+                return 2
             except (ValueError, ConnectionError) as exc:
                 print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
                 return 2

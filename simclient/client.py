@@ -50,6 +50,19 @@ class StepFailed(RuntimeError):
         return self.reason == "BACKING_OFF"
 
 
+# Codes with which the server refuses a model or a world outright (a fixed-grid model asked for a
+# grid of another size, a domain past the server's grid bound, an unknown model): every later
+# step of the same simulation would get the same answer, so falling back and retrying would
+# only hide the reason.
+REFUSALS = frozenset({grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.NOT_FOUND,
+                      grpc.StatusCode.FAILED_PRECONDITION})
+
+
+class Refused(StepFailed):
+    """The server refused a model for this world when the world was declared (`declare`);
+    the message is the server's reason."""
+
+
 class WarmStartClient:
     """A channel and, lazily, one open stream to a warm-start server.
 
@@ -114,11 +127,14 @@ class WarmStartClient:
         the server readies `model` for this world's grid (ONNX Runtime's first run
         of a grid shape is slow) before the first step with contacts. Waits up to
         `timeout` s; False when no reply came (the first step then opens a
-        stream as usual)."""
+        stream as usual). Raises Refused when the server refuses `model` for
+        this world (a code in REFUSALS)."""
         try:
             self.step(pb.StepRequest(step=0, model=model), timeout)
             return True
-        except StepFailed:
+        except StepFailed as exc:
+            if exc.code in REFUSALS:
+                raise Refused(str(exc), exc.code) from None
             return False
 
     def step(self, request: pb.StepRequest, timeout: float) -> pb.Impulses:

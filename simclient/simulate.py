@@ -127,21 +127,29 @@ def _pick(provider, client, engine, k: int, bodies, points, timeout: float) -> _
     return _Served(warm=provider.pick(engine, points, warms), fallback_reason=next((r for r in reasons if r), None))
 
 
+def declare_world(client, spec: SceneSpec, models=()) -> None:
+    """Give `client` this scene's world (sent first on every stream) and have the server ready each
+    of `models` for its grid before step 0. Raises simclient.client.Refused when the server refuses
+    one of them for this world, e.g. a fixed-grid model and a box of another size."""
+    lower, upper = spec.domain
+    client.world = wire.encode_world(lower, upper, spec.walls(), spec.physics)
+    for model in models:
+        client.declare(model, DECLARE_TIMEOUT_S)
+
+
 def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=None,
                    deadline_ms: float = DEFAULT_DEADLINE_MS, progress=None) -> dict:
     """Simulate (spec, seed) with `provider`; returns {"per_step": ..., "summary": ...}.
 
     client: a simclient.client.WarmStartClient for `server:` providers (its
-    world is set here); None makes every server step a fallback.
+    world is set here); None makes every server step a fallback. Raises
+    simclient.client.Refused, before the first step, when the server refuses
+    a model for this world: a run of fallbacks would be labelled as the model's.
     """
     engine = build_world(spec, seed)
     provider.prepare(engine)
     if client is not None:
-        lower, upper = spec.domain
-        client.world = wire.encode_world(lower, upper, spec.walls(), spec.physics)
-        if provider.uses_server:  # the server readies the model for this grid before step 0
-            for model in provider.models:
-                client.declare(model, DECLARE_TIMEOUT_S)
+        declare_world(client, spec, provider.models if provider.uses_server else ())
     records: list[StepRecord] = []
     timeout = deadline_ms / 1e3
     for k in range(spec.steps):
@@ -294,6 +302,8 @@ def run(args: argparse.Namespace) -> int:
         except (ValueError, ConnectionError) as exc:
             print(f"deepcontact simulate: {exc}", file=sys.stderr)
             return 2
+    from simclient.client import Refused
+
     bar = None
     if not args.quiet:
         from tqdm import tqdm
@@ -302,6 +312,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = run_simulation(spec, args.seed, provider, client=client, deadline_ms=args.deadline_ms,
                                 progress=(lambda k: bar.update(1)) if bar else None)
+    except Refused as exc:
+        print(f"deepcontact simulate: the server at {args.server} refuses {args.warm_start} for this world: {exc}",
+              file=sys.stderr)
+        return 2
     finally:
         if bar:
             bar.close()

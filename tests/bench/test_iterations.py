@@ -167,3 +167,19 @@ def test_at_the_cap_a_start_is_also_priced_by_its_sweeps_to_builtins_accuracy():
     assert c["reach_all"][1]["value"] == 1250 / 2300
     row = cap_table(["builtin", "server:m"], c)[-1]
     assert row.startswith("| server:m | 50.0% | 0.0% | 0.500 [") and "| 0.556 [" in row and "| 0.543 [" in row
+
+
+def test_a_model_the_server_refuses_for_this_world_stops_the_run_before_it_starts(tmp_path, capsys):
+    from server.process import ServerProcess
+
+    models = tmp_path / "models"
+    models.mkdir()
+    write_conv_model(models, "tiny")
+    out = tmp_path / "out"
+    with ServerProcess(models, "--max-grid-nodes", str(61 * 61)) as server:  # the thesis box and no more
+        assert main(["bench", "iterations", "--seeds", "901", "--steps", "10", "--box-size", "16", "16",
+                     "--warm-starts", "builtin,server:tiny", "--server", server.address, "--out", str(out),
+                     "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "refuses server:tiny for this world" in err and "65x65" in err
+    assert not (out / "summary.json").exists() and not (out / "results.md").exists()

@@ -104,3 +104,33 @@ def test_bad_invocations_fail_before_simulating(server, tmp_path, capsys):
                  "--connect-timeout", "0.5", "--allow-fallback", "--steps", "10", "--out", out, "--quiet"]) == 0
     assert json.loads((tmp_path / "x.json").read_text())["summary"]["fallback_steps"] > 0
     assert main(["simulate", "--seed", "1", "--warm-start", "builtin", "--out", "/proc/none/x.json"]) == 2
+
+
+def test_a_world_the_server_refuses_ends_the_run_with_its_reason(tmp_path, capsys):
+    # A model that cannot serve this world (here a box past the server's grid bound; a fixed-grid
+    # model and a box of another size are refused the same way) is an error, not a run of
+    # fallbacks written down as the model's.
+    folder = tmp_path / "models"
+    folder.mkdir()
+    write_conv_model(folder, "tiny")
+    out = tmp_path / "x.json"
+    with ServerProcess(folder, "--max-grid-nodes", str(61 * 61)) as srv:  # the thesis box and no more
+        args = ["simulate", "--seed", "901", "--steps", "10", "--warm-start", "server:tiny", "--server", srv.address,
+                "--out", str(out), "--quiet"]
+        assert main(args + ["--box-size", "16", "16"]) == 2
+        err = capsys.readouterr().err
+        assert "refuses server:tiny for this world" in err and "65x65" in err
+        assert not out.exists()
+        assert main(args) == 0  # the thesis box is served
+    assert json.loads(out.read_text())["summary"]["fallback_steps"] == 0
+
+
+def test_declaring_a_world_says_refused_and_a_silent_server_is_no_refusal(server):
+    from simclient.client import Refused
+    from simclient.simulate import declare_world
+
+    with WarmStartClient(server.address) as client:
+        with pytest.raises(Refused, match="NOT_FOUND"):
+            declare_world(client, SceneSpec.thesis(), ["nope"])
+    with WarmStartClient("127.0.0.1:9") as client:  # nothing listens: no answer, so no refusal either
+        assert client.declare("tiny", timeout=0.2) is False
