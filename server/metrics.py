@@ -4,6 +4,7 @@ Exposed over HTTP by `deepcontact serve --metrics-port PORT` at /metrics:
     deepcontact_steps_total{model}           steps answered
     deepcontact_errors_total{code}           requests rejected, by gRPC status
     deepcontact_stage_seconds{stage}         decode, p2g, inference, g2p, total
+    deepcontact_idle_streams_ended_total     streams the server ended after --stream-idle-s without a message
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from prometheus_client import Counter, Histogram, start_http_server
 
 STEPS = Counter("deepcontact_steps_total", "Steps answered", ["model"])
 ERRORS = Counter("deepcontact_errors_total", "Requests rejected, by gRPC status code", ["code"])
+IDLE_ENDED = Counter("deepcontact_idle_streams_ended", "Streams ended by the server after --stream-idle-s without a message")
 STAGE = Histogram(
     "deepcontact_stage_seconds", "Server-side time per stage of a step", ["stage"],
     buckets=(25e-6, 50e-6, 100e-6, 200e-6, 400e-6, 800e-6, 1.6e-3, 3.2e-3, 6.4e-3, 12.8e-3, 25.6e-3, 51.2e-3, 0.1),

@@ -32,11 +32,14 @@ from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCardError
 from server import metrics
 from server.batching import MicroBatcher
+from server.idle import IdleStreams
 from server.malformed import MalformedRequests
 from server.predictors import load_models, providers
 from server.service import SERVICE_NAME, FaultDelay, Limits, WarmStartService, add_to_server
 
 log = logging.getLogger("deepcontact.server")
+# A stream silent this long is ended, freeing its worker thread (server.idle).
+STREAM_IDLE_S = 60.0
 
 
 class JsonFormatter(logging.Formatter):
@@ -81,6 +84,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="serve Prometheus metrics on this port at /metrics (default 0: off)")
     parser.add_argument("--tls-cert", type=Path, help="PEM certificate chain: serve TLS (with --tls-key)")
     parser.add_argument("--tls-key", type=Path, help="PEM private key for --tls-cert")
+    parser.add_argument("--stream-idle-s", type=float, default=STREAM_IDLE_S, metavar="S",
+                        help="end a stream that has sent nothing for S seconds, so hung or vanished clients do not "
+                             "hold --max-concurrent slots; simclient's client reopens on its next step "
+                             "(default %(default)s; 0: never)")
     parser.add_argument("--grace", type=float, default=5.0,
                         help="on SIGTERM/SIGINT, seconds open streams may go on before they are cancelled and the "
                              "process exits (default 5); a second signal exits at once")
@@ -114,7 +121,7 @@ class Server:
                  max_queue: int = 256, batch_max: int = 0, batch_delay_us: int = 500,
                  intra_op_threads: int = 1, inter_op_threads: int = 1, limits: Limits = Limits(),
                  random_seed: int = 0, credentials: grpc.ServerCredentials | None = None,
-                 fault: FaultDelay | None = None):
+                 fault: FaultDelay | None = None, stream_idle_s: float = STREAM_IDLE_S):
         self.models = load_models(models, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
                                   max_grid_nodes=limits.max_grid_nodes) if models else []
         self.batchers = []
@@ -124,7 +131,9 @@ class Server:
                                  max_queue=max_queue)
                 m.infer = b
                 self.batchers.append(b)
-        self.service = WarmStartService(self.models + providers(random_seed, limits.max_grid_nodes), limits, fault)
+        self.idle = IdleStreams(stream_idle_s) if stream_idle_s > 0 else None
+        self.service = WarmStartService(self.models + providers(random_seed, limits.max_grid_nodes), limits, fault,
+                                        self.idle)
         # Each open stream holds a worker thread, so the pool is as large as the RPC bound.
         self.grpc = grpc.server(futures.ThreadPoolExecutor(max_workers=max_concurrent, thread_name_prefix="rpc"),
                                 interceptors=(MalformedRequests(),), maximum_concurrent_rpcs=max_concurrent)
@@ -154,6 +163,8 @@ class Server:
 
     def start(self) -> "Server":
         self.grpc.start()
+        if self.idle is not None:
+            self.idle.start()
         for name in HEALTH_SERVICES:
             self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
         return self
@@ -165,6 +176,8 @@ class Server:
         cannot hold the caller."""
         self.health.enter_graceful_shutdown()
         ended = self.grpc.stop(grace).wait(grace + STOP_MARGIN_S)
+        if self.idle is not None:
+            self.idle.stop()
         for b in self.batchers:
             b.close(timeout=0.1)
         return ended
@@ -190,7 +203,8 @@ def run(args: argparse.Namespace) -> int:
                         limits=Limits(args.max_bodies, args.max_points, args.max_grid_nodes),
                         random_seed=args.random_seed,
                         credentials=credentials,
-                        fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every) if args.fault_delay_ms else None)
+                        fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every) if args.fault_delay_ms else None,
+                        stream_idle_s=args.stream_idle_s)
     except (ModelCardError, OSError, ValueError) as exc:
         print(f"deepcontact serve: {exc}", file=sys.stderr)
         return 2
@@ -210,8 +224,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     """The first thing wrong with `deepcontact serve`'s arguments, in a sentence, or None."""
     if not args.models.is_dir():
         return f"{args.models} is not a folder of models"
-    if args.grace < 0 or args.fault_delay_ms < 0 or args.fault_every < 1:
-        return "--grace and --fault-delay-ms must be >= 0, --fault-every >= 1"
+    if args.grace < 0 or args.fault_delay_ms < 0 or args.stream_idle_s < 0 or args.fault_every < 1:
+        return "--grace, --fault-delay-ms and --stream-idle-s must be >= 0, --fault-every >= 1"
     if min(args.max_bodies, args.max_points, args.max_grid_nodes) < 1:
         return "--max-bodies, --max-points and --max-grid-nodes must be >= 1"
     if bool(args.tls_cert) != bool(args.tls_key):

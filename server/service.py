@@ -25,6 +25,7 @@ from deepcontact.v1 import warmstart_pb2 as pb
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
 from server.batching import QueueFull
+from server.idle import IdleStreams
 from deepcontact.channels import NEEDS
 from server.predictors import MAX_GRID_NODES, GridMismatch, Predictor, World
 from server.rejects import reject
@@ -95,10 +96,12 @@ def add_to_server(service: "WarmStartService", server: grpc.Server) -> None:
 
 
 class WarmStartService(pb_grpc.WarmStartServicer):
-    def __init__(self, predictors: list[Predictor], limits: Limits = Limits(), fault: FaultDelay | None = None):
+    def __init__(self, predictors: list[Predictor], limits: Limits = Limits(), fault: FaultDelay | None = None,
+                 idle: IdleStreams | None = None):
         self.predictors = {p.name: p for p in predictors}
         self.limits = limits
         self.fault = fault
+        self.idle = idle  # None: streams may stay open without sending for as long as they like
 
     # -- RPCs -----------------------------------------------------------------
     def ListModels(self, request, context):
@@ -119,19 +122,29 @@ class WarmStartService(pb_grpc.WarmStartServicer):
     def Stream(self, request_iterator, context):
         # A stream is one simulation: its world, and its last step's points for temporal channels.
         world, steps = None, _StreamSteps()
-        for request in request_iterator:
-            try:
-                if request.HasField("world"):
-                    world, steps = self._world(request.world), _StreamSteps()
-                    self._warm_up(request.model, world)
-                elif world is None:
-                    raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                                  "world: required on the first message of a stream")
-                reply, points = self._step(request, world, steps.before(request.step))
-                steps.record(request.step, points)
-                yield reply
-            except _Reject as r:
-                reject(context, r.code, r.message, rpc=_STREAM)
+        idle = self.idle
+        token = idle.open(context) if idle is not None else None
+        try:
+            for request in request_iterator:
+                if token is not None:
+                    idle.touch(token)
+                try:
+                    if request.HasField("world"):
+                        world, steps = self._world(request.world), _StreamSteps()
+                        self._warm_up(request.model, world)
+                    elif world is None:
+                        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                                      "world: required on the first message of a stream")
+                    reply, points = self._step(request, world, steps.before(request.step))
+                    steps.record(request.step, points)
+                    yield reply
+                except _Reject as r:
+                    reject(context, r.code, r.message, rpc=_STREAM)
+        except grpc.RpcError:
+            return  # cancelled (by the client, a shutdown, or IdleStreams): nobody is left to answer
+        finally:
+            if token is not None:
+                idle.close(token)
 
     # -- one step -------------------------------------------------------------
     def _world(self, world: pb.World) -> World:

@@ -14,6 +14,9 @@ by default; steps meanwhile fail at once, unsent), and the channel reconnects
 at least every 0.5 s, so a restarted server gets its learned warm starts
 back within about the backoff cap (+ 0.5 s) of coming up. A reply that
 misses its deadline is never used: its stream is dropped with it.
+A stream the server ended between steps (it ends streams idle for a minute,
+`deepcontact serve --stream-idle-s`) is replaced by a fresh one for the next
+step: a simulation paused for longer loses no step.
 """
 
 from __future__ import annotations
@@ -139,17 +142,14 @@ class WarmStartClient:
 
     def step(self, request: pb.StepRequest, timeout: float) -> pb.Impulses:
         """Send one step on the stream and wait up to `timeout` s for its reply."""
-        if self._replies is None:
-            self._open_stream()
-            if self.world is not None:
-                request.world.CopyFrom(self.world)
-        self._outbox.put(request)
-        try:
-            got = self._inbox.get(timeout=timeout)
-        except queue.Empty:
-            # A late reply would arrive out of turn: drop this stream, open a fresh one next step.
+        deadline = time.monotonic() + timeout
+        reused = self._replies is not None
+        got = self._exchange(request, timeout)
+        if reused and isinstance(got, grpc.RpcError) and got.code() == grpc.StatusCode.CANCELLED:
+            # The server ended the stream while this simulation was not using it (it ends streams
+            # idle past its --stream-idle-s, server.idle): the step goes once more, on a fresh stream.
             self._close_stream()
-            raise StepFailed(f"no reply within {timeout * 1e3:.1f} ms", grpc.StatusCode.DEADLINE_EXCEEDED) from None
+            got = self._exchange(request, max(0.0, deadline - time.monotonic()))
         if isinstance(got, grpc.RpcError):
             self._close_stream(failed=True)
             raise StepFailed(f"{got.code().name}: {got.details()}", got.code())
@@ -164,6 +164,21 @@ class WarmStartClient:
         return got
 
     # -- the stream ---------------------------------------------------------
+    def _exchange(self, request: pb.StepRequest, timeout: float):
+        """Put `request` on the stream (opening one, led by the world, if none is open) and
+        return what comes back within `timeout` s: a reply, a grpc.RpcError or _END."""
+        if self._replies is None:
+            self._open_stream()
+            if self.world is not None:
+                request.world.CopyFrom(self.world)
+        self._outbox.put(request)
+        try:
+            return self._inbox.get(timeout=timeout)
+        except queue.Empty:
+            # A late reply would arrive out of turn: drop this stream, open a fresh one next step.
+            self._close_stream()
+            raise StepFailed(f"no reply within {timeout * 1e3:.1f} ms", grpc.StatusCode.DEADLINE_EXCEEDED) from None
+
     def _open_stream(self) -> None:
         now = time.monotonic()
         if now < self._retry_at:

@@ -88,6 +88,7 @@ def test_past_the_concurrency_bound_clients_get_resource_exhausted_at_once(model
     (["--models", "no-such-folder"], "not a folder of models"),
     (["--grace", "-1"], "--grace"),
     (["--max-points", "0"], "--max-points"),
+    (["--stream-idle-s", "-1"], "--stream-idle-s"),
     (["--tls-cert", "cert.pem"], "--tls-cert and --tls-key go together"),
 ])
 def test_serve_refuses_bad_arguments_before_it_binds_or_logs(model_dir, capsys, extra, says):
