@@ -194,6 +194,11 @@ def add_scene_arguments(parser) -> None:
                    help="share of bodies that are boxes of the same area as their circle (thesis 0)")
     g.add_argument("--friction", type=float, nargs=2, metavar=("MIN", "MAX"), help="friction range (thesis 0.5 0.5)")
     g.add_argument("--steps", type=int, metavar="N", help="steps per simulation (thesis 250)")
+    g.add_argument("--tolerance", type=float, metavar="NS",
+                   help="the solver stops after the first sweep whose largest impulse change is at most this "
+                        "(N s; thesis 1e-4)")
+    g.add_argument("--max-iterations", type=int, metavar="N",
+                   help="the solver's cap on velocity iterations a step (thesis 1000)")
 
 
 def spec_from_args(args) -> SceneSpec:
@@ -208,6 +213,13 @@ def spec_from_args(args) -> SceneSpec:
         "steps": args.steps,
     }
     overrides = {k: v for k, v in overrides.items() if v is not None}
+    solver = {k: v for k, v in (("velocity_threshold", args.tolerance), ("velocity_iterations", args.max_iterations))
+              if v is not None}
+    if solver:
+        if solver.get("velocity_threshold", 1.0) <= 0 or solver.get("velocity_iterations", 1) < 1:
+            raise ValueError(f"--tolerance must be > 0 N s and --max-iterations >= 1, got "
+                             f"{args.tolerance} and {args.max_iterations}")
+        overrides["solver"] = dataclasses.replace(spec.solver, **solver)
     if overrides:
         spec = dataclasses.replace(spec, name=f"{spec.name}-custom", **overrides)
     spec.validate()

@@ -8,7 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_from_dict, spec_to_dict
+from simclient.scene import (SceneSpec, add_scene_arguments, build_world, settled_world, spec_from_args, spec_from_dict,
+                             spec_to_dict)
 
 
 def parse(*argv: str) -> SceneSpec:
@@ -78,6 +79,8 @@ def test_spec_round_trips_through_json_dict():
     (("--polygons", "1.5"), "polygons"),
     (("--friction", "0.5", "0.1"), "friction"),
     (("--steps", "0"), "steps"),
+    (("--tolerance", "0"), "--tolerance"),
+    (("--max-iterations", "0"), "--max-iterations"),
 ])
 def test_impossible_scenes_fail_before_any_work(argv, message):
     with pytest.raises(ValueError, match=message):
@@ -119,3 +122,14 @@ def test_unknown_scene_is_refused_by_the_parser():
 def test_solver_settings_travel_with_the_spec():
     spec = dataclasses.replace(SceneSpec.thesis(), solver=dataclasses.replace(SceneSpec.thesis().solver, dt=0.02))
     assert build_world(spec, 1).config.dt == 0.02
+
+
+def test_the_solver_flags_set_the_stopping_rule_and_the_cap():
+    spec = parse("--tolerance", "1e-3", "--max-iterations", "50")
+    assert (spec.solver.velocity_threshold, spec.solver.velocity_iterations) == (1e-3, 50)
+    assert spec_from_dict(spec_to_dict(spec)) == spec
+    loose, tight = (settled_world(dataclasses.replace(spec, steps=1), 901, 150),
+                    settled_world(SceneSpec.thesis(), 901, 150))
+    loose_step, tight_step = loose.step(), tight.step()
+    assert tight_step.velocity_iterations > loose_step.velocity_iterations  # a looser rule stops sooner
+    assert loose_step.velocity_iterations <= 50
