@@ -41,7 +41,7 @@ class IdleStreams:
             raise ValueError(f"idle_s must be > 0, got {idle_s}")
         self.idle_s = float(idle_s)
         self.ended = 0  # streams cancelled for idleness since start
-        self._last: dict[int, list] = {}  # token -> [last message, monotonic s; context; peer]
+        self._last: dict[int, list] = {}  # token -> [its last message's time, monotonic s; its context]
         self._tokens = itertools.count()
         self._lock = threading.Lock()
         self._stop = threading.Event()
