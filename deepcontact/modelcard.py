@@ -188,7 +188,10 @@ class ModelCard:
             except ModelCardError as exc:
                 raise ModelCardError(f"{target_path} (alias target of {path.name}): {exc}") from None
             return dataclasses.replace(card, name=data["name"])
-        return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except ModelCardError as exc:  # a folder of cards: say which one
+            raise ModelCardError(f"{path}: {exc}") from None
 
     @staticmethod
     def alias_target(path: str | os.PathLike) -> str | None:

@@ -41,6 +41,14 @@ def test_a_broken_alias_says_what_is_wrong(tmp_path):
         ModelCard.load(tmp_path / "odd.json")
 
 
+def test_a_broken_card_in_a_folder_is_named_in_the_error(tmp_path):
+    _card(tmp_path)
+    (tmp_path / "broken.json").write_text(json.dumps({"name": "broken"}))
+    with pytest.raises(ModelCardError, match=r"broken\.json: model card lacks \['fixed_grid', 'gridspec'"):
+        ModelCard.load(tmp_path / "broken.json")
+    assert ModelCard.load(tmp_path / "residual-new-points.json").name == "residual-new-points"
+
+
 def _gate() -> dict:
     f = len(FEATURES)
     return StepGate((0.0,) * f, (1.0,) * f, (1.0,) + (0.0,) * f).to_dict()
