@@ -879,6 +879,9 @@ def _compiled_steps(net, batch_loss, lr: float, round_counts: tuple[int, ...] = 
     returns the batch's loss; val_step, at config.rounds, returns (sum of losses, sum of weights)."""
     tf = net.tf
     optimizer = tf.keras.optimizers.Adam(learning_rate=lr)
+    # Adam's moments made now, not inside the first traced step: a tf.function that creates
+    # variables is traced twice, and the solver losses' graphs take minutes to trace.
+    optimizer.build(net.trainable)
     # The network's first three inputs; a batch carries the physics a network with probes reads anyway.
     spec_in = net.signature()[:3] + [tf.TensorSpec((None, net.config.out_channels), tf.float32),
                                  tf.TensorSpec((None, 8), tf.float32), tf.TensorSpec((None, 2), tf.float32),
@@ -1024,8 +1027,7 @@ def _restore(path: Path, args, net, optimizer, rng: np.random.Generator, fitted:
                              "): pass them as they were, or delete it to start over")
     for k, v in net.variables.items():
         v.assign(arrays[f"net/{k}"])
-    optimizer.build(net.trainable)
-    for i, v in enumerate(optimizer.variables):
+    for i, v in enumerate(optimizer.variables):  # built by _compiled_steps
         v.assign(arrays[f"adam/{i}"])
     rng.bit_generator.state = meta["rng"]
     fitted.weights = {k[len("best/"):]: v for k, v in arrays.items() if k.startswith("best/")}
