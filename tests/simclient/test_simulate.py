@@ -115,8 +115,9 @@ def test_a_world_the_server_refuses_ends_the_run_with_its_reason(tmp_path, capsy
     write_conv_model(folder, "tiny")
     out = tmp_path / "x.json"
     with ServerProcess(folder, "--max-grid-nodes", str(61 * 61)) as srv:  # the thesis box and no more
+        # A long deadline: on a busy host a step can miss the default 10 ms, which is not what this tests.
         args = ["simulate", "--seed", "901", "--steps", "10", "--warm-start", "server:tiny", "--server", srv.address,
-                "--out", str(out), "--quiet"]
+                "--deadline-ms", "1000", "--out", str(out), "--quiet"]
         assert main(args + ["--box-size", "16", "16"]) == 2
         err = capsys.readouterr().err
         assert "refuses server:tiny for this world" in err and "65x65" in err
