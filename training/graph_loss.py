@@ -273,7 +273,7 @@ def gauss_seidel_changes_after(lam, v_free, mu, ends, geometry, masses, inverse,
                                omega: float = 1.0):
     """As projected_changes_after, with the sweeps in the solver's order: each sweep updates
     the colours (colour (P,) int32 from colour_points) in turn. Returns, after each k in the
-    ascending `sweeps`, the change (P, 2) N s that sweep k+1 would make."""
+    ascending `sweeps` (no repeats), the change (P, 2) N s that sweep k+1 would make."""
     import tensorflow as tf
 
     # One inert point per colour (no mass: a sweep leaves it at 0 and moves no body), since
@@ -306,9 +306,10 @@ def gauss_seidel_changes_after(lam, v_free, mu, ends, geometry, masses, inverse,
     out, done = [], 0
     for k in sweeps:  # a few checkpoints
         n = k - done
-        _, lams, dv, dw = tf.while_loop(lambda i, *_: i < n, lambda i, ls, v, w: (i + 1, *sweep(ls, v, w)),
-                                        (tf.constant(0), lams, dv, dw), maximum_iterations=n)
-        done = k
-        after, _, _ = sweep(lams, dv, dw)
+        if n > 0:  # a loop of no sweeps would still be traced, and its gradient with it
+            _, lams, dv, dw = tf.while_loop(lambda i, *_: i < n, lambda i, ls, v, w: (i + 1, *sweep(ls, v, w)),
+                                            (tf.constant(0), lams, dv, dw), maximum_iterations=n)
+        after, dv, dw = sweep(lams, dv, dw)
         out.append(tf.dynamic_stitch(index, [x - y for x, y in zip(after, lams)])[:n_points])
+        lams, done = after, k + 1  # the checkpoint's sweep is the next stretch's first
     return out
