@@ -22,8 +22,8 @@
 #   GRID_ONLY=1 make default-model               the thesis's grid models alone (the default as shipped)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). On 2 cores about 2 h 17 min for the default with AVX2, 1 h 20 min with
-# AVX-512, and the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
+# (DEFAULT_ONLY=1). On 2 cores about 2 h for the default (1 h 59 min on Intel AVX-512 cores on
+# 2026-11-30; 2 h 17 min with AVX2 before train-graph traced its step once), and the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
 # "Since the default became ...-r8-e9-reflect-sym-mirror"; GRID_ONLY=1 rebuilds them alone).
 # The other models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
