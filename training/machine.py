@@ -7,7 +7,8 @@ weights; so can another TensorFlow build or thread count. A rebuild that differs
 from a card's weights is first checked against these.
 
     describe()
-    # {"cpu": "AMD EPYC", "vector": "avx512", "cores": 2, "onednn": "default", "python": "3.11.7"}
+    # {"cpu": "AMD EPYC", "vector": "avx512", "cores": 2, "onednn": "default",
+    #  "onednn_isa": "default", "python": "3.11.7"}
 """
 
 from __future__ import annotations
@@ -47,9 +48,11 @@ def vector_level(flags: set[str]) -> str:
 
 def describe() -> dict[str, object]:
     """The CPU's model and widest vector extension, the cores this process may use, whether
-    TensorFlow's oneDNN kernels were switched (TF_ENABLE_ONEDNN_OPTS; "default" if unset),
-    and the Python version."""
+    TensorFlow's oneDNN kernels were switched (TF_ENABLE_ONEDNN_OPTS) or held to a narrower
+    instruction set than the CPU's (ONEDNN_MAX_CPU_ISA; each "default" if unset), and the
+    Python version."""
     model, flags = _cpuinfo()
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {"cpu": model, "vector": vector_level(flags), "cores": cores,
-            "onednn": os.environ.get("TF_ENABLE_ONEDNN_OPTS", "default"), "python": platform.python_version()}
+            "onednn": os.environ.get("TF_ENABLE_ONEDNN_OPTS", "default"),
+            "onednn_isa": os.environ.get("ONEDNN_MAX_CPU_ISA", "default"), "python": platform.python_version()}

@@ -17,12 +17,14 @@ def test_the_description_reads_the_first_cpu_block(tmp_path, monkeypatch):
                     "processor\t: 1\nmodel name\t: Other CPU\nflags\t\t: fpu avx512f\n")
     monkeypatch.setattr(machine, "_CPUINFO", info)
     monkeypatch.setenv("TF_ENABLE_ONEDNN_OPTS", "0")
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
     got = machine.describe()
     assert got["cpu"] == "Test CPU" and got["vector"] == "avx2" and got["onednn"] == "0"
+    assert got["onednn_isa"] == "AVX2"  # a run held to AVX2 on a wider CPU says so
     assert got["cores"] >= 1
 
 
 def test_without_cpuinfo_the_description_still_has_every_field(tmp_path, monkeypatch):
     monkeypatch.setattr(machine, "_CPUINFO", tmp_path / "missing")
     got = machine.describe()
-    assert set(got) == {"cpu", "vector", "cores", "onednn", "python"} and got["vector"] == "other"
+    assert set(got) == {"cpu", "vector", "cores", "onednn", "onednn_isa", "python"} and got["vector"] == "other"
