@@ -63,7 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "motion scaled and admitted, graft:W1+W2 "
                              "prices W1 with W2's moving bodies' motion, feedback:W prices W less shares of its previous step's error, "
                              "shrink:W+E serves builtin and prices W's error against E (e.g. oracle:near) scaled and its two parts halved, "
-                             "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E; "
+                             "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E, "
+                             "face:W+E serves builtin and prices the step solved on E's active set, on it with some of W's labels, "
+                             "and on W's; "
                              "all print a same-state table and one of the steps that end at the solver's cap (with each start's sweeps to Builtin's accuracy there); "
                              "server:* stands for every model the server serves, e.g. price:server:* "
                              "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
@@ -169,7 +171,7 @@ STAR = "server:*"
 def expand_served(names: list[str], target: str) -> list[str]:
     """`server:*` as every model the server at `target` serves (not its built-in providers such
     as zero or grid-identity), in natural order (NAME-e2 before NAME-e10): a top-level entry
-    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate: one candidate per model.
+    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face: one candidate per model.
     Raises ConnectionError when the server is away, ValueError when it serves no model."""
     import re
 
@@ -338,7 +340,16 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
             "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist(),
             "trajectory": (ratio_interval([s[:, 0] for s in per_seed], [_iterations(b) for b in builtin]).to_dict()
                            if builtin is not None and len(builtin) == len(per_seed) else None),
-            "at_cap": cap_summary(per_seed, cap, reach) if cap else None}
+            "at_cap": cap_summary(per_seed, cap, reach) if cap else None,
+            "notes": _mean_notes(make_provider(name).note_labels, results)}
+
+
+def _mean_notes(labels: list[str], results: list[dict]) -> dict[str, float] | None:
+    """Each of a composite's per-step notes (Pick.note_labels) averaged over every seed's steps, or None."""
+    rows = [t for r in results for t in r.get("notes", []) if len(t) == len(labels)]
+    if not labels or not rows:
+        return None
+    return dict(zip(labels, np.mean(np.array(rows, float), axis=0).tolist()))
 
 
 def cap_summary(per_seed: list[np.ndarray], cap: int, reach: list[np.ndarray] | None = None) -> dict:
@@ -383,7 +394,7 @@ def pick_table(picks: dict) -> str:
                  "admit:": "the first candidate's", "motion:": "the first candidate's",
                  "graft:": "the first candidate's",
                  "feedback:": "the first candidate's", "mean:": "the mean's",
-                 "price:": "Builtin's", "shrink:": "Builtin's", "gate:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
+                 "price:": "Builtin's", "shrink:": "Builtin's", "gate:": "Builtin's", "face:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",
                   "| candidate | mean iterations | / builtin | / first model | picked | better than builtin | worse |",
@@ -398,6 +409,8 @@ def pick_table(picks: dict) -> str:
         if p.get("trajectory"):
             lines += ["", f"Builtin on this trajectory / builtin on its own: {Ratio(**p['trajectory']).text()} "
                           "(paired by seed; the closed-loop ratio is a candidate's same-state ratio times this)."]
+        if p.get("notes"):
+            lines += ["", "Per step, mean: " + "; ".join(f"{k} {v:.1f}" for k, v in p["notes"].items()) + "."]
         if p.get("at_cap"):
             lines += cap_table(p["candidates"], p["at_cap"])
     return "\n".join(lines) + ("\n" if lines else "")

@@ -370,3 +370,64 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
         if max(np.max(np.abs(x - z)), np.max(np.abs(z - previous))) < tolerance:
             break
     return z.reshape(-1, 2)
+
+
+#: contact_face's labels: a point that lets go (no impulse), sticks (both velocities 0),
+#: or slides with its friction at the cone's edge, pushing along +t or -t.
+OPEN, STICKS, SLIDES_PLUS, SLIDES_MINUS = 0, 1, 2, 3
+
+
+def contact_face(impulses: np.ndarray, mu: np.ndarray, pressing: float = 1e-6, share: float = 0.99) -> np.ndarray:
+    """Which face of the contact problem's limits each point's impulses lie on, (P,) int8.
+
+    impulses: (P, 2) (normal, tangent) N s; mu: (P,) friction coefficients. A point
+    whose normal impulse is `pressing` N s or less is OPEN; one whose friction is at
+    `share` of its limit (mu times the normal impulse) or more SLIDES_PLUS or
+    SLIDES_MINUS by the tangent impulse's sign; the rest STICKS. The labels of a
+    step's solution are its active set: given them, the solution's impulses solve a
+    linear system (solve_on_face).
+    """
+    c = np.asarray(impulses, np.float64)
+    on = c[:, 0] > pressing
+    slides = on & (np.abs(c[:, 1]) >= share * np.asarray(mu, np.float64) * c[:, 0])
+    face = np.where(on, STICKS, OPEN).astype(np.int8)
+    face[slides] = np.where(c[slides, 1] > 0, SLIDES_PLUS, SLIDES_MINUS)
+    return face
+
+
+def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: np.ndarray,
+                  physics: Physics = Physics(), frame: ContactFrame | None = None) -> np.ndarray:
+    """The step's contact problem solved as if its solution lay on `face`, (P, 2) N s.
+
+    face: (P,) contact_face labels; mu: (P,) friction coefficients; bodies, points,
+    physics as in contact_velocities (restitution 0, as the scenes build). The
+    unknowns are the normal impulses of the points that press and the tangent ones
+    of those that stick; a sliding point's tangent impulse is +-mu times its normal
+    one, an open point's impulses are 0. The equations ask for no relative normal
+    velocity where a point presses and no tangent velocity where it sticks, after
+    gravity and the impulses (J M^-1 J^T, dense). Where the face is the solution's
+    own, the bodies' motion comes out exact; the impulses are the least-norm ones
+    (the self-stress, which moves no body, is not fixed by the face: admit them,
+    nearest_admissible, to let the limits choose it). Nothing is kept in the cones
+    here. The system is square but singular in a pile held at more points than it
+    has freedoms, and inconsistent where the face is wrong: least squares either way.
+    """
+    f = contact_frame(bodies, points) if frame is None else frame
+    face = np.asarray(face)
+    n_points = len(points)
+    if n_points == 0:
+        return np.zeros((0, 2))
+    jt = contact_jacobian(bodies, points, f)
+    inverse = np.stack([f.inv_mass, f.inv_mass, f.inv_inertia], axis=1)[f.dynamic].ravel()  # (3 D,)
+    operator = jt.T @ (inverse[:, None] * jt)  # (2P, 2P): relative velocity per unit impulse
+    velocity = contact_velocities(bodies, points, physics=physics).ravel()  # (2P,) m/s before any impulse
+    pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
+    sign = np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0))
+    n_press = len(pressing)
+    unknowns = np.zeros((2 * n_points, n_press + len(sticking)))  # impulses = unknowns @ x
+    unknowns[2 * pressing, np.arange(n_press)] = 1.0
+    unknowns[2 * pressing + 1, np.arange(n_press)] = sign[pressing] * np.asarray(mu, np.float64)[pressing]
+    unknowns[2 * sticking + 1, n_press + np.arange(len(sticking))] = 1.0
+    rows = np.concatenate([2 * pressing, 2 * sticking + 1])
+    x, *_ = np.linalg.lstsq(operator[rows] @ unknowns, -velocity[rows], rcond=None)
+    return (unknowns @ x).reshape(-1, 2)

@@ -55,6 +55,15 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  nearest E at each point (a soft gate, 0 to 1), and the same share taken
                  for normal and tangent apart. With E = oracle:near: the most any gate
                  between a model and Box2D's warm start, learned per point, could be worth
+    face:W+E     serves builtin (as price:) and trial-solves W, E, and the step solved on E's face
+                 (its active set: which points let go, stick, or slide which way;
+                 deepcontact.kinematics.solve_on_face), on E's face with 1, 3 or 10 of its
+                 labels swapped for W's where they differ, with W's labels where either says
+                 a point is open and then where both say it presses (W's two kinds of error),
+                 on W's face and on Box2D's warm start's, each admitted with that face's open
+                 points held at 0; notes per step how many labels differ, and how. With E =
+                 oracle:near: the face alone fixes the bodies' motion; how right must a learned
+                 face be?
     feedback:W   serves W, as W alone would, and trial-solves builtin, W, and W less G times
                  its own error on the previous step at each point that persists (what W served
                  there minus where the solve ended, matched by key), for G in 0.25, 0.5 and 1:
@@ -79,7 +88,7 @@ class Pick(Provider):
     picks = True
 
     MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "motion", "graft", "feedback", "shrink",
-             "gate")
+             "gate", "face")
     #: shrink:W+E: the factors W's whole error is priced at.
     SHRINKS = (0.75, 0.5, 0.25)
     #: boost:W: the factors its self-stress part is priced at.
@@ -88,6 +97,8 @@ class Pick(Provider):
     MOTION_SCALES = (1.0, 1.25, 1.5)
     #: feedback:W: the shares of its previous step's error it is priced less.
     FEEDBACKS = (0.25, 0.5, 1.0)
+    #: face:W+E: how many of the reference's labels are swapped for W's where they differ.
+    FACE_SWAPS = (1, 3, 10)
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
@@ -108,7 +119,7 @@ class Pick(Provider):
         # gate: serve builtin, price the first candidate gated per point against builtin, judged by the second
         if mode in ("split", "boost", "admit", "motion", "feedback") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
-        if mode in ("shrink", "gate") and len(candidates) != 2:
+        if mode in ("shrink", "gate", "face") and len(candidates) != 2:
             raise ValueError(f"{mode}: takes a warm start and its reference, e.g. {mode}:server:default+oracle:near, "
                              f"got {len(candidates)}")
         if mode == "graft" and len(candidates) != 2:
@@ -123,6 +134,7 @@ class Pick(Provider):
         self.sends_oracle = False
         self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
         self.reach: list[list[int]] = []  # the same steps: each one's sweeps to Builtin's accuracy (sweeps_to_builtin)
+        self.notes: list[list[float]] = []  # the same steps: what note_labels names, for the modes that keep any
         # feedback: the candidate's answer this step, (keys (P,), impulses (P, 2) N s), until observe() scores it,
         # then its error at the previous step's points, sorted by key
         self._answer: tuple[np.ndarray, np.ndarray] | None = None
@@ -149,8 +161,23 @@ class Pick(Provider):
                  "shrink": [f"{first} error x{k:g}" for k in self.SHRINKS]
                  + [f"{first} error's body-space part x0.5", f"{first} error's self-stress x0.5"],
                  "gate": [f"{first} or builtin, the nearer at each point", f"{first} gated at each point",
-                          f"{first} gated at each point, normal and tangent apart"]}.get(self.mode, [])
+                          f"{first} gated at each point, normal and tangent apart"],
+                 "face": [f"solved on {self.candidates[-1].name}'s face"]
+                 + [f"solved on {self.candidates[-1].name}'s face, {k} of {first}'s labels" for k in self.FACE_SWAPS]
+                 + [f"solved on {self.candidates[-1].name}'s face, {first}'s labels where either says open",
+                    f"solved on {self.candidates[-1].name}'s face, {first}'s labels where both press",
+                    f"solved on {first}'s face", "solved on builtin's face"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
+
+    @property
+    def note_labels(self) -> list[str]:
+        """What each entry of a notes row counts (face: the step's points and where faces differ)."""
+        if self.mode != "face":
+            return []
+        guess, reference = (c.name for c in self.candidates)
+        return ["points"] + [f"points where {who}'s face {what}" for who in (guess, "builtin") for what in (
+            f"differs from {reference}'s", f"is open and {reference}'s presses", f"presses and {reference}'s is open",
+            f"sticks and {reference}'s slides", f"slides and {reference}'s sticks", "slides the other way")]
 
     @property
     def model(self) -> str:
@@ -191,7 +218,8 @@ class Pick(Provider):
         if self.mode == "feedback":
             self._answer = None if served[0] is None else (points["key"].copy(), _stacked(candidates[1]))
         derive = {"mean": self._mean, "admit": self._admitted, "motion": self._scaled_motion, "graft": self._grafted, "feedback": self._less_last_error,
-                  "split": self._parts, "boost": self._parts, "shrink": self._shrunk, "gate": self._gated}.get(self.mode)
+                  "split": self._parts, "boost": self._parts, "shrink": self._shrunk, "gate": self._gated,
+                  "face": self._on_faces}.get(self.mode)
         if derive is not None:
             candidates += derive(engine, points, candidates)
         traces = [engine.trial_trace(*w) for w in candidates]
@@ -201,7 +229,7 @@ class Pick(Provider):
         self.traced(traces)
         if self.mode in ("shadow", "split", "boost", "admit", "motion", "graft", "feedback"):
             return candidates[1]
-        if self.mode in ("price", "shrink", "gate"):
+        if self.mode in ("price", "shrink", "gate", "face"):
             return builtin  # the trials left the last candidate's as the step's warm start
         if self.mode == "mean":
             return candidates[-1]
@@ -310,6 +338,47 @@ class Pick(Provider):
         share = np.clip(np.sum(step * want, axis=1) / np.where(length > 0, length, 1.0), 0.0, 1.0)
         apart = np.clip(step * want / np.where(step ** 2 > 0, step ** 2, 1.0), 0.0, 1.0)
         return [as_warm_start(x) for x in (nearer, b + share[:, None] * step, b + apart * step)]
+
+    def _on_faces(self, engine, points, candidates) -> list:
+        """face: the step solved on the face (active set) of the reference E, the second
+        candidate; on E's face with FACE_SWAPS of its labels, at random among the points where
+        they differ, swapped for those of the first candidate W; with W's labels where either
+        says the point is open (W's errors in which points press), then where both say it
+        presses (its errors in which stick and which slide); on W's face; and on Box2D's
+        warm start's face (deepcontact.kinematics.contact_face, solve_on_face), each admitted
+        with the face's open points held at 0. With E = oracle:near: how right must a learned
+        active set be for the exact motion it implies to pay?"""
+        from deepcontact.kinematics import OPEN, Physics, contact_face, contact_frame, nearest_admissible, solve_on_face
+
+        bodies, mu = engine.bodies(), point_friction(self._friction, points)
+        frame = contact_frame(bodies, points)
+        physics = Physics(engine.config.dt, tuple(engine.world.gravity))
+        builtin, guess, reference = (contact_face(_stacked(w), mu) for w in candidates[:3])
+        differ = np.flatnonzero(guess != reference)
+        self.notes.append([len(points)] + _face_errors(guess, reference) + _face_errors(builtin, reference))
+        rng = np.random.default_rng(len(self.trials))  # the same swaps at the same step in every run
+        faces = [reference]
+        for k in self.FACE_SWAPS:
+            face = reference.copy()
+            swap = rng.choice(differ, size=min(k, len(differ)), replace=False) if len(differ) else differ
+            face[swap] = guess[swap]
+            faces.append(face)
+        either_open = (guess == OPEN) | (reference == OPEN)
+        faces += [np.where(either_open, guess, reference), np.where(either_open, reference, guess), guess, builtin]
+        return [as_warm_start(nearest_admissible(bodies, points, solve_on_face(bodies, points, f, mu, physics, frame),
+                                                 mu, open_points=f == OPEN, frame=frame)) for f in faces]
+
+
+def _face_errors(face, reference) -> list[int]:
+    """How many of a step's (P,) contact_face labels differ from the reference's: in all, then
+    open where it presses, pressing where it is open, sticking where it slides, sliding where
+    it sticks, and sliding the other way."""
+    from deepcontact.kinematics import OPEN, STICKS
+
+    slides, slides_ref = face > STICKS, reference > STICKS
+    kinds = [face != reference, (face == OPEN) & (reference != OPEN), (face != OPEN) & (reference == OPEN),
+             (face == STICKS) & slides_ref, slides & (reference == STICKS), slides & slides_ref & (face != reference)]
+    return [int(k.sum()) for k in kinds]
 
 
 def sweeps_to_builtin(traces: list[np.ndarray], threshold: float) -> list[int]:

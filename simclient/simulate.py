@@ -178,6 +178,8 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
     if provider.picks:
         result["trials"] = [list(t) for t in provider.trials]
         result["reach"] = [list(t) for t in provider.reach]
+        if getattr(provider, "notes", None):
+            result["notes"] = [list(t) for t in provider.notes]
     return result
 
 

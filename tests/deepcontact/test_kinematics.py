@@ -193,6 +193,38 @@ def test_the_nearest_admissible_impulses_move_the_bodies_alike_and_keep_every_li
     assert nearest_admissible(bodies, points[:0], exact[:0], mu[:0]).shape == (0, 2)
 
 
+def test_a_solution_on_its_own_face_gives_its_motion_and_one_wrong_label_changes_it():
+    # Given which points let go, stick or slide (the solution's face), a linear solve
+    # leaves every pressing point at rest along its normal and every sticking one along its
+    # tangent: the bodies move as the solution moves them. A point said to stick that
+    # slides moves them otherwise.
+    from deepcontact.kinematics import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, contact_face, solve_on_face
+
+    engine = settled_world(SceneSpec.thesis(), 901, 120)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    b = points["builtin"]
+    exact = engine.oracle(start=(b[:, 0].copy(), b[:, 1].copy())).astype(np.float64)
+    mu = np.full(len(points), 0.5)
+    face = contact_face(exact, mu)
+    assert {OPEN, STICKS, SLIDES_PLUS, SLIDES_MINUS} <= set(face.tolist())
+    solved = solve_on_face(bodies, points, face, mu, Physics.thesis())
+    after = contact_velocities(bodies, points, solved, Physics.thesis())
+    assert np.abs(after[face != OPEN, 0]).max() < 1e-9 and np.abs(after[face == STICKS, 1]).max() < 1e-9
+    sliding = face >= SLIDES_PLUS
+    sign = np.where(face == SLIDES_PLUS, 1.0, -1.0)[sliding]
+    np.testing.assert_allclose(solved[sliding, 1], sign * 0.5 * solved[sliding, 0])  # at the edge, cone or not
+    assert not solved[face == OPEN].any()
+    exact_after = contact_velocities(bodies, points, exact, Physics.thesis())
+    assert np.abs(after - exact_after).max() < 0.02  # the motion, to the oracle's own tolerance and the cone's share
+
+    wrong = face.copy()
+    wrong[np.flatnonzero(sliding)[0]] = STICKS
+    moved = contact_velocities(bodies, points, solve_on_face(bodies, points, wrong, mu, Physics.thesis()), Physics.thesis())
+    assert np.abs(moved - exact_after).max() > 0.02
+    assert solve_on_face(bodies, points[:0], face[:0], mu[:0]).shape == (0, 2)
+
+
 # The NumPy implementation the compiled kernel (deepcontact/_kinematics.c) replaced: the
 # numbers every shipped model was trained on. The kernel must give them bit for bit.
 

@@ -138,6 +138,31 @@ def test_gate_steps_as_builtin_and_prices_a_warm_start_gated_per_point_by_a_refe
         make_provider("gate:oracle:near")
 
 
+def test_face_steps_as_builtin_and_prices_the_step_solved_on_each_candidates_active_set():
+    # On the answer's own face the admitted solve is the answer's motion with its open points
+    # held: a start within a few sweeps of the end. W = oracle:half, half of each correction:
+    # its face is Box2D's at many points, and its labels cost sweeps.
+    provider = make_provider("face:oracle:half+oracle:near")
+    assert provider.labels == ["builtin", "oracle:half", "oracle:near", "solved on oracle:near's face"] + [
+        f"solved on oracle:near's face, {k} of oracle:half's labels" for k in (1, 3, 10)] + [
+        "solved on oracle:near's face, oracle:half's labels where either says open",
+        "solved on oracle:near's face, oracle:half's labels where both press",
+        "solved on oracle:half's face", "solved on builtin's face"]
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    served = run_simulation(SHORT, 901, provider)
+    assert served["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
+    trials = np.array(served["trials"])
+    assert trials.shape[1] == 11
+    assert trials[:, 3].mean() < 0.5 * trials[:, 0].mean()  # the answer's face, admitted
+    assert trials[:, 3].sum() <= trials[:, 6].sum()  # ten of W's labels where they differ
+    notes = np.array(served["notes"])  # per step: points, then where W's face differs from E's and how, then Box2D's
+    assert notes.shape == (len(trials), 13) and (notes[:, 1:] <= notes[:, :1]).all() and notes[:, 1].sum() > 0
+    np.testing.assert_array_equal(notes[:, 1], notes[:, 2:7].sum(axis=1))  # every difference is of one kind
+    np.testing.assert_array_equal(notes[:, 7], notes[:, 8:13].sum(axis=1))
+    with pytest.raises(ValueError, match="its reference"):
+        make_provider("face:oracle:near")
+
+
 def test_a_gate_moves_builtin_toward_the_warm_start_only_where_that_nears_the_reference():
     b = (np.array([1.0, 1.0, 0.0]), np.array([0.0, 0.0, 0.0]))  # Box2D's warm start, N s
     w = (np.array([2.0, 2.0, 1.0]), np.array([0.0, 1.0, 0.0]))  # the model's
