@@ -73,14 +73,19 @@ PARTS = ("whole", "body-space", "self-stress")
 BANDS = (0.01, 0.1, 0.3, 1.0)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_replay_arguments(parser: argparse.ArgumentParser, model_help: str) -> None:
+    """The arguments of a command that replays recorded steps through a model: --models,
+    --model (its help is `model_help`), --data, --max-steps."""
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
-    parser.add_argument("--model", default="default",
-                        help="model to replay (default: default); A,B,... replays the mean of their warm starts; "
-                             "'recorded' serves the recorded solve's own end (compare with --reference oracle)")
+    parser.add_argument("--model", default="default", help=model_help)
     parser.add_argument("--data", type=Path, required=True, help="recorded steps (HDF5 from `deepcontact generate`)")
     parser.add_argument("--max-steps", type=int, default=500, metavar="N",
                         help="replay at most N steps with contacts, drawn at random (default %(default)s)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_replay_arguments(parser, "model to replay (default: default); A,B,... replays the mean of their warm starts; "
+                                 "'recorded' serves the recorded solve's own end (compare with --reference oracle)")
     parser.add_argument("--reference", choices=("final", "oracle"), default="final",
                         help="the solver's correction: to the impulses the recorded solve ended at (final, default) "
                              "or to the step solved from zero to convergence (oracle; data from generate --oracle)")

@@ -395,6 +395,20 @@ def contact_face(impulses: np.ndarray, mu: np.ndarray, pressing: float = 1e-6, s
     return face
 
 
+#: face_errors' kinds of wrong label, after the count of all of them.
+FACE_ERRORS = ("open where it presses", "presses where it is open", "sticks where it slides", "slides where it sticks",
+               "slides the other way")
+
+
+def face_errors(face: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(6,) int: how many of a step's (P,) contact_face labels differ from the reference's (P,),
+    in all and then by each of FACE_ERRORS."""
+    slides, slides_ref = face > STICKS, reference > STICKS
+    kinds = [face != reference, (face == OPEN) & (reference != OPEN), (face != OPEN) & (reference == OPEN),
+             (face == STICKS) & slides_ref, slides & (reference == STICKS), slides & slides_ref & (face != reference)]
+    return np.array([int(k.sum()) for k in kinds])
+
+
 def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: np.ndarray,
                   physics: Physics = Physics(), frame: ContactFrame | None = None) -> np.ndarray:
     """The step's contact problem solved as if its solution lay on `face`, (P, 2) N s.

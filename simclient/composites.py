@@ -174,10 +174,11 @@ class Pick(Provider):
         """What each entry of a notes row counts (face: the step's points and where faces differ)."""
         if self.mode != "face":
             return []
+        from deepcontact.kinematics import FACE_ERRORS
+
         guess, reference = (c.name for c in self.candidates)
-        return ["points"] + [f"points where {who}'s face {what}" for who in (guess, "builtin") for what in (
-            f"differs from {reference}'s", f"is open and {reference}'s presses", f"presses and {reference}'s is open",
-            f"sticks and {reference}'s slides", f"slides and {reference}'s sticks", "slides the other way")]
+        return ["points"] + [f"points where {who}'s face {what} (against {reference}'s)" for who in (guess, "builtin")
+                             for what in ("differs", *FACE_ERRORS)]
 
     @property
     def model(self) -> str:
@@ -348,14 +349,15 @@ class Pick(Provider):
         warm start's face (deepcontact.kinematics.contact_face, solve_on_face), each admitted
         with the face's open points held at 0. With E = oracle:near: how right must a learned
         active set be for the exact motion it implies to pay?"""
-        from deepcontact.kinematics import OPEN, Physics, contact_face, contact_frame, nearest_admissible, solve_on_face
+        from deepcontact.kinematics import (OPEN, Physics, contact_face, contact_frame, face_errors, nearest_admissible,
+                                            solve_on_face)
 
         bodies, mu = engine.bodies(), point_friction(self._friction, points)
         frame = contact_frame(bodies, points)
         physics = Physics(engine.config.dt, tuple(engine.world.gravity))
         builtin, guess, reference = (contact_face(_stacked(w), mu) for w in candidates[:3])
         differ = np.flatnonzero(guess != reference)
-        self.notes.append([len(points)] + _face_errors(guess, reference) + _face_errors(builtin, reference))
+        self.notes.append([len(points), *face_errors(guess, reference), *face_errors(builtin, reference)])
         rng = np.random.default_rng(len(self.trials))  # the same swaps at the same step in every run
         faces = [reference]
         for k in self.FACE_SWAPS:
@@ -367,18 +369,6 @@ class Pick(Provider):
         faces += [np.where(either_open, guess, reference), np.where(either_open, reference, guess), guess, builtin]
         return [as_warm_start(nearest_admissible(bodies, points, solve_on_face(bodies, points, f, mu, physics, frame),
                                                  mu, open_points=f == OPEN, frame=frame)) for f in faces]
-
-
-def _face_errors(face, reference) -> list[int]:
-    """How many of a step's (P,) contact_face labels differ from the reference's: in all, then
-    open where it presses, pressing where it is open, sticking where it slides, sliding where
-    it sticks, and sliding the other way."""
-    from deepcontact.kinematics import OPEN, STICKS
-
-    slides, slides_ref = face > STICKS, reference > STICKS
-    kinds = [face != reference, (face == OPEN) & (reference != OPEN), (face != OPEN) & (reference == OPEN),
-             (face == STICKS) & slides_ref, slides & (reference == STICKS), slides & slides_ref & (face != reference)]
-    return [int(k.sum()) for k in kinds]
 
 
 def sweeps_to_builtin(traces: list[np.ndarray], threshold: float) -> list[int]:

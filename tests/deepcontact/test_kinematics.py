@@ -225,6 +225,15 @@ def test_a_solution_on_its_own_face_gives_its_motion_and_one_wrong_label_changes
     assert solve_on_face(bodies, points[:0], face[:0], mu[:0]).shape == (0, 2)
 
 
+def test_face_errors_count_each_kind_of_wrong_label():
+    from deepcontact.kinematics import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, face_errors
+
+    reference = np.array([STICKS, STICKS, OPEN, SLIDES_PLUS, SLIDES_PLUS, STICKS, SLIDES_MINUS])
+    face = np.array([STICKS, OPEN, STICKS, STICKS, SLIDES_MINUS, SLIDES_PLUS, SLIDES_MINUS])
+    # all, open where it presses, presses where open, sticks where it slides, slides where it sticks, the other way
+    assert face_errors(face, reference).tolist() == [5, 1, 1, 1, 1, 1]
+
+
 # The NumPy implementation the compiled kernel (deepcontact/_kinematics.c) replaced: the
 # numbers every shipped model was trained on. The kernel must give them bit for bit.
 

@@ -1,0 +1,130 @@
+"""`deepcontact bench faces`: how right a served model's answer is as an active set.
+
+    deepcontact bench faces --model default --data data/thesis-val-801-820.h5
+
+A step's solution lies on a face of the contact problem's limits: each point lets go,
+sticks, or slides one way or the other (deepcontact.kinematics.contact_face). Solved on its
+answer's own face a step needs 0.185x of Builtin's iterations, and with 3 or 10 of the
+default's labels in it 0.687x and 0.933x (`face:` in `bench iterations`; docs/results.md,
+"The active set alone"): a face pays only if it is wrong at very few of a step's points.
+This replays recorded steps (`deepcontact generate`) through a model as the server serves it,
+reads its answer, Box2D's warm start and the recorded solve's end as faces, and counts
+where they differ: per step (mean, median, and the share of steps with at most 3 and at most
+10 wrong labels), per point, and by kind. Reading a regression's answer as a face takes two
+thresholds (a point presses above `--pressing` N s; it slides at `--share` of its friction
+limit or more); comma-separated lists sweep them, and each reading is a row.
+
+Recorded steps carry no friction coefficients: `--friction` gives the one every point has
+(the thesis world's 0.5 by default), so files of worlds with mixed friction are not read
+right by this command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.io import write_json_atomic
+from deepcontact.kinematics import FACE_ERRORS, contact_face, face_errors
+
+#: How many wrong labels a step may have in the per-step shares printed (docs/results.md:
+#: 3 and 10 of the default's labels in the answer's face need 0.687x and 0.933x of Builtin).
+WRONG_AT_MOST = (3, 10)
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from bench.corrections import add_replay_arguments
+
+    add_replay_arguments(parser, "model to replay (default: default); 'recorded' serves the recorded solve's own end "
+                                 "(no label wrong: a check of the reading)")
+    parser.add_argument("--friction", type=float, default=0.5, metavar="MU",
+                        help="every point's friction coefficient; recorded steps carry none (default: the thesis "
+                             "world's %(default)s)")
+    parser.add_argument("--pressing", default="1e-6", metavar="N_S[,...]",
+                        help="a served point presses above this normal impulse, N s; a list sweeps it (default 1e-6)")
+    parser.add_argument("--share", default="0.99", metavar="S[,...]",
+                        help="a served point slides at this share of its friction limit or more, 0 < S <= 1; a list "
+                             "sweeps it (default 0.99)")
+    parser.add_argument("--json", metavar="FILE", help="write the rows here as JSON")
+
+
+def face_row(who: str, wrong: np.ndarray, points: np.ndarray, **reading) -> dict:
+    """One reading's summary: wrong (S, 6) per step (wrong_labels), points (S,) per step."""
+    per_step = wrong[:, 0]
+    return {"who": who, **reading, "steps": len(per_step), "points": int(points.sum()),
+            "right": 1.0 - float(per_step.sum()) / max(int(points.sum()), 1),
+            "wrong_mean": float(per_step.mean()), "wrong_median": float(np.median(per_step)),
+            **{f"steps_at_most_{k}": float((per_step <= k).mean()) for k in WRONG_AT_MOST},
+            "kinds": dict(zip(FACE_ERRORS, wrong[:, 1:].mean(axis=0).tolist()))}
+
+
+def replay(predictor, path: Path, max_steps: int):
+    """Yields (served (P, 2), builtin (P, 2), recorded (P, 2)) float64 N s for up to
+    max_steps recorded steps with contacts: the model's answer as served, Box2D's warm
+    start and where the recorded solve ended."""
+    from server.predictors import World
+    from training.grids import iter_steps, open_dataset, select_steps
+
+    with open_dataset(path) as ds:
+        steps = ds.steps
+    for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # a loop over steps, not points
+        c = step.contacts
+        world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
+        served = predictor.predict(step.bodies, c, world, 0, step.previous)[0]
+        yield (np.asarray(served, np.float64), c["builtin"].astype(np.float64), c["impulse"].astype(np.float64))
+
+
+def _floats(text: str, name: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v]
+    except ValueError:
+        values = []
+    if not values:
+        raise ValueError(f"--{name} takes numbers separated by commas, got {text!r}")
+    return values
+
+
+def run(args: argparse.Namespace) -> int:
+    from bench.corrections import RecordedSolve
+    from deepcontact.modelcard import ModelCardError
+    from server.predictors import GridMismatch, load_model
+    from training.grids import GridDataError
+
+    try:
+        pressing, shares = _floats(args.pressing, "pressing"), _floats(args.share, "share")
+        if args.max_steps < 1 or not args.friction > 0 or any(not 0 < s <= 1 for s in shares) or min(pressing) < 0:
+            raise ValueError("needs --max-steps >= 1, --friction > 0, --pressing >= 0 and 0 < --share <= 1")
+        predictor = RecordedSolve() if args.model == "recorded" else load_model(args.models / f"{args.model}.json")
+        steps = list(replay(predictor, args.data, args.max_steps))
+    except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
+        print(f"deepcontact bench faces: {exc}", file=sys.stderr)
+        return 2
+    if not steps:
+        print(f"deepcontact bench faces: {args.data} has no steps with contacts", file=sys.stderr)
+        return 2
+    points = np.array([len(s[0]) for s in steps])
+    mus = [np.full(n, args.friction) for n in points]
+    truth = [contact_face(recorded, mu) for (_, _, recorded), mu in zip(steps, mus)]
+    rows = [face_row("builtin", np.array([face_errors(contact_face(b, mu), t) for (_, b, _), mu, t
+                                          in zip(steps, mus, truth)]), points)]
+    for p in pressing:
+        for s in shares:
+            wrong = np.array([face_errors(contact_face(w, mu, pressing=p, share=s), t)
+                              for (w, _, _), mu, t in zip(steps, mus, truth)])
+            rows.append(face_row(args.model, wrong, points, pressing=p, share=s))
+    print(f"{args.model} and Box2D's warm start on {args.data} ({len(steps)} steps, {points.sum()} points, "
+          f"friction {args.friction:g}), read as faces against the recorded solve's end:")
+    print("| read | points right | wrong labels a step, mean | median | steps with <= 3 | <= 10 | "
+          + " | ".join(FACE_ERRORS) + " |")
+    print("|---|---|---|---|---|---|" + "---|" * len(FACE_ERRORS))
+    for r in rows:
+        read = "builtin" if r["who"] == "builtin" else f"{r['who']}, pressing {r['pressing']:g}, share {r['share']:g}"
+        print(f"| {read} | {r['right']:.3f} | {r['wrong_mean']:.1f} | {r['wrong_median']:.0f} | "
+              f"{r['steps_at_most_3']:.2f} | {r['steps_at_most_10']:.2f} | "
+              + " | ".join(f"{v:.1f}" for v in r["kinds"].values()) + " |")
+    if args.json:
+        write_json_atomic(args.json, {"model": args.model, "data": str(args.data), "friction": args.friction,
+                                      "rows": rows})
+    return 0

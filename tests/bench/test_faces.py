@@ -1,0 +1,36 @@
+"""`deepcontact bench faces`: a served model's answer read as an active set."""
+
+from __future__ import annotations
+
+import json
+
+from deepcontact.cli import main
+
+
+def test_bench_faces_counts_the_wrong_labels_a_step_of_each_reading(tmp_path, model_dir, capsys):
+    data = tmp_path / "steps.h5"
+    assert main(["generate", "--steps", "80", "--seeds", "1", "--out", str(data), "--quiet"]) == 0
+    out = tmp_path / "faces.json"
+    assert main(["bench", "faces", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
+                 "--pressing", "1e-6,0.01", "--share", "0.99,0.9", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["who"] for r in rows] == ["builtin"] + ["tiny"] * 4  # Box2D's warm start, then each reading
+    assert [(r["pressing"], r["share"]) for r in rows[1:]] == [(1e-6, 0.99), (1e-6, 0.9), (0.01, 0.99), (0.01, 0.9)]
+    for r in rows:
+        assert 0 <= r["right"] <= 1 and r["steps_at_most_3"] <= r["steps_at_most_10"] <= 1
+        assert abs(sum(r["kinds"].values()) - r["wrong_mean"]) < 1e-9  # every wrong label is of one kind
+    assert "| read | points right |" in capsys.readouterr().out
+
+    # The recorded solve's own end, read as a face, is its face: nothing wrong.
+    assert main(["bench", "faces", "--model", "recorded", "--data", str(data), "--json", str(out)]) == 0
+    recorded = json.loads(out.read_text())["rows"][1]
+    assert recorded["right"] == 1.0 and recorded["wrong_mean"] == 0.0 and recorded["steps_at_most_3"] == 1.0
+
+
+def test_bench_faces_refuses_bad_readings_and_missing_models(tmp_path, model_dir, capsys):
+    data = tmp_path / "steps.h5"
+    assert main(["generate", "--steps", "20", "--seeds", "1", "--out", str(data), "--quiet"]) == 0
+    for bad in (["--share", "1.5"], ["--share", "x"], ["--pressing", "-1"], ["--friction", "0"], ["--max-steps", "0"],
+                ["--model", "nope"]):
+        assert main(["bench", "faces", "--models", str(model_dir), "--data", str(data), "--model", "tiny", *bad]) == 2
+    assert "deepcontact bench faces:" in capsys.readouterr().err
