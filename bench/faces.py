@@ -45,8 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pressing", default="1e-6", metavar="N_S[,...]",
                         help="a served point presses above this normal impulse, N s; a list sweeps it (default 1e-6)")
     parser.add_argument("--share", default="0.99", metavar="S[,...]",
-                        help="a served point slides at this share of its friction limit or more, 0 < S <= 1; a list "
-                             "sweeps it (default 0.99)")
+                        help="a served point slides at this share of its friction limit or more (above 1 for "
+                             "labels written as impulses, train-graph --targets face); a list sweeps it (default 0.99)")
     parser.add_argument("--json", metavar="FILE", help="write the rows here as JSON")
 
 
@@ -94,8 +94,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         pressing, shares = _floats(args.pressing, "pressing"), _floats(args.share, "share")
-        if args.max_steps < 1 or not args.friction > 0 or any(not 0 < s <= 1 for s in shares) or min(pressing) < 0:
-            raise ValueError("needs --max-steps >= 1, --friction > 0, --pressing >= 0 and 0 < --share <= 1")
+        if args.max_steps < 1 or not args.friction > 0 or any(not s > 0 for s in shares) or min(pressing) < 0:
+            raise ValueError("needs --max-steps >= 1, --friction > 0, --pressing >= 0 and --share > 0")
         predictor = RecordedSolve() if args.model == "recorded" else load_model(args.models / f"{args.model}.json")
         steps = list(replay(predictor, args.data, args.max_steps))
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:

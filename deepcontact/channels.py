@@ -27,7 +27,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_quantities
+from deepcontact.kinematics import BODY_DYNAMIC, OPEN, SLIDES_MINUS, SLIDES_PLUS, Physics, contact_face, contact_quantities
 from deepcontact.records import CONTACT_DTYPE
 
 __all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "NEEDS", "SOURCES", "Channel", "Source", "Step",
@@ -189,6 +189,24 @@ def _oracle_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.nda
     return lambda a, step: step.oracle_impulses()[:, component] - a["builtin"][:, component]
 
 
+#: face_correction_*: the friction the recorded files' faces are read at (the records carry
+#: none; the thesis world's, at every pair), and the impulse (N s) a label is written as.
+FACE_FRICTION = 0.5
+FACE_IMPULSE = 1.0
+
+
+def _face_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
+    """The recorded solve's face (deepcontact.kinematics.contact_face at FACE_FRICTION) written as
+    impulses, a pressing point FACE_IMPULSE along its normal and a sliding one +-FACE_IMPULSE along
+    its tangent, minus the builtin warm start: served as a residual, a model's answer is its labels."""
+    def channel(a: np.ndarray, step: Step) -> np.ndarray:
+        face = contact_face(a["impulse"].astype(np.float64), np.full(len(a), FACE_FRICTION))
+        labels = ((face != OPEN).astype(np.float64) if component == 0 else
+                  np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0)))
+        return FACE_IMPULSE * labels - a["builtin"][:, component]
+    return channel
+
+
 def _new_point(a: np.ndarray, step: Step) -> np.ndarray:
     # Box2D carries no impulse into a point it did not have last step: builtin is then exactly 0.
     return (~a["builtin"].any(axis=1)).astype(np.float64)
@@ -290,6 +308,11 @@ _DEFINITIONS = (
             "the oracle's impulse minus the builtin warm start, normal"),
     Channel("oracle_correction_tangent", "contacts", _oracle_minus_builtin(1), "N s",
             "the oracle's impulse minus the builtin warm start, tangent", mirror=-1),
+    Channel("face_correction_normal", "contacts", _face_minus_builtin(0), "N s",
+            "the recorded solve's face at friction 0.5 written as impulses (1 N s where a point presses) minus "
+            "the builtin warm start, normal"),
+    Channel("face_correction_tangent", "contacts", _face_minus_builtin(1), "N s",
+            "the same, tangent (+-1 N s where a point slides that way, 0 where it sticks)", mirror=-1),
     # The previous step's contact points, at their own positions.
     Channel("previous_builtin_normal", "previous", _field("builtin", 0), "N s",
             "last step's builtin warm start (the impulse of two steps ago), normal", temporal=True),

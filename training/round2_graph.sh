@@ -267,6 +267,12 @@
 #                              epochs (with -t0.3 and -t1 cards); about 2 min each
 #   graph-final-mse-o200       its control: the same files, steps and settings, the recorded
 #                              solve's correction as target
+#   graph-face-r8-40k          a classifier of the points (--targets face: the recorded solve's active
+#                              set written as impulses), eight rounds, squared error, 40,000 steps of
+#                              the thesis file only (its friction, 0.5, reads the labels), 4 epochs,
+#                              into runs/face-screen/; read back with `bench faces --pressing 0.5
+#                              --share 1` (docs/results.md "The active set alone"); 3 min on two cores
+#   graph-face-r8              the same on every step of the thesis file, 6 epochs
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -307,6 +313,15 @@ run() {
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799 --loss mse --epochs 8 --patience 3
             "$PY" -m training.card_variant "$OUT/graph-mse-1-799.json" --correction-threshold 0.3 ;;
+        graph-face-r8-40k|graph-face-r8)
+            local OUT=runs/face-screen
+            local DATA=(--train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 --max-val-steps 2000
+                        --seed 0 --quiet)
+            if [ "$1" = graph-face-r8-40k ]; then
+                variant "$1" --targets face --loss mse --rounds 8 --max-steps-per-file 40000 --epochs 4 --patience 3
+            else
+                variant "$1" --targets face --loss mse --rounds 8 --epochs 6 --patience 3
+            fi ;;
         graph-mse-1-799-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-r8 --loss mse --rounds 8 --epochs 6 --patience 3 ;;

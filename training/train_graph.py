@@ -51,7 +51,8 @@ from training.teacher import Teacher, taught
 # start, stopped at 1e-4 N s or 1000 sweeps), or the step solved from zero to 1e-6 N s
 # (`generate --oracle`), which the stopped solve misses by about half of a 0.1-0.3 N s
 # correction (docs/results.md, "Training on the converged solution").
-TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracle_correction_tangent")}
+TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracle_correction_tangent"),
+           "face": ("face_correction_normal", "face_correction_tangent")}
 
 CACHE_VERSION = 3  # GraphSet fields (3: speed)
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
@@ -179,7 +180,11 @@ def _loss_arguments(parser) -> None:
     """What the network is trained to fit."""
     parser.add_argument("--targets", choices=tuple(TARGETS), default="final",
                         help="final (default): the correction to the impulses the recorded solve ended at; "
-                             "oracle: to the step solved from zero to convergence (files from `generate --oracle`)")
+                             "oracle: to the step solved from zero to convergence (files from `generate --oracle`); "
+                             "face: to the recorded solve's active set written as impulses (1 N s where a point "
+                             "presses, +-1 N s along the tangent where it slides; friction read as the thesis "
+                             "world's 0.5): a classifier of the points, read back with `bench faces --pressing 0.5 "
+                             "--share 1`")
     parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving",
                                            "relative-moving", "solver", "solver-log",
                                            "solver-projected", "solver-projected-max", "solver-projected-sweeps"),

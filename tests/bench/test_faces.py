@@ -30,7 +30,7 @@ def test_bench_faces_counts_the_wrong_labels_a_step_of_each_reading(tmp_path, mo
 def test_bench_faces_refuses_bad_readings_and_missing_models(tmp_path, model_dir, capsys):
     data = tmp_path / "steps.h5"
     assert main(["generate", "--steps", "20", "--seeds", "1", "--out", str(data), "--quiet"]) == 0
-    for bad in (["--share", "1.5"], ["--share", "x"], ["--pressing", "-1"], ["--friction", "0"], ["--max-steps", "0"],
+    for bad in (["--share", "0"], ["--share", "x"], ["--pressing", "-1"], ["--friction", "0"], ["--max-steps", "0"],
                 ["--model", "nope"]):
         assert main(["bench", "faces", "--models", str(model_dir), "--data", str(data), "--model", "tiny", *bad]) == 2
     assert "deepcontact bench faces:" in capsys.readouterr().err

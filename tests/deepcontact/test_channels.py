@@ -60,6 +60,18 @@ def test_oracle_targets_need_the_oracle():
     np.testing.assert_allclose(got, [[0.002, 0.0], [0.05, 0.01]], atol=1e-7)
 
 
+def test_face_targets_write_the_recorded_solves_labels_as_impulses_less_builtin():
+    # The first point presses and sticks, the second presses and slides along -t (friction 0.5):
+    # written as 1 N s along the normal, and 0 or -1 N s along the tangent, less Box2D's warm start.
+    bodies, contacts = two_bodies_on_the_floor()
+    contacts["impulse"] = [[0.098, 0.01], [0.2, -0.1]]
+    got = channel_values(["face_correction_normal", "face_correction_tangent"], Step(bodies, contacts))
+    np.testing.assert_allclose(got, [[1 - 0.098, 0.0], [1.0, -1.0]], atol=1e-7)
+    contacts["impulse"] = 0.0  # both let go
+    got = channel_values(["face_correction_normal", "face_correction_tangent"], Step(bodies, contacts))
+    np.testing.assert_allclose(got, [[-0.098, 0.0], [0.0, 0.0]], atol=1e-7)
+
+
 def test_previous_channels_read_the_last_steps_points_and_are_empty_without_them():
     bodies, contacts = two_bodies_on_the_floor()
     assert len(channel_values(["previous_builtin_normal"], Step(bodies, contacts))) == 0

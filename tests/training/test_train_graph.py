@@ -322,6 +322,16 @@ def test_oracle_targets_fit_the_correction_to_the_converged_solve(data, tmp_path
     assert not (tmp_path / "none.onnx").exists()
 
 
+def test_face_targets_train_a_classifier_of_the_points_served_as_a_residual(data, tmp_path):
+    out = tmp_path / "face.onnx"
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out", str(out),
+                 "--epochs", "1", "--batch-size", "4", "--width", "8", "--rounds", "1", "--loss", "mse",
+                 "--cache", str(tmp_path / "cache"), "--quiet", "--targets", "face"]) == 0
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["gridspec"]["targets"] == ["face_correction_normal", "face_correction_tangent"]
+    assert card["combine"] == "residual"  # Builtin + the model's answer: the labels, written as impulses
+
+
 def test_a_run_goes_on_from_an_earlier_runs_weights(data, tmp_path, capsys):
     common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
               "--batch-size", "4", "--rounds", "1", "--loss", "mse", "--cache", str(tmp_path / "cache"), "--quiet"]
