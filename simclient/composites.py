@@ -60,8 +60,10 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  deepcontact.kinematics.solve_on_face), on E's face with 1, 3 or 10 of its
                  labels swapped for W's where they differ, with W's labels where either says
                  a point is open and then where both say it presses (W's two kinds of error),
-                 on W's face and on Box2D's warm start's, each admitted with that face's open
-                 points held at 0; notes per step how many labels differ, and how. With E =
+                 on W's face and on Box2D's warm start's, and on W's face read as a classifier's
+                 labels (train-graph --targets face: pressing above 0.5 N s, sliding at the
+                 limit), each admitted with that face's open points held at 0; notes per step
+                 how many labels differ, and how. With E =
                  oracle:near: the face alone fixes the bodies' motion; how right must a learned
                  face be?
     feedback:W   serves W, as W alone would, and trial-solves builtin, W, and W less G times
@@ -99,6 +101,9 @@ class Pick(Provider):
     FEEDBACKS = (0.25, 0.5, 1.0)
     #: face:W+E: how many of the reference's labels are swapped for W's where they differ.
     FACE_SWAPS = (1, 3, 10)
+    #: face:W+E: W's face read again as a classifier's labels written as impulses (train-graph
+    #: --targets face): pressing above this normal impulse (N s), sliding at this share of the limit.
+    FACE_LABELS = (0.5, 1.0)
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
@@ -166,7 +171,8 @@ class Pick(Provider):
                  + [f"solved on {self.candidates[-1].name}'s face, {k} of {first}'s labels" for k in self.FACE_SWAPS]
                  + [f"solved on {self.candidates[-1].name}'s face, {first}'s labels where either says open",
                     f"solved on {self.candidates[-1].name}'s face, {first}'s labels where both press",
-                    f"solved on {first}'s face", "solved on builtin's face"]}.get(self.mode, [])
+                    f"solved on {first}'s face", "solved on builtin's face",
+                    f"solved on {first}'s face read as labels"]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -345,7 +351,8 @@ class Pick(Provider):
         candidate; on E's face with FACE_SWAPS of its labels, at random among the points where
         they differ, swapped for those of the first candidate W; with W's labels where either
         says the point is open (W's errors in which points press), then where both say it
-        presses (its errors in which stick and which slide); on W's face; and on Box2D's
+        presses (its errors in which stick and which slide); on W's face; on W's face read as a
+        classifier's labels (FACE_LABELS); and on Box2D's
         warm start's face (deepcontact.kinematics.contact_face, solve_on_face), each admitted
         with the face's open points held at 0. With E = oracle:near: how right must a learned
         active set be for the exact motion it implies to pay?"""
@@ -366,7 +373,9 @@ class Pick(Provider):
             face[swap] = guess[swap]
             faces.append(face)
         either_open = (guess == OPEN) | (reference == OPEN)
-        faces += [np.where(either_open, guess, reference), np.where(either_open, reference, guess), guess, builtin]
+        pressing, share = self.FACE_LABELS
+        faces += [np.where(either_open, guess, reference), np.where(either_open, reference, guess), guess, builtin,
+                  contact_face(_stacked(candidates[1]), mu, pressing=pressing, share=share)]
         return [as_warm_start(nearest_admissible(bodies, points, solve_on_face(bodies, points, f, mu, physics, frame),
                                                  mu, open_points=f == OPEN, frame=frame)) for f in faces]
 
