@@ -409,6 +409,30 @@ def face_errors(face: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return np.array([int(k.sum()) for k in kinds])
 
 
+def repair_face(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu: np.ndarray,
+                physics: Physics = Physics(), slack: float = 1e-4) -> np.ndarray:
+    """Labels for the next solve, read off a face's admitted solve, (P,) int8: one step of a
+    primal-dual active-set method (a step of Newton's on the problem's limits).
+
+    impulses: (P, 2) N s, a face's solve made admissible (solve_on_face, then
+    nearest_admissible with the face's open points held), so inside every cone; mu: (P,)
+    friction coefficients; bodies, points, physics as in contact_velocities. The labels
+    are contact_face's of the impulses (a point the admission took to no normal impulse
+    lets go, one it took to the cone's edge slides), then corrected by the motion the
+    impulses give: a point that lets go but closes faster than `slack` m/s presses
+    (STICKS), and one that slides but moves with its friction, not against it, by more
+    than `slack`, STICKS. Where the face was the solution's own, its labels come back
+    (up to the readings' thresholds); where a few were wrong, a step or two of this
+    usually finds them, each a solve on the new labels.
+    """
+    face = contact_face(impulses, mu)
+    after = contact_velocities(bodies, points, np.asarray(impulses, np.float64), physics)  # (P, 2) m/s
+    # Friction pushes against the slip: +t (SLIDES_PLUS) only while the point moves along -t.
+    wrong_way = ((face == SLIDES_PLUS) & (after[:, 1] > slack)) | ((face == SLIDES_MINUS) & (after[:, 1] < -slack))
+    face[((face == OPEN) & (after[:, 0] < -slack)) | wrong_way] = STICKS
+    return face
+
+
 def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: np.ndarray,
                   physics: Physics = Physics(), frame: ContactFrame | None = None) -> np.ndarray:
     """The step's contact problem solved as if its solution lay on `face`, (P, 2) N s.

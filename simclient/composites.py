@@ -62,7 +62,9 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  a point is open and then where both say it presses (W's two kinds of error),
                  on W's face and on Box2D's warm start's, and on W's face read as a classifier's
                  labels (train-graph --targets face: pressing above 0.5 N s, sliding at the
-                 limit), each admitted with that face's open points held at 0; notes per step
+                 limit), each admitted with that face's open points held at 0; the last two
+                 also repaired once and twice (an active-set method's steps,
+                 deepcontact.kinematics.repair_face); notes per step
                  how many labels differ, and how. With E =
                  oracle:near: the face alone fixes the bodies' motion; how right must a learned
                  face be?
@@ -104,6 +106,9 @@ class Pick(Provider):
     #: face:W+E: W's face read again as a classifier's labels written as impulses (train-graph
     #: --targets face): pressing above this normal impulse (N s), sliding at this share of the limit.
     FACE_LABELS = (0.5, 1.0)
+    #: face:W+E: builtin's face and W's read as labels, each also repaired this many times in
+    #: turn (deepcontact.kinematics.repair_face: an active-set method's steps), each repair priced.
+    FACE_REPAIRS = 2
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
@@ -172,7 +177,9 @@ class Pick(Provider):
                  + [f"solved on {self.candidates[-1].name}'s face, {first}'s labels where either says open",
                     f"solved on {self.candidates[-1].name}'s face, {first}'s labels where both press",
                     f"solved on {first}'s face", "solved on builtin's face",
-                    f"solved on {first}'s face read as labels"]}.get(self.mode, [])
+                    f"solved on {first}'s face read as labels"]
+                 + [f"solved on {who}'s face{how}, repaired {k}x" for who, how in (("builtin", ""), (first, " read as labels"))
+                    for k in range(1, self.FACE_REPAIRS + 1)]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -354,10 +361,11 @@ class Pick(Provider):
         presses (its errors in which stick and which slide); on W's face; on W's face read as a
         classifier's labels (FACE_LABELS); and on Box2D's
         warm start's face (deepcontact.kinematics.contact_face, solve_on_face), each admitted
-        with the face's open points held at 0. With E = oracle:near: how right must a learned
+        with the face's open points held at 0; then Box2D's face and W's read as labels, each
+        repaired (repair_face) once and again, each solve admitted. With E = oracle:near: how right must a learned
         active set be for the exact motion it implies to pay?"""
         from deepcontact.kinematics import (OPEN, Physics, contact_face, contact_frame, face_errors, nearest_admissible,
-                                            solve_on_face)
+                                            repair_face, solve_on_face)
 
         bodies, mu = engine.bodies(), point_friction(self._friction, points)
         frame = contact_frame(bodies, points)
@@ -376,8 +384,17 @@ class Pick(Provider):
         pressing, share = self.FACE_LABELS
         faces += [np.where(either_open, guess, reference), np.where(either_open, reference, guess), guess, builtin,
                   contact_face(_stacked(candidates[1]), mu, pressing=pressing, share=share)]
-        return [as_warm_start(nearest_admissible(bodies, points, solve_on_face(bodies, points, f, mu, physics, frame),
-                                                 mu, open_points=f == OPEN, frame=frame)) for f in faces]
+
+        def solved(face):  # (P,) labels -> (P, 2) N s: solved on them, admitted
+            return nearest_admissible(bodies, points, solve_on_face(bodies, points, face, mu, physics, frame), mu,
+                                      open_points=face == OPEN, frame=frame)
+
+        starts = [solved(f) for f in faces]
+        for start in starts[-2:]:  # builtin's face, then W's read as labels: each repaired FACE_REPAIRS times
+            for _ in range(self.FACE_REPAIRS):
+                start = solved(repair_face(bodies, points, start, mu, physics))
+                starts.append(start)
+        return [as_warm_start(x) for x in starts]
 
 
 def sweeps_to_builtin(traces: list[np.ndarray], threshold: float) -> list[int]:

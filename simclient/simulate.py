@@ -179,7 +179,7 @@ def run_simulation(spec: SceneSpec, seed: int, provider: Provider, *, client=Non
         result["trials"] = [list(t) for t in provider.trials]
         result["reach"] = [list(t) for t in provider.reach]
         if getattr(provider, "notes", None):
-            result["notes"] = [list(t) for t in provider.notes]
+            result["notes"] = [np.asarray(t).tolist() for t in provider.notes]  # plain numbers: the results are JSON
     return result
 
 

@@ -193,6 +193,17 @@ def test_the_nearest_admissible_impulses_move_the_bodies_alike_and_keep_every_li
     assert nearest_admissible(bodies, points[:0], exact[:0], mu[:0]).shape == (0, 2)
 
 
+def sliding_pile():
+    """A thesis pile at step 120, with points that let go, stick and slide both ways: its
+    bodies, points, the step's solution ((P, 2) N s, the oracle's) and friction (P,)."""
+    engine = settled_world(SceneSpec.thesis(), 901, 120)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    b = points["builtin"]
+    exact = engine.oracle(start=(b[:, 0].copy(), b[:, 1].copy())).astype(np.float64)
+    return bodies, points, exact, np.full(len(points), 0.5)
+
+
 def test_a_solution_on_its_own_face_gives_its_motion_and_one_wrong_label_changes_it():
     # Given which points let go, stick or slide (the solution's face), a linear solve
     # leaves every pressing point at rest along its normal and every sticking one along its
@@ -200,12 +211,7 @@ def test_a_solution_on_its_own_face_gives_its_motion_and_one_wrong_label_changes
     # slides moves them otherwise.
     from deepcontact.kinematics import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, contact_face, solve_on_face
 
-    engine = settled_world(SceneSpec.thesis(), 901, 120)
-    engine.collide()
-    bodies, points = engine.bodies(), engine.contacts()
-    b = points["builtin"]
-    exact = engine.oracle(start=(b[:, 0].copy(), b[:, 1].copy())).astype(np.float64)
-    mu = np.full(len(points), 0.5)
+    bodies, points, exact, mu = sliding_pile()
     face = contact_face(exact, mu)
     assert {OPEN, STICKS, SLIDES_PLUS, SLIDES_MINUS} <= set(face.tolist())
     solved = solve_on_face(bodies, points, face, mu, Physics.thesis())
@@ -223,6 +229,30 @@ def test_a_solution_on_its_own_face_gives_its_motion_and_one_wrong_label_changes
     moved = contact_velocities(bodies, points, solve_on_face(bodies, points, wrong, mu, Physics.thesis()), Physics.thesis())
     assert np.abs(moved - exact_after).max() > 0.02
     assert solve_on_face(bodies, points[:0], face[:0], mu[:0]).shape == (0, 2)
+
+
+def test_a_repair_puts_back_a_sliding_point_said_to_stick_but_moves_other_labels():
+    # One step of an active-set method on a settled pile: a point said to stick whose friction
+    # the admitted solve takes to the cone's edge slides again, the way it slid. The same step
+    # reads other labels off the admitted impulses and moves some of them (docs/results.md,
+    # "The active set alone": why a repair does not make a classifier's face right).
+    from deepcontact.kinematics import (OPEN, SLIDES_PLUS, STICKS, contact_face, face_errors, nearest_admissible,
+                                        repair_face, solve_on_face)
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+
+    def repaired(labels):
+        solved = solve_on_face(bodies, points, labels, mu, Physics.thesis())
+        admitted = nearest_admissible(bodies, points, solved, mu, open_points=labels == OPEN)
+        return repair_face(bodies, points, admitted, mu, Physics.thesis())
+
+    wrong = face.copy()
+    sliding = np.flatnonzero(face >= SLIDES_PLUS)[0]
+    wrong[sliding] = STICKS
+    assert repaired(wrong)[sliding] == face[sliding]
+    moved = face_errors(repaired(face), face)[0]
+    assert 0 < moved < 0.1 * len(points)
 
 
 def test_face_errors_count_each_kind_of_wrong_label():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -147,14 +148,18 @@ def test_face_steps_as_builtin_and_prices_the_step_solved_on_each_candidates_act
         f"solved on oracle:near's face, {k} of oracle:half's labels" for k in (1, 3, 10)] + [
         "solved on oracle:near's face, oracle:half's labels where either says open",
         "solved on oracle:near's face, oracle:half's labels where both press",
-        "solved on oracle:half's face", "solved on builtin's face", "solved on oracle:half's face read as labels"]
+        "solved on oracle:half's face", "solved on builtin's face", "solved on oracle:half's face read as labels",
+        "solved on builtin's face, repaired 1x", "solved on builtin's face, repaired 2x",
+        "solved on oracle:half's face read as labels, repaired 1x",
+        "solved on oracle:half's face read as labels, repaired 2x"]
     builtin = run_simulation(SHORT, 901, make_provider("builtin"))
     served = run_simulation(SHORT, 901, provider)
     assert served["per_step"]["velocity_iterations"] == builtin["per_step"]["velocity_iterations"]
     trials = np.array(served["trials"])
-    assert trials.shape[1] == 12
+    assert trials.shape[1] == 16
     assert trials[:, 3].mean() < 0.5 * trials[:, 0].mean()  # the answer's face, admitted
     assert trials[:, 3].sum() <= trials[:, 6].sum()  # ten of W's labels where they differ
+    json.dumps(served["notes"])  # bench iterations writes them
     notes = np.array(served["notes"])  # per step: points, then where W's face differs from E's and how, then Box2D's
     assert notes.shape == (len(trials), 13) and (notes[:, 1:] <= notes[:, :1]).all() and notes[:, 1].sum() > 0
     np.testing.assert_array_equal(notes[:, 1], notes[:, 2:7].sum(axis=1))  # every difference is of one kind
