@@ -273,6 +273,8 @@
 #                              into runs/face-screen/; read back with `bench faces --pressing 0.5
 #                              --share 1` (docs/results.md "The active set alone"); 3 min on two cores
 #   graph-face-r8              the same on every step of the thesis file, 6 epochs
+#   graph-face-r8-e12          six more epochs of graph-face-r8 (from its weights, --lr 1e-3, cosine):
+#                              whether the classifier was still learning; about 24 min on two cores
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
@@ -322,6 +324,12 @@ run() {
             else
                 variant "$1" --targets face --loss mse --rounds 8 --epochs 6 --patience 3
             fi ;;
+        graph-face-r8-e12)
+            local OUT=runs/face-screen
+            local DATA=(--train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 --max-val-steps 2000
+                        --seed 0 --quiet)
+            variant "$1" --targets face --loss mse --rounds 8 --epochs 6 --patience 3 --lr 1e-3 \
+                --init runs/graph-cache/graph-face-r8.weights.npz ;;
         graph-mse-1-799-r8)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant graph-mse-1-799-r8 --loss mse --rounds 8 --epochs 6 --patience 3 ;;
