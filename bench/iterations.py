@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "shrink:W+E serves builtin and prices W's error against E (e.g. oracle:near) scaled and its two parts halved, "
                              "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E, "
                              "face:W+E serves builtin and prices the step solved on E's active set, on it with some of W's labels, "
-                             "and on W's; "
+                             "and on W's, solved:W serves the step solved on classifier W's labels (the face route, closed loop), solved-forms:W prices other forms of it too; "
                              "all print a same-state table and one of the steps that end at the solver's cap (with each start's sweeps to Builtin's accuracy there); "
                              "server:* stands for every model the server serves, e.g. price:server:* "
                              "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
@@ -171,7 +171,7 @@ STAR = "server:*"
 def expand_served(names: list[str], target: str) -> list[str]:
     """`server:*` as every model the server at `target` serves (not its built-in providers such
     as zero or grid-identity), in natural order (NAME-e2 before NAME-e10): a top-level entry
-    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face: one candidate per model.
+    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face:/solved: one candidate per model.
     Raises ConnectionError when the server is away, ValueError when it serves no model."""
     import re
 
@@ -393,7 +393,7 @@ def pick_table(picks: dict) -> str:
         whose = {"shadow:": "the first candidate's", "split:": "the first candidate's", "boost:": "the first candidate's",
                  "admit:": "the first candidate's", "motion:": "the first candidate's",
                  "graft:": "the first candidate's",
-                 "feedback:": "the first candidate's", "mean:": "the mean's",
+                 "feedback:": "the first candidate's", "mean:": "the mean's", "solved:": "the solved start's", "solved-forms:": "the solved start's",
                  "price:": "Builtin's", "shrink:": "Builtin's", "gate:": "Builtin's", "face:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",

@@ -68,6 +68,17 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  how many labels differ, and how. With E =
                  oracle:near: the face alone fixes the bodies' motion; how right must a learned
                  face be?
+    solved:W     serves the step solved on W's face read as a classifier's labels (as face:
+                 does, FACE_LABELS), admitted with its open points held at 0: the face route
+                 closed loop, on its own trajectory. W is a classifier (train-graph --targets
+                 face); the solve runs here, in the client, which knows the friction (the wire
+                 carries none). Trial-solves builtin, W and the solved start beside it; where
+                 W falls back it serves Box2D's warm start
+    solved-forms:W  serves as solved:W does and also prices, on the same states, the same
+                 motion with Box2D's warm start's self-stress (admitted from there, not from
+                 the least-norm impulses), the admission cut at SOLVED_ROUNDS of its rounds
+                 (what a server could afford), and W's labels read with the pressing
+                 threshold at each of SOLVED_PRESSING (more solves a step: slower)
     feedback:W   serves W, as W alone would, and trial-solves builtin, W, and W less G times
                  its own error on the previous step at each point that persists (what W served
                  there minus where the solve ended, matched by key), for G in 0.25, 0.5 and 1:
@@ -92,7 +103,7 @@ class Pick(Provider):
     picks = True
 
     MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "motion", "graft", "feedback", "shrink",
-             "gate", "face")
+             "gate", "face", "solved", "solved-forms")
     #: shrink:W+E: the factors W's whole error is priced at.
     SHRINKS = (0.75, 0.5, 0.25)
     #: boost:W: the factors its self-stress part is priced at.
@@ -109,6 +120,10 @@ class Pick(Provider):
     #: face:W+E: builtin's face and W's read as labels, each also repaired this many times in
     #: turn (deepcontact.kinematics.repair_face: an active-set method's steps), each repair priced.
     FACE_REPAIRS = 2
+    #: solved:W: the other pressing thresholds (N s) W's labels are priced at.
+    SOLVED_PRESSING = (0.25, 0.75)
+    #: solved-forms:W: the admission's rounds in its cut form (nearest_admissible's iterations).
+    SOLVED_ROUNDS = 50
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
     def __init__(self, candidates: list[Provider], mode: str = "pick"):
@@ -127,7 +142,8 @@ class Pick(Provider):
         # feedback: serve the one candidate, price it less shares of its last step's error
         # shrink: serve builtin, price the first candidate's error against the second scaled, and its parts
         # gate: serve builtin, price the first candidate gated per point against builtin, judged by the second
-        if mode in ("split", "boost", "admit", "motion", "feedback") and len(candidates) != 1:
+        # solved: serve the step solved on the one candidate's labels, price it and the candidate
+        if mode in ("split", "boost", "admit", "motion", "feedback", "solved", "solved-forms") and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
         if mode in ("shrink", "gate", "face") and len(candidates) != 2:
             raise ValueError(f"{mode}: takes a warm start and its reference, e.g. {mode}:server:default+oracle:near, "
@@ -179,7 +195,13 @@ class Pick(Provider):
                     f"solved on {first}'s face", "solved on builtin's face",
                     f"solved on {first}'s face read as labels"]
                  + [f"solved on {who}'s face{how}, repaired {k}x" for who, how in (("builtin", ""), (first, " read as labels"))
-                    for k in range(1, self.FACE_REPAIRS + 1)]}.get(self.mode, [])
+                    for k in range(1, self.FACE_REPAIRS + 1)],
+                 "solved": [f"solved on {first}'s face read as labels"],
+                 "solved-forms": [f"solved on {first}'s face read as labels",
+                                  f"solved on {first}'s face read as labels, Box2D's self-stress",
+                                  f"solved on {first}'s face read as labels, admitted in {self.SOLVED_ROUNDS} rounds"]
+                 + [f"solved on {first}'s face read as labels pressing above {k:g} N s"
+                    for k in self.SOLVED_PRESSING]}.get(self.mode, [])
         return ["builtin", *(c.name for c in self.candidates)] + extra
 
     @property
@@ -233,9 +255,12 @@ class Pick(Provider):
             self._answer = None if served[0] is None else (points["key"].copy(), _stacked(candidates[1]))
         derive = {"mean": self._mean, "admit": self._admitted, "motion": self._scaled_motion, "graft": self._grafted, "feedback": self._less_last_error,
                   "split": self._parts, "boost": self._parts, "shrink": self._shrunk, "gate": self._gated,
-                  "face": self._on_faces}.get(self.mode)
+                  "face": self._on_faces, "solved": self._solved_on_labels,
+                  "solved-forms": self._solved_on_labels}.get(self.mode)
         if derive is not None:
             candidates += derive(engine, points, candidates)
+        if self.mode.startswith("solved") and served[0] is None:  # the classifier fell back: no labels to solve on
+            candidates[2:] = [builtin] * (len(candidates) - 2)
         traces = [engine.trial_trace(*w) for w in candidates]
         iterations = [len(t) for t in traces]
         self.trials.append(iterations)
@@ -247,6 +272,8 @@ class Pick(Provider):
             return builtin  # the trials left the last candidate's as the step's warm start
         if self.mode == "mean":
             return candidates[-1]
+        if self.mode.startswith("solved"):
+            return candidates[2]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
 
     def traced(self, traces: list[np.ndarray]) -> None:
@@ -352,6 +379,33 @@ class Pick(Provider):
         share = np.clip(np.sum(step * want, axis=1) / np.where(length > 0, length, 1.0), 0.0, 1.0)
         apart = np.clip(step * want / np.where(step ** 2 > 0, step ** 2, 1.0), 0.0, 1.0)
         return [as_warm_start(x) for x in (nearer, b + share[:, None] * step, b + apart * step)]
+
+    def _solved_on_labels(self, engine, points, candidates) -> list:
+        """solved: the step solved on the candidate's face read as a classifier's labels
+        (FACE_LABELS), admitted with the face's open points held at 0; solved-forms: then the
+        same motion given Box2D's warm start's self-stress before the admission, the admission
+        cut at SOLVED_ROUNDS rounds, and the labels read at each of SOLVED_PRESSING."""
+        from deepcontact.kinematics import (OPEN, Physics, body_space_part, contact_face, contact_frame,
+                                            nearest_admissible, solve_on_face)
+
+        bodies, mu = engine.bodies(), point_friction(self._friction, points)
+        frame = contact_frame(bodies, points)
+        physics = Physics(engine.config.dt, tuple(engine.world.gravity))
+        labels, builtin = _stacked(candidates[1]), _stacked(candidates[0])
+        pressing, share = self.FACE_LABELS
+        starts = []
+        forms = self.mode == "solved-forms"
+        for i, threshold in enumerate((pressing, *self.SOLVED_PRESSING) if forms else (pressing,)):
+            face = contact_face(labels, mu, pressing=threshold, share=share)
+            solved = solve_on_face(bodies, points, face, mu, physics, frame)
+            starts.append(nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, frame=frame))
+            if forms and i == 0:  # Box2D's self-stress: its warm start less the part of it that moves the bodies
+                change = builtin - solved
+                kept = solved + change - body_space_part(bodies, points, change, frame)
+                starts.append(nearest_admissible(bodies, points, kept, mu, open_points=face == OPEN, frame=frame))
+                starts.append(nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, frame=frame,
+                                                 iterations=self.SOLVED_ROUNDS))
+        return [as_warm_start(x) for x in starts]
 
     def _on_faces(self, engine, points, candidates) -> list:
         """face: the step solved on the face (active set) of the reference E, the second

@@ -5,7 +5,7 @@
     # warm is None (use Box2D's own: builtin or none) or (normal (n,), tangent (n,)) float32, N s
 
 make_provider knows every name: the local ones below, oracle:VARIANT (simclient.oracles),
-server:NAME, and pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face: over several
+server:NAME, and pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face:/solved:/solved-forms: over several
 (simclient.composites). The interface is simclient.provider.Provider.
 
 Local providers (thesis §8.2 plus one it lacked):

@@ -168,6 +168,35 @@ def test_face_steps_as_builtin_and_prices_the_step_solved_on_each_candidates_act
         make_provider("face:oracle:near")
 
 
+def test_solved_serves_the_step_solved_on_its_candidates_labels_closed_loop():
+    # A perfect classifier: the solution itself, read with the thresholds of the solution's
+    # own face (a classifier's labels are read at 0.5 N s and the cone's limit). The step
+    # solved on those labels and admitted is within a few sweeps of the end, on its own
+    # trajectory, every step.
+    provider = make_provider("solved:oracle:near")
+    assert provider.labels == ["builtin", "oracle:near", "solved on oracle:near's face read as labels"]
+    provider.FACE_LABELS = (1e-6, 0.99)
+    served = run_simulation(SHORT, 901, provider)
+    its = [i for i, n in zip(served["per_step"]["velocity_iterations"], served["per_step"]["contact_points"]) if n]
+    trials = np.array(served["trials"])
+    assert trials[:, 2].tolist() == its  # serves the solved start
+    assert trials[:, 2].sum() < 0.5 * trials[:, 0].sum()
+    builtin = run_simulation(SHORT, 901, make_provider("builtin"))
+    assert served["summary"]["mean_velocity_iterations"] < 0.5 * builtin["summary"]["mean_velocity_iterations"]
+    # solved-forms: the same served starts, its other forms priced beside them
+    forms = make_provider("solved-forms:oracle:near")
+    assert forms.labels[3:] == ["solved on oracle:near's face read as labels, Box2D's self-stress",
+                                "solved on oracle:near's face read as labels, admitted in 50 rounds",
+                                "solved on oracle:near's face read as labels pressing above 0.25 N s",
+                                "solved on oracle:near's face read as labels pressing above 0.75 N s"]
+    forms.FACE_LABELS = provider.FACE_LABELS
+    priced = np.array(run_simulation(SHORT, 901, forms)["trials"])
+    np.testing.assert_array_equal(priced[:, :3], trials)
+    assert priced.shape[1] == 7 and priced.min() >= 1
+    with pytest.raises(ValueError, match="one warm start"):
+        make_provider("solved:oracle:near+oracle:half")
+
+
 def test_a_gate_moves_builtin_toward_the_warm_start_only_where_that_nears_the_reference():
     b = (np.array([1.0, 1.0, 0.0]), np.array([0.0, 0.0, 0.0]))  # Box2D's warm start, N s
     w = (np.array([2.0, 2.0, 1.0]), np.array([0.0, 1.0, 0.0]))  # the model's
