@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "shrink:W+E serves builtin and prices W's error against E (e.g. oracle:near) scaled and its two parts halved, "
                              "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E, "
                              "face:W+E serves builtin and prices the step solved on E's active set, on it with some of W's labels, "
-                             "and on W's, solved:W serves the step solved on classifier W's labels (the face route, closed loop), solved-forms:W prices other forms of it too; "
+                             "and on W's, solved:W serves the step solved on classifier W's labels (the face route, closed loop; solved@P:W reads them pressing above P N s), solved-forms:W prices other forms of it too; "
                              "all print a same-state table and one of the steps that end at the solver's cap (with each start's sweeps to Builtin's accuracy there); "
                              "server:* stands for every model the server serves, e.g. price:server:* "
                              "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
@@ -394,7 +394,7 @@ def pick_table(picks: dict) -> str:
                  "admit:": "the first candidate's", "motion:": "the first candidate's",
                  "graft:": "the first candidate's",
                  "feedback:": "the first candidate's", "mean:": "the mean's", "solved:": "the solved start's", "solved-forms:": "the solved start's",
-                 "price:": "Builtin's", "shrink:": "Builtin's", "gate:": "Builtin's", "face:": "Builtin's"}.get(name[:name.index(":") + 1], "the picked")
+                 "price:": "Builtin's", "shrink:": "Builtin's", "gate:": "Builtin's", "face:": "Builtin's"}.get(name[:name.index(":") + 1].split("@")[0].rstrip(":") + ":", "the picked")
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",
                   "| candidate | mean iterations | / builtin | / first model | picked | better than builtin | worse |",

@@ -73,7 +73,8 @@ simclient.simulate asks every candidate, then calls Pick.pick().
                  closed loop, on its own trajectory. W is a classifier (train-graph --targets
                  face); the solve runs here, in the client, which knows the friction (the wire
                  carries none). Trial-solves builtin, W and the solved start beside it; where
-                 W falls back it serves Box2D's warm start
+                 W falls back it serves Box2D's warm start. solved@P:W reads W's labels pressing
+                 above P N s (default FACE_LABELS' 0.5)
     solved-forms:W  serves as solved:W does and also prices, on the same states, the same
                  motion with Box2D's warm start's self-stress (admitted from there, not from
                  the least-norm impulses), the admission cut at SOLVED_ROUNDS of its rounds
@@ -126,9 +127,13 @@ class Pick(Provider):
     SOLVED_ROUNDS = 50
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
-    def __init__(self, candidates: list[Provider], mode: str = "pick"):
+    def __init__(self, candidates: list[Provider], mode: str = "pick", pressing: float | None = None):
         if mode not in self.MODES:
             raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
+        if pressing is not None:  # solved@P:W, W's labels read pressing above P N s
+            if not mode.startswith("solved") or not pressing >= 0:
+                raise ValueError(f"a pressing threshold goes with solved: only, and is >= 0 N s, got {pressing!r}")
+            self.FACE_LABELS = (pressing, self.FACE_LABELS[1])
         self.candidates = candidates
         # pick: serve the cheapest; shadow: serve the first, price the others beside it;
         # mean: serve the candidates' mean, price it and each of them on the same state;
@@ -155,7 +160,7 @@ class Pick(Provider):
         for i, c in enumerate(candidates):
             if hasattr(c, "reseed"):  # jitter@S
                 c.reseed(i)  # two jitters in one pick draw different noise
-        self.name = f"{mode}:" + "+".join(c.name for c in candidates)
+        self.name = f"{mode}{'' if pressing is None else f'@{pressing:g}'}:" + "+".join(c.name for c in candidates)
         self.uses_server = any(c.uses_server for c in candidates)
         self.sends_oracle = False
         self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations

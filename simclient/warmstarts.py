@@ -304,6 +304,16 @@ class Remote(Provider):
 
 def make_provider(name: str) -> Provider:
     """ValueError for an unknown name."""
+    for mode in ("solved", "solved-forms"):  # solved@P:W: W's labels read pressing above P N s
+        if name.startswith(f"{mode}@") and ":" in name:
+            threshold, rest = name[len(mode) + 1:].split(":", 1)
+            try:
+                pressing = float(threshold)
+            except ValueError:
+                raise ValueError(f"{mode}@P: needs a pressing threshold in N s, e.g. {mode}@0.75:server:NAME, "
+                                 f"got {name!r}") from None
+            inner = make_provider(f"{mode}:{rest}")
+            return Pick(inner.candidates, mode=mode, pressing=pressing)
     for prefix in Pick.PREFIXES:
         if name.startswith(prefix):
             names = [n for n in name[len(prefix):].split("+") if n]

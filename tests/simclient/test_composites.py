@@ -195,6 +195,12 @@ def test_solved_serves_the_step_solved_on_its_candidates_labels_closed_loop():
     assert priced.shape[1] == 7 and priced.min() >= 1
     with pytest.raises(ValueError, match="one warm start"):
         make_provider("solved:oracle:near+oracle:half")
+    # solved@P:W reads W's labels pressing above P N s
+    assert make_provider("solved@0.75:oracle:near").FACE_LABELS == (0.75, 1.0)
+    assert make_provider("solved@0.75:oracle:near").name == "solved@0.75:oracle:near"
+    for bad in ("solved@x:oracle:near", "solved@-1:oracle:near"):
+        with pytest.raises(ValueError, match="pressing threshold"):
+            make_provider(bad)
 
 
 def test_a_gate_moves_builtin_toward_the_warm_start_only_where_that_nears_the_reference():
