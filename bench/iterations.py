@@ -318,7 +318,7 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     With `cap` (the solver's most velocity iterations a step), also `at_cap`
     (cap_summary): how much of it is in steps that end at the cap.
     """
-    if not name.startswith(Pick.PREFIXES) or not any(r.get("trials") for r in results):
+    if not Pick.names_one(name) or not any(r.get("trials") for r in results):
         return None
     candidates = make_provider(name).labels
     width = len(candidates)

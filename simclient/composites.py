@@ -127,6 +127,13 @@ class Pick(Provider):
     SOLVED_ROUNDS = 50
     PREFIXES = tuple(f"{m}:" for m in MODES)
 
+    @classmethod
+    def names_one(cls, name: str) -> bool:
+        """Whether a warm-start name is one of these composites (solved@P:W included)."""
+        head = name.split(":", 1)[0]
+        mode = head.split("@", 1)[0]
+        return ":" in name and mode in cls.MODES and (head == mode or mode.startswith("solved"))
+
     def __init__(self, candidates: list[Provider], mode: str = "pick", pressing: float | None = None):
         if mode not in self.MODES:
             raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")

@@ -317,7 +317,7 @@ def make_provider(name: str) -> Provider:
     for prefix in Pick.PREFIXES:
         if name.startswith(prefix):
             names = [n for n in name[len(prefix):].split("+") if n]
-            if not names or any(n.startswith(Pick.PREFIXES) for n in names):
+            if not names or any(Pick.names_one(n) for n in names):
                 raise ValueError(f"{prefix} takes warm starts joined by +, e.g. {prefix}server:default+server:pressure, "
                                  f"got {name!r}")
             if any(n in ("none", "builtin") for n in names):

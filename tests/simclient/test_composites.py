@@ -198,6 +198,8 @@ def test_solved_serves_the_step_solved_on_its_candidates_labels_closed_loop():
     # solved@P:W reads W's labels pressing above P N s
     assert make_provider("solved@0.75:oracle:near").FACE_LABELS == (0.75, 1.0)
     assert make_provider("solved@0.75:oracle:near").name == "solved@0.75:oracle:near"
+    assert Pick.names_one("solved@0.75:oracle:near") and Pick.names_one("face:server:a+oracle:near")
+    assert not Pick.names_one("server:default") and not Pick.names_one("oracle:near") and not Pick.names_one("builtin")
     for bad in ("solved@x:oracle:near", "solved@-1:oracle:near"):
         with pytest.raises(ValueError, match="pressing threshold"):
             make_provider(bad)
