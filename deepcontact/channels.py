@@ -222,6 +222,7 @@ NEEDS = {
     "point_separation": "the points' separation (StepRequest.point_separation)",
     "builtin": "Box2D's builtin warm start (StepRequest.builtin)",
     "point_keys": "the points' keys, equal on every step for the same point (StepRequest.point_keys)",
+    "point_friction": "each point's friction coefficient (StepRequest.point_friction)",
 }
 _VELOCITY = ("point_bodies", "physics")
 #: Scales of the *_asinh channels: the solver stops when no impulse changes by more than

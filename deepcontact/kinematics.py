@@ -243,6 +243,39 @@ def contact_jacobian(bodies: np.ndarray, points: np.ndarray, frame: ContactFrame
     return jt
 
 
+def contact_jacobian_sparse(frame: ContactFrame):
+    """contact_jacobian as a scipy.sparse CSR matrix (3 D, 2 P), built without the dense one:
+    at most six entries a column (three for each dynamic body of the point). The serving
+    path's form (nearest_admissible, solve_on_face); built once per frame and kept on it,
+    so a step's solve and admission share it."""
+    cached = frame.__dict__.get("_sparse_jacobian")
+    if cached is None:
+        cached = _jacobian_sparse(frame)
+        object.__setattr__(frame, "_sparse_jacobian", cached)  # a cache on a frozen frame, not a field
+    return cached
+
+
+def _jacobian_sparse(f: ContactFrame):
+    from scipy import sparse
+
+    row = np.full(len(f.dynamic), -1)
+    row[f.dynamic] = np.arange(int(f.dynamic.sum()))
+    cols = np.arange(len(f.n))
+    r_all, c_all, v_all = [], [], []
+    for k, d in enumerate((f.n, f.t)):  # two directions and two bodies, not a loop over points
+        for body, r, sign in ((f.b, f.rb, 1.0), (f.a, f.ra, -1.0)):
+            on = row[body] >= 0
+            base, col = 3 * row[body[on]], 2 * cols[on] + k
+            r_all += [base, base + 1, base + 2]
+            c_all += [col] * 3
+            v_all += [sign * d[on, 0], sign * d[on, 1], sign * _cross(r[on], d[on])]
+    shape = (3 * int(f.dynamic.sum()), 2 * len(f.n))
+    if not r_all:
+        return sparse.csr_matrix(shape)
+    # coo -> csr sums duplicates, as contact_jacobian's += does (a point between two parts of one body)
+    return sparse.csr_matrix((np.concatenate(v_all), (np.concatenate(r_all), np.concatenate(c_all))), shape=shape)
+
+
 def body_space_part(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray,
                     frame: ContactFrame | None = None) -> np.ndarray:
     """The least-norm point impulses that move the bodies as `impulses` do, (P, 2) N s.
@@ -337,38 +370,43 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     pile rho = 100 converges in a few hundred rounds, rho = 1 in thousands).
     Where no such impulses exist (a body held at one point whose push leaves the
     cone) it ends at the cones' point nearest the affine set. The answer is z:
-    inside the cones always. J is built dense (contact_jacobian) and factorized sparse:
-    about 0.1 ms a round at 168 points (a settled thesis pile; a few hundred rounds).
+    inside the cones always. J is factorized sparse (SuperLU) once and the rounds run
+    compiled (deepcontact/_kinematics.c; tests/deepcontact/test_kinematics.py keeps the
+    NumPy rounds as the reference): a few microseconds a round at 140 points, where NumPy's
+    were about 0.1 ms.
     """
     from scipy import sparse
-    from scipy.sparse.linalg import factorized
+    from scipy.sparse.linalg import splu
 
     c = np.asarray(impulses, np.float64)
     if len(points) == 0:
         return np.zeros((0, 2))
-    jt = sparse.csr_matrix(contact_jacobian(bodies, points, frame))  # at most six entries a column
+    f = contact_frame(bodies, points) if frame is None else frame
+    jt = contact_jacobian_sparse(f)  # at most six entries a column
     gram = (jt @ jt.T).tocsc()
+    rows = gram.shape[0]
     # J^T J is singular where a body's points cannot push it every way (one point, or none);
     # a ridge far below its scale lets one sparse factorization serve, and what it adds in
     # those directions J takes away again.
     ridge = 1e-9 * max(float(gram.diagonal().max(initial=0.0)), 1e-300)
-    solve = factorized((gram + ridge * sparse.identity(gram.shape[0], format="csc")).tocsc()) if gram.shape[0] else None
-    flat = c.ravel()
+    i32 = np.int32
+    if rows:
+        # Symmetric positive definite: an ordering of G + G^T and pivots on the diagonal fill
+        # about a fifth less than SuperLU's general defaults, and each round walks the fill.
+        lu = splu((gram + ridge * sparse.identity(rows, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A",
+                  diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        factors = [a for m in (lu.L.tocsc(), lu.U.tocsc()) for a in (m.indptr.astype(i32), m.indices.astype(i32),
+                                                                      np.ascontiguousarray(m.data, np.float64))]
+        perms = [lu.perm_r.astype(i32), lu.perm_c.astype(i32)]
+    else:  # no dynamic body: nothing to keep
+        factors = [np.zeros(1, i32), np.zeros(0, i32), np.zeros(0)] * 2
+        perms = [np.zeros(0, i32)] * 2
     keep = np.ones(len(points)) if open_points is None else (~np.asarray(open_points, bool)).astype(np.float64)
-
-    def cones(x):  # (2P,) -> (2P,): onto the cones (and 0 at the open points)
-        return (project_to_cones(x.reshape(-1, 2), mu) * keep[:, None]).ravel()
-
-    def same_motion(y):  # (2P,) -> (2P,): onto J^T x = J^T c
-        return y - jt.T @ solve(jt @ (y - flat)) if solve else y  # no dynamic body: nothing to keep
-
-    z, scaled = cones(flat), np.zeros_like(flat)
-    for _ in range(iterations):  # rounds of a fixed-point iteration, each one vectorized over the points
-        x = same_motion((flat + rho * (z - scaled)) / (1.0 + rho))
-        previous, z = z, cones(x + scaled)
-        scaled += x - z
-        if max(np.max(np.abs(x - z)), np.max(np.abs(z - previous))) < tolerance:
-            break
+    z = np.empty(2 * len(points))
+    _compiled.admission_rounds(jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64),
+                               rows, *factors, *perms, np.ascontiguousarray(c.ravel()),
+                               np.ascontiguousarray(mu, np.float64), keep, float(rho), int(iterations),
+                               float(tolerance), z)
     return z.reshape(-1, 2)
 
 
@@ -448,24 +486,85 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     (the self-stress, which moves no body, is not fixed by the face: admit them,
     nearest_admissible, to let the limits choose it). Nothing is kept in the cones
     here. The system is square but singular in a pile held at more points than it
-    has freedoms, and inconsistent where the face is wrong: least squares either way.
+    has freedoms, and inconsistent where the face is wrong: least squares either way
+    (the minimum-norm solution, by a complete orthogonal factorization, LAPACK's gelsy:
+    about 2 ms a step at 140 points where an SVD took 5; the operator is built sparse).
     """
+    import scipy.linalg
+
     f = contact_frame(bodies, points) if frame is None else frame
     face = np.asarray(face)
     n_points = len(points)
-    if n_points == 0:
-        return np.zeros((0, 2))
-    jt = contact_jacobian(bodies, points, f)
-    inverse = np.stack([f.inv_mass, f.inv_mass, f.inv_inertia], axis=1)[f.dynamic].ravel()  # (3 D,)
-    operator = jt.T @ (inverse[:, None] * jt)  # (2P, 2P): relative velocity per unit impulse
-    velocity = contact_velocities(bodies, points, physics=physics).ravel()  # (2P,) m/s before any impulse
     pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
-    sign = np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0))
-    n_press = len(pressing)
-    unknowns = np.zeros((2 * n_points, n_press + len(sticking)))  # impulses = unknowns @ x
-    unknowns[2 * pressing, np.arange(n_press)] = 1.0
-    unknowns[2 * pressing + 1, np.arange(n_press)] = sign[pressing] * np.asarray(mu, np.float64)[pressing]
-    unknowns[2 * sticking + 1, n_press + np.arange(len(sticking))] = 1.0
+    if len(pressing) == 0:
+        return np.zeros((n_points, 2))
+    operator = contact_operator(f)  # (2P, 2P): relative velocity per unit impulse
+    velocity = contact_velocities(bodies, points, physics=physics).ravel()  # (2P,) m/s before any impulse
+    slide = np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0))[pressing] \
+        * np.asarray(mu, np.float64)[pressing]
+    # Unknowns: each pressing point's normal impulse (its tangent slide times it where it slides)
+    # and each sticking point's tangent impulse; equations at the same rows.
     rows = np.concatenate([2 * pressing, 2 * sticking + 1])
-    x, *_ = np.linalg.lstsq(operator[rows] @ unknowns, -velocity[rows], rcond=None)
-    return (unknowns @ x).reshape(-1, 2)
+    system = np.concatenate([operator[np.ix_(rows, 2 * pressing)] + operator[np.ix_(rows, 2 * pressing + 1)] * slide,
+                             operator[np.ix_(rows, 2 * sticking + 1)]], axis=1)
+    x, *_ = scipy.linalg.lstsq(system, -velocity[rows], lapack_driver="gelsy", check_finite=False)
+    out = np.zeros((n_points, 2))
+    out[pressing, 0] = x[:len(pressing)]
+    out[pressing, 1] = slide * x[:len(pressing)]
+    out[sticking, 1] = x[len(pressing):]
+    return out
+
+
+def contact_operator(frame: ContactFrame) -> np.ndarray:
+    """J M^-1 J^T as a dense (2 P, 2 P) float64 matrix, m/s per N s: the relative (normal,
+    tangent) velocity at each point (rows 2 i, 2 i + 1) that a unit impulse at each point
+    causes. Built from the pairs of points that share a dynamic body (a few thousand in a
+    thesis pile), not from a product of Jacobians: at 140 points this takes a few tenths of
+    a millisecond where the sparse product took about one."""
+    f = frame
+    n_points = len(f.n)
+    point, body, push = [], [], []  # each point's push on each of its dynamic bodies
+    for b, r, sign in ((f.b, f.rb, 1.0), (f.a, f.ra, -1.0)):
+        on = np.flatnonzero(f.dynamic[b])
+        g = np.empty((len(on), 2, 3))  # (direction: normal, tangent) x (x, y, angular)
+        for k, d in enumerate((f.n, f.t)):  # two directions, not a loop over points
+            g[:, k, 0], g[:, k, 1], g[:, k, 2] = sign * d[on, 0], sign * d[on, 1], sign * _cross(r[on], d[on])
+        point.append(on)
+        body.append(b[on])
+        push.append(g)
+    point, body, push = np.concatenate(point), np.concatenate(body), np.concatenate(push)
+    order = np.argsort(body, kind="stable")
+    point, body, push = point[order], body[order], push[order]
+    start = np.searchsorted(body, body, side="left")
+    count = np.searchsorted(body, body, side="right") - start
+    i = np.repeat(np.arange(len(body)), count)  # every ordered pair of pushes on one body
+    j = start[i] + np.arange(len(i)) - np.repeat(np.cumsum(count) - count, count)
+    inverse = np.stack([f.inv_mass, f.inv_mass, f.inv_inertia], axis=1)[body[i]]  # (pairs, 3)
+    blocks = np.einsum("pdc,pc,pec->pde", push[i], inverse, push[j])  # (pairs, 2, 2)
+    at = (2 * point[i])[:, None, None] * (2 * n_points) + np.arange(2)[None, :, None] * (2 * n_points) \
+        + (2 * point[j])[:, None, None] + np.arange(2)[None, None, :]
+    return np.bincount(at.ravel(), blocks.ravel(), minlength=4 * n_points * n_points).reshape(2 * n_points, 2 * n_points)
+
+
+def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
+                     physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
+                     rounds: int = 1000, label_friction: float | None = None,
+                     frame: ContactFrame | None = None) -> np.ndarray:
+    """The warm start of the face route, (P, 2) N s: a classifier's answer read as labels,
+    the step solved on them, the result admitted.
+
+    labels: (P, 2) N s, a classifier's answer (train-graph --targets face: about 1 N s along
+    the normal where a point presses, +-1 N s along the tangent where it slides), read by
+    contact_face as pressing above `pressing` N s and sliding at `share` of its limit (at
+    `label_friction` times the normal answer when given, whatever the point's friction); mu:
+    (P,) friction coefficients; bodies, points, physics as in contact_velocities. The step
+    is solved on those labels (solve_on_face) and moved by the smallest self-stress that
+    every cone admits, the labels' open points held at 0 (nearest_admissible, at most
+    `rounds` rounds). The simulation client's solved: composite and the server's face cards
+    (deepcontact.modelcard) both serve this.
+    """
+    frame = contact_frame(bodies, points) if frame is None else frame
+    read_at = mu if label_friction is None else np.full(len(points), float(label_friction))
+    face = contact_face(labels, read_at, pressing=pressing, share=share)
+    solved = solve_on_face(bodies, points, face, mu, physics, frame)
+    return nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame)

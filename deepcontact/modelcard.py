@@ -47,6 +47,20 @@ get the best measured variant without choosing one:
     models/default.json   {"name": "default", "alias_of": "residual-new-points",
                            "why": "best measured variant, docs/results.md"}
 
+`face` (graph models; in a full card or an alias card, which then serves its target so)
+makes the server solve the step on the model's answer read as an active set: a classifier
+trained on the recorded solve's labels (`train-graph --targets face`) answers each point
+with about 1 N s along the normal where it presses and +-1 N s along the tangent where it
+slides; the server reads that as labels (pressing above `pressing` N s, sliding at `share`
+of the friction limit), solves the step's contact problem on them and moves the result by
+the smallest self-stress that every friction cone admits, in at most `rounds` rounds
+(deepcontact.kinematics.solved_on_labels). It needs each point's friction in the request
+(StepRequest.point_friction). Keys: pressing (N s, default 0.5), share (default 1.0),
+rounds (default 1000), label_friction (default null: each point's own friction; a number:
+the sliding labels read at that friction everywhere, since the answer is a label, about
++-1 N s, not an impulse, and its reading need not follow the world's friction; the solve
+uses each point's own either way).
+
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
 
@@ -72,7 +86,9 @@ from deepcontact.step_gate import StepGate
 
 CARD_VERSION = 1
 COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
-ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate"})
+ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face"})
+#: A card's `face` settings, and their defaults (see above).
+FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None}
 
 
 class ModelCardError(ValueError):
@@ -112,6 +128,7 @@ class ModelCard:
     correction_threshold: float = 0.0  # "residual", "persisting", "moving": drop corrections whose normal part is at most this (N s)
     passes: int = 1  # graph "residual" models: the network run this many times, each from the last one's warm start
     step_gate: dict | None = None  # graph "residual" models: Box2D's warm start served at the steps it picks (see above)
+    face: dict | None = None  # graph models: the step solved on the answer read as labels (see above)
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...
@@ -158,6 +175,8 @@ class ModelCard:
                 StepGate.from_dict(d["step_gate"])
             except ValueError as exc:
                 raise ModelCardError(f"model card step_gate: {exc}") from None
+        if d.get("face") is not None:
+            d["face"] = _face_settings(d["face"], d["kind"])
         if d.get("combine", "replace") not in COMBINE:
             raise ModelCardError(f"model card combine {d['combine']!r}: use one of {', '.join(COMBINE)}")
         return cls(**d)
@@ -175,14 +194,14 @@ class ModelCard:
             unknown = set(data) - ALIAS_KEYS
             if unknown or not isinstance(data.get("name"), str) or not isinstance(data["alias_of"], str):
                 raise ModelCardError(f"{path}: an alias card holds a name and alias_of (strings) and "
-                                     f"optionally why and step_gate; got keys {sorted(data)}")
+                                     f"optionally why, step_gate and face; got keys {sorted(data)}")
             target_path = path.with_name(f"{data['alias_of']}.json")
             target = _read_card(target_path)
             if isinstance(target, dict) and "alias_of" in target:
                 raise ModelCardError(f"{path}: alias of {target_path.name}, itself an alias; "
                                      f"name the card it points at ({target['alias_of']!r})")
-            if isinstance(target, dict) and "step_gate" in data:
-                target = {**target, "step_gate": data["step_gate"]}
+            if isinstance(target, dict):
+                target = {**target, **{k: data[k] for k in ("step_gate", "face") if k in data}}
             try:
                 card = cls.from_dict(target)
             except ModelCardError as exc:
@@ -201,6 +220,23 @@ class ModelCard:
 
     def onnx_path(self, card_path: str | os.PathLike) -> Path:
         return Path(card_path).with_name(self.onnx_file)
+
+
+def _face_settings(face: Any, kind: str) -> dict:
+    """A card's `face` with its defaults filled; ModelCardError for anything else."""
+    if kind != "graph":
+        raise ModelCardError("model card face: only a graph model's answer is read as labels")
+    if not isinstance(face, dict) or set(face) - set(FACE_DEFAULTS):
+        raise ModelCardError(f"model card face: an object with keys among {sorted(FACE_DEFAULTS)}, got {face!r}")
+    out = {**FACE_DEFAULTS, **face}
+    numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
+                  for k in out if not (k == "label_friction" and out[k] is None))
+    if not numbers or not out["pressing"] >= 0 or not out["share"] > 0 or not isinstance(out["rounds"], int) \
+            or out["rounds"] < 1 or (out["label_friction"] is not None and not out["label_friction"] > 0):
+        raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1 and "
+                             f"label_friction null or > 0, got {face!r}")
+    return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
+            "label_friction": None if out["label_friction"] is None else float(out["label_friction"])}
 
 
 def _read_card(path: Path) -> Any:

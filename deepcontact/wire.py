@@ -50,7 +50,7 @@ def encode_world(lower: tuple[float, float], upper: tuple[float, float],
 
 def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *,
                 world: pb.World | None = None, builtin: np.ndarray | None = None,
-                impulses: np.ndarray | None = None) -> pb.StepRequest:
+                impulses: np.ndarray | None = None, friction: np.ndarray | None = None) -> pb.StepRequest:
     """A step from engine records.
 
     bodies: (B,) BODY_DTYPE in creation order, as the engine exports them
@@ -58,6 +58,8 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
     points: (P,) CONTACT_DTYPE in export order; their bodies travel as rows of
         the dynamic bodies (-1 for static), with the separation and the keys.
     builtin, impulses: optional (P, 2) float (normal, tangent), N s.
+    friction: optional (P,) each point's friction coefficient (Box2D's mix of its
+        two fixtures'; simclient.provider.point_friction).
     """
     moving = bodies["type"] != 0
     dyn = bodies[moving]
@@ -87,6 +89,8 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
         msg.builtin = np.ascontiguousarray(builtin, F32).tobytes()
     if impulses is not None:
         msg.impulses = np.ascontiguousarray(impulses, F32).tobytes()
+    if friction is not None:
+        msg.point_friction = np.ascontiguousarray(friction, F32).tobytes()
     return msg
 
 
@@ -245,6 +249,17 @@ def decode_step(msg: pb.StepRequest, *, max_bodies: int, max_points: int) -> tup
     if keys is not None:
         points["key"] = keys[:, 0]
     return bodies, points
+
+
+def decode_friction(msg: pb.StepRequest) -> np.ndarray | None:
+    """Each point's friction coefficient, (P,) float32, or None when the request sends none.
+    WireError when it does not fit point_count or is negative or not finite."""
+    friction = _array(msg, "point_friction", msg.point_count, 1, optional=True)
+    if friction is None:
+        return None
+    if len(friction) and friction.min() < 0:
+        raise WireError("point_friction", "holds negative values")
+    return friction[:, 0]
 
 
 def encode_impulses(step: int, model: str, impulses: np.ndarray, timings: pb.Timings | None = None) -> pb.Impulses:

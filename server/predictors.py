@@ -9,7 +9,9 @@ contact point, in the request's order, and says what its stages cost:
 `world` is what a stream declares once (the grids' domain, the physics);
 `previous` the stream's last step's points (None on its first step and for
 single requests), for temporal channels. `predictor.requires` names what a
-request must carry beyond bodies and points (deepcontact.channels.NEEDS).
+request must carry beyond bodies and points (deepcontact.channels.NEEDS); a
+predictor that requires "point_friction" is also given the points' friction
+(`predict(..., friction=...)`, (P,) from StepRequest.point_friction).
 
 `ModelPredictor` runs P2G -> ONNX -> G2P with its card's GridSpec and the
 shared transfer code (deepcontact.transfer), exactly as training did; the
@@ -33,7 +35,7 @@ import numpy as np
 from deepcontact.channels import Step, channel_values, needs
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
-from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest, solved_on_labels
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
 from deepcontact.transfer import plan
@@ -279,8 +281,10 @@ class GraphPredictor(Predictor):
         physics_needs = ("point_bodies", "body_inertia") if self.physics else ()
         self.gate = StepGate.from_dict(card.step_gate) if card.step_gate is not None else None
         gate_needs = ("builtin", "point_separation") if self.gate is not None else ()
+        # The face route solves the step's contact problem: the bodies' inertia, the physics, the friction.
+        face_needs = ("body_inertia", "physics", "point_friction") if card.face is not None else ()
         self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",)
-                                         + physics_needs + gate_needs)))
+                                         + physics_needs + gate_needs + face_needs)))
         self.new_point = self.inputs.index("new_point") if "new_point" in self.inputs else None
         self.infer = self.run_session
         first = (np.zeros((1, 8), np.float32), np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32))
@@ -299,10 +303,14 @@ class GraphPredictor(Predictor):
             feed.update(geometry=geometry, masses=masses, inverse=inverse)
         return self.session.run([self.card.output_name], feed)[0]
 
-    def predict(self, bodies, points, world, step, previous=None):
+    def predict(self, bodies, points, world, step, previous=None, friction=None):
+        """As Predictor.predict; friction: (P,) each point's friction coefficient, which a
+        card with `face` needs (the request's point_friction)."""
         t0 = time.perf_counter()
         if len(points) == 0:
             return np.zeros((0, 2), np.float32), {}
+        if self.card.face is not None and friction is None:
+            raise ValueError(f"{self.name} solves on its labels and needs each point's friction")
         ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32, copy=False)
         dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
         stages = {"p2g": 0.0, "inference": 0.0, "g2p": 0.0}
@@ -331,6 +339,13 @@ class GraphPredictor(Predictor):
             if self.card.passes > 1:
                 warm = points.copy()
                 warm["builtin"] = impulses
+        if self.card.face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
+            face = self.card.face
+            impulses = solved_on_labels(bodies, points, impulses.astype(np.float64), np.asarray(friction, np.float64),
+                                        world.physics, face["pressing"], face["share"], face["rounds"],
+                                        face["label_friction"])
+            stages["g2p"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
         if self.gate is not None:
             if not self.gate.serves_model(step_features(bodies, points, impulses)):
                 impulses = points["builtin"].copy()  # Box2D's own warm start: the gate expects the model to lose here

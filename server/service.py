@@ -175,7 +175,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         """What the predictor needs that this request does not carry (keys of channels.NEEDS)."""
         sent = {"point_bodies": request.point_bodies, "body_inertia": request.body_inertia,
                 "point_separation": request.point_separation, "builtin": request.builtin,
-                "point_keys": request.point_keys, "physics": world.physics.dt > 0}
+                "point_keys": request.point_keys, "point_friction": request.point_friction,
+                "physics": world.physics.dt > 0}
         return [need for need in predictor.requires if not sent[need]]
 
     def _step(self, request: pb.StepRequest, world: World, previous=None):
@@ -195,6 +196,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         try:
             bodies, points = wire.decode_step(request, max_bodies=self.limits.max_bodies,
                                               max_points=self.limits.max_points)
+            # Only a predictor that asks for the friction gets it: the others' predict() takes none.
+            extra = {"friction": wire.decode_friction(request)} if "point_friction" in predictor.requires else {}
             predictor.check_domain(world.domain)
         except (wire.WireError, GridMismatch) as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
@@ -203,7 +206,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
                 impulses, stages = np.zeros((0, 2), np.float32), {}
             else:
-                impulses, stages = predictor.predict(bodies, points, world, request.step, previous)
+                impulses, stages = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:
             raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc)) from None
         except Exception as exc:  # a bug, not the client's fault: say so, keep serving

@@ -71,8 +71,9 @@ simclient.simulate asks every candidate, then calls Pick.pick().
     solved:W     serves the step solved on W's face read as a classifier's labels (as face:
                  does, FACE_LABELS), admitted with its open points held at 0: the face route
                  closed loop, on its own trajectory. W is a classifier (train-graph --targets
-                 face); the solve runs here, in the client, which knows the friction (the wire
-                 carries none). Trial-solves builtin, W and the solved start beside it; where
+                 face); the solve runs here, in the client (deepcontact.kinematics.solved_on_labels,
+                 the admission in full; a card with `face` serves the same from the server, e.g.
+                 server:face). Trial-solves builtin, W and the solved start beside it; where
                  W falls back it serves Box2D's warm start. solved@P:W reads W's labels pressing
                  above P N s (default FACE_LABELS' 0.5)
     solved-forms:W  serves as solved:W does and also prices, on the same states, the same
@@ -398,7 +399,7 @@ class Pick(Provider):
         same motion given Box2D's warm start's self-stress before the admission, the admission
         cut at SOLVED_ROUNDS rounds, and the labels read at each of SOLVED_PRESSING."""
         from deepcontact.kinematics import (OPEN, Physics, body_space_part, contact_face, contact_frame,
-                                            nearest_admissible, solve_on_face)
+                                            nearest_admissible, solve_on_face, solved_on_labels)
 
         bodies, mu = engine.bodies(), point_friction(self._friction, points)
         frame = contact_frame(bodies, points)
@@ -408,10 +409,10 @@ class Pick(Provider):
         starts = []
         forms = self.mode == "solved-forms"
         for i, threshold in enumerate((pressing, *self.SOLVED_PRESSING) if forms else (pressing,)):
-            face = contact_face(labels, mu, pressing=threshold, share=share)
-            solved = solve_on_face(bodies, points, face, mu, physics, frame)
-            starts.append(nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, frame=frame))
+            starts.append(solved_on_labels(bodies, points, labels, mu, physics, threshold, share, frame=frame))
             if forms and i == 0:  # Box2D's self-stress: its warm start less the part of it that moves the bodies
+                face = contact_face(labels, mu, pressing=threshold, share=share)
+                solved = solve_on_face(bodies, points, face, mu, physics, frame)
                 change = builtin - solved
                 kept = solved + change - body_space_part(bodies, points, change, frame)
                 starts.append(nearest_admissible(bodies, points, kept, mu, open_points=face == OPEN, frame=frame))

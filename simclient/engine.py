@@ -132,6 +132,7 @@ class Engine:
         world.positionThreshold = config.position_threshold
         world.solverStatistics = config.statistics
         self.step_index = 0
+        self._friction: np.ndarray | None = None  # body_friction(), read once
 
     # -- phase 1 ---------------------------------------------------------
     def collide(self) -> int:
@@ -143,6 +144,14 @@ class Engine:
         out = np.empty(self.world.bodyCount, dtype=BODY_DTYPE)
         self.world.ExportBodies(out)
         return out
+
+    def body_friction(self) -> np.ndarray:
+        """(B,) each body's friction coefficient (its first fixture's; 0 without one), creation
+        order, the records' body index. Read from pybox2d once while the body count holds: a
+        loop over bodies in Python, not something to repeat every step."""
+        if self._friction is None or len(self._friction) != self.world.bodyCount:
+            self._friction = np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in self.world.bodies])
+        return self._friction
 
     def contacts(self) -> np.ndarray:
         """This step's contact points in export order: (n,) CONTACT_DTYPE.

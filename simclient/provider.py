@@ -53,8 +53,8 @@ class ReadsFriction(Provider):
 
 
 def body_friction(engine) -> np.ndarray:
-    """(B,) each body's friction coefficient; pybox2d lists the bodies in creation order, the records' body index."""
-    return np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in engine.world.bodies])
+    """(B,) each body's friction coefficient, creation order (the records' body index): Engine.body_friction."""
+    return engine.body_friction()
 
 
 def point_friction(friction: np.ndarray, points: np.ndarray) -> np.ndarray:

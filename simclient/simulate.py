@@ -29,7 +29,7 @@ from deepcontact import wire
 from deepcontact.io import write_json_atomic
 from deepcontact.modelcard import unknown_model
 from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_to_dict
-from simclient.provider import Provider
+from simclient.provider import Provider, point_friction
 from simclient.warmstarts import make_provider
 
 DEFAULT_DEADLINE_MS = 10.0
@@ -92,7 +92,8 @@ def _ask_server(client, provider: Provider, engine, k: int, bodies, points, time
         return _Served(fallback_reason="NO_SERVER")
     oracle = engine.oracle() if provider.sends_oracle else None
     t0 = time.perf_counter()
-    request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"], impulses=oracle)
+    request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"], impulses=oracle,
+                               friction=point_friction(engine.body_friction(), points))
     t1 = time.perf_counter()
     streams = client.reconnects
     try:

@@ -255,6 +255,74 @@ def test_a_repair_puts_back_a_sliding_point_said_to_stick_but_moves_other_labels
     assert 0 < moved < 0.1 * len(points)
 
 
+def admission_in_numpy(bodies, points, impulses, mu, open_points, iterations, tolerance=1e-5, rho=100.0):
+    """nearest_admissible's rounds in NumPy, the reference the compiled rounds follow."""
+    from scipy import sparse
+    from scipy.sparse.linalg import factorized
+
+    from deepcontact.kinematics import contact_jacobian, project_to_cones
+
+    jt = sparse.csr_matrix(contact_jacobian(bodies, points))
+    gram = (jt @ jt.T).tocsc()
+    ridge = 1e-9 * gram.diagonal().max()
+    solve = factorized((gram + ridge * sparse.identity(gram.shape[0], format="csc")).tocsc())
+    flat = np.asarray(impulses, np.float64).ravel()
+    keep = (~open_points).astype(np.float64)
+    cones = lambda x: (project_to_cones(x.reshape(-1, 2), mu) * keep[:, None]).ravel()  # noqa: E731
+    z, scaled = cones(flat), np.zeros_like(flat)
+    for _ in range(iterations):
+        x = (flat + rho * (z - scaled)) / (1.0 + rho)
+        x = x - jt.T @ solve(jt @ (x - flat))  # onto J^T x = J^T c
+        previous, z = z, cones(x + scaled)
+        scaled += x - z
+        if max(np.max(np.abs(x - z)), np.max(np.abs(z - previous))) < tolerance:
+            break
+    return z.reshape(-1, 2)
+
+
+@pytest.mark.parametrize("rounds", [1, 50, 1000])
+def test_the_compiled_admission_runs_numpys_rounds(rounds):
+    from deepcontact.kinematics import OPEN, contact_face, nearest_admissible, solve_on_face
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+    solved = solve_on_face(bodies, points, face, mu, Physics.thesis())
+    compiled = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds)
+    reference = admission_in_numpy(bodies, points, solved, mu, face == OPEN, rounds)
+    np.testing.assert_allclose(compiled, reference, atol=1e-9)
+
+
+def test_the_sparse_jacobian_is_the_dense_one():
+    from deepcontact.kinematics import contact_frame, contact_jacobian, contact_jacobian_sparse
+
+    bodies, points, _, _ = sliding_pile()
+    np.testing.assert_allclose(contact_jacobian_sparse(contact_frame(bodies, points)).toarray(),
+                               contact_jacobian(bodies, points), atol=1e-12)
+
+
+def test_a_perfect_classifiers_labels_solved_on_give_the_solutions_motion_inside_the_cones():
+    # A classifier answers 1 N s along the normal where a point presses and +-1 N s along the
+    # tangent where it slides (train-graph --targets face); solved_on_labels reads that as a
+    # face, solves the step on it and admits the result: the face route a server serves.
+    from deepcontact.kinematics import OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face, solved_on_labels
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+    labels = np.stack([(face != OPEN).astype(float),
+                       np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0))], axis=1)
+    served = solved_on_labels(bodies, points, labels, mu, Physics.thesis(), pressing=0.5, share=1.0)
+    assert not served[face == OPEN].any()
+    assert (served[:, 0] >= 0).all() and (np.abs(served[:, 1]) <= mu * served[:, 0] + 1e-9).all()
+    after = contact_velocities(bodies, points, served, Physics.thesis())
+    exact_after = contact_velocities(bodies, points, exact, Physics.thesis())
+    assert np.abs(after - exact_after).max() < 0.02
+    # Labels read at a fixed friction: the same where the world's is that friction.
+    np.testing.assert_array_equal(served, solved_on_labels(bodies, points, labels, mu, Physics.thesis(),
+                                                           pressing=0.5, share=1.0, label_friction=0.5))
+    # Read pressing above 2 N s, every point lets go: nothing to solve, nothing served.
+    assert not solved_on_labels(bodies, points, labels, mu, Physics.thesis(), pressing=2.0).any()
+
+
 def test_face_errors_count_each_kind_of_wrong_label():
     from deepcontact.kinematics import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, face_errors
 
@@ -350,3 +418,13 @@ def test_records_of_another_layout_are_read_by_field_and_missing_fields_are_name
         contact_velocities(narrow[["type", "position", "velocity", "angular_velocity", "mass"]], points)
     with pytest.raises(ValueError, match=r"warm must be \(\d+, 2\)"):
         contact_velocities(bodies, points, np.zeros((len(points), 3)))
+
+
+def test_the_contact_operator_is_the_jacobians_product():
+    from deepcontact.kinematics import contact_frame, contact_jacobian, contact_operator
+
+    bodies, points, _, _ = sliding_pile()
+    f = contact_frame(bodies, points)
+    jt = contact_jacobian(bodies, points, f)
+    inverse = np.stack([f.inv_mass, f.inv_mass, f.inv_inertia], axis=1)[f.dynamic].ravel()
+    np.testing.assert_allclose(contact_operator(f), jt.T @ (inverse[:, None] * jt), atol=1e-12)

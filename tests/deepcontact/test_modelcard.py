@@ -73,6 +73,29 @@ def test_an_alias_may_serve_its_graph_model_gated_and_only_a_residual_graph_mode
         ModelCard.load(tmp_path / "bad.json")
 
 
+def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_defaults_filled(tmp_path):
+    graph = ModelCard(name="classifier", kind="graph", onnx_file="classifier.onnx", gridspec=GridSpec.thesis(),
+                      fixed_grid=False, combine="residual")
+    graph.save(tmp_path / "classifier.json")
+    (tmp_path / "face.json").write_text(json.dumps({"name": "face", "alias_of": "classifier",
+                                                    "face": {"pressing": 0.75, "rounds": 50}}))
+    face = ModelCard.load(tmp_path / "face.json")
+    assert face.face == {"pressing": 0.75, "share": 1.0, "rounds": 50, "label_friction": None}
+    assert ModelCard.load(tmp_path / "classifier.json").face is None  # the classifier itself is served plain
+    for bad, match in (({"pressing": -1}, "pressing >= 0"), ({"rounds": 0}, "rounds a whole number"),
+                       ({"rounds": 2.5}, "rounds a whole number"), ({"labels": 1}, "keys among"),
+                       ({"label_friction": 0}, "label_friction null or > 0"),
+                       ("yes", "keys among")):
+        (tmp_path / "bad.json").write_text(json.dumps({"name": "bad", "alias_of": "classifier", "face": bad}))
+        with pytest.raises(ModelCardError, match=match):
+            ModelCard.load(tmp_path / "bad.json")
+    _card(tmp_path)  # a grid model: not read as labels
+    (tmp_path / "grid-face.json").write_text(json.dumps(
+        {"name": "grid-face", "alias_of": "residual-new-points", "face": {}}))
+    with pytest.raises(ModelCardError, match="only a graph model"):
+        ModelCard.load(tmp_path / "grid-face.json")
+
+
 def test_an_unknown_model_is_told_with_every_name_when_there_are_few():
     assert unknown_model("nope", {"pressure", "default"}) == "no model 'nope'; there are default, pressure"
     assert unknown_model("nope", []) == "no model 'nope'; there is none"

@@ -240,3 +240,58 @@ def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_
         np.testing.assert_array_equal(served, points["builtin"])
         assert not np.array_equal(own, points["builtin"])
     assert stages["g2p"] > 0
+
+
+def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_the_friction(tmp_path, thesis_steps):
+    # The shipped face route: the classifier graph-face-r8-e12 answers each point with its
+    # labels written as impulses; the alias card `face` has the server read them, solve the
+    # step on them and admit the result. Over real gRPC, with each point's friction sent.
+    import grpc
+    import json
+    import shutil
+    from pathlib import Path
+
+    from deepcontact.kinematics import solved_on_labels
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.predictors import load_model
+    from server.serve import Server
+
+    shipped = Path(__file__).parents[2] / "models"
+    face = json.loads((shipped / "face.json").read_text())
+    for name in ("face.json", f"{face['alias_of']}.json", f"{face['alias_of']}.onnx"):
+        shutil.copy(shipped / name, tmp_path)
+    classifier = load_model(tmp_path / f"{face['alias_of']}.json")
+    assert "point_friction" not in classifier.requires
+    assert {"point_friction", "physics", "body_inertia"} <= set(load_model(tmp_path / "face.json").requires)
+    world_msg, steps = thesis_steps
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5, np.float32)  # the thesis world's friction at every pair
+    sent_bodies, sent_points = wire.decode_step(wire.encode_step(0, "face", bodies, points, builtin=points["builtin"]),
+                                                max_bodies=10**4, max_points=10**5)
+    lower, upper, _ = wire.decode_world(world_msg)
+    world = World((lower, upper), wire.decode_physics(world_msg))
+    labels, _ = classifier.predict(sent_bodies, sent_points, world, 0)
+    settings = face["face"]
+    expected = solved_on_labels(sent_bodies, sent_points, labels.astype(np.float64), mu.astype(np.float64),
+                                world.physics, settings["pressing"], settings.get("share", 1.0), settings["rounds"])
+    srv = Server(models=tmp_path, bind="127.0.0.1:0").start()
+    try:
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            reply = stub.Predict(wire.encode_step(0, "face", bodies, points, world=world_msg,
+                                                  builtin=points["builtin"], friction=mu))
+            served = np.stack(wire.decode_impulses(reply), axis=1)
+            np.testing.assert_allclose(served, expected, atol=1e-6)
+            assert (served[:, 0] >= 0).all() and (np.abs(served[:, 1]) <= 0.5 * served[:, 0] + 1e-5).all()
+            assert reply.timings.g2p_us > 0  # the solve and the admission are timed as the stage after inference
+            with pytest.raises(grpc.RpcError) as refused:  # an older client, without the friction
+                stub.Predict(wire.encode_step(0, "face", bodies, points, world=world_msg, builtin=points["builtin"]))
+            assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+            assert "point_friction" in refused.value.details()
+            with pytest.raises(grpc.RpcError) as refused:
+                stub.Predict(wire.encode_step(0, "face", bodies, points, world=world_msg, builtin=points["builtin"],
+                                              friction=-mu))
+            assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+            assert "point_friction: holds negative values" in refused.value.details()
+    finally:
+        srv.stop()

@@ -135,3 +135,20 @@ def test_declaring_a_world_says_refused_and_a_silent_server_is_no_refusal(server
             declare_world(client, SceneSpec.thesis(), ["nope"])
     with WarmStartClient("127.0.0.1:9") as client:  # nothing listens: no answer, so no refusal either
         assert client.declare("tiny", timeout=0.2) is False
+
+
+def test_the_simulation_sends_each_points_friction_so_the_shipped_face_route_is_served(tmp_path):
+    # models/face solves each step on its classifier's labels on the server, which needs each
+    # point's friction (StepRequest.point_friction); a request without it is refused, so a step
+    # served without a fallback is one whose request carried it.
+    import shutil
+    from pathlib import Path
+
+    shipped = Path(__file__).parents[2] / "models"
+    target = json.loads((shipped / "face.json").read_text())["alias_of"]
+    for name in ("face.json", f"{target}.json", f"{target}.onnx"):
+        shutil.copy(shipped / name, tmp_path)
+    spec = dataclasses.replace(SceneSpec.thesis(), steps=40)
+    with ServerProcess(tmp_path) as srv, WarmStartClient(srv.address) as client:
+        served = run_simulation(spec, 901, make_provider("server:face"), client=client, deadline_ms=5000)
+    assert served["summary"]["fallback_steps"] == 0 and served["summary"]["steps_with_contacts"] > 0
