@@ -549,7 +549,7 @@ def contact_operator(frame: ContactFrame) -> np.ndarray:
 def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
                      physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                      rounds: int = 1000, label_friction: float | None = None,
-                     frame: ContactFrame | None = None) -> np.ndarray:
+                     frame: ContactFrame | None = None) -> tuple[np.ndarray, float]:
     """The warm start of the face route, (P, 2) N s: a classifier's answer read as labels,
     the step solved on them, the result admitted.
 
@@ -562,9 +562,29 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     every cone admits, the labels' open points held at 0 (nearest_admissible, at most
     `rounds` rounds). The simulation client's solved: composite and the server's face cards
     (deepcontact.modelcard) both serve this.
+
+    Returns (impulses (P, 2) N s, residual): face_residual of the impulses served, how far
+    they leave the labels' equations unmet once every cone is kept (0: labels the limits
+    let the solve meet; larger: labels whose solve the admission had to move, a face that
+    is not this step's).
     """
     frame = contact_frame(bodies, points) if frame is None else frame
     read_at = mu if label_friction is None else np.full(len(points), float(label_friction))
     face = contact_face(labels, read_at, pressing=pressing, share=share)
     solved = solve_on_face(bodies, points, face, mu, physics, frame)
-    return nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame)
+    admitted = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame)
+    return admitted, face_residual(bodies, points, face, admitted, physics)
+
+
+def face_residual(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, impulses: np.ndarray,
+                  physics: Physics = Physics()) -> float:
+    """How far impulses (P, 2) N s leave a face's equations unmet: the norm of the relative
+    velocity where the face (P,) labels ask for none (the normal where a point presses, the
+    tangent where it sticks) and of the closing velocity where it says a point lets go, after
+    the impulses, over the norm of the relative velocity at those points before any impulse.
+    0 for a face the impulses meet exactly. bodies, points, physics as in contact_velocities."""
+    before, after, _ = _kinematics(bodies, points, physics, np.asarray(impulses, np.float64), True, True, False)
+    rows = np.concatenate([2 * np.flatnonzero(face != OPEN), 2 * np.flatnonzero(face == STICKS) + 1])
+    left = np.concatenate([after.ravel()[rows], np.minimum(after[face == OPEN, 0], 0.0)])
+    scale = float(np.linalg.norm(before))
+    return float(np.linalg.norm(left)) / scale if scale > 0 else 0.0

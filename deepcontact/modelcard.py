@@ -59,7 +59,10 @@ the smallest self-stress that every friction cone admits, in at most `rounds` ro
 rounds (default 1000), label_friction (default null: each point's own friction; a number:
 the sliding labels read at that friction everywhere, since the answer is a label, about
 +-1 N s, not an impulse, and its reading need not follow the world's friction; the solve
-uses each point's own either way).
+uses each point's own either way), max_residual (default null: always served; a number: at a
+step whose served impulses leave their labels' equations unmet by more than this share,
+kinematics.face_residual, the labels are taken for wrong and Box2D's warm start, the request's
+builtin impulses, is served instead).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -88,7 +91,7 @@ CARD_VERSION = 1
 COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
 ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face"})
 #: A card's `face` settings, and their defaults (see above).
-FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None}
+FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None}
 
 
 class ModelCardError(ValueError):
@@ -229,14 +232,15 @@ def _face_settings(face: Any, kind: str) -> dict:
     if not isinstance(face, dict) or set(face) - set(FACE_DEFAULTS):
         raise ModelCardError(f"model card face: an object with keys among {sorted(FACE_DEFAULTS)}, got {face!r}")
     out = {**FACE_DEFAULTS, **face}
+    optional = ("label_friction", "max_residual")
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
-                  for k in out if not (k == "label_friction" and out[k] is None))
+                  for k in out if not (k in optional and out[k] is None))
     if not numbers or not out["pressing"] >= 0 or not out["share"] > 0 or not isinstance(out["rounds"], int) \
-            or out["rounds"] < 1 or (out["label_friction"] is not None and not out["label_friction"] > 0):
-        raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1 and "
-                             f"label_friction null or > 0, got {face!r}")
+            or out["rounds"] < 1 or any(out[k] is not None and not out[k] > 0 for k in optional):
+        raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, "
+                             f"label_friction and max_residual null or > 0, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
-            "label_friction": None if out["label_friction"] is None else float(out["label_friction"])}
+            **{k: None if out[k] is None else float(out[k]) for k in optional}}
 
 
 def _read_card(path: Path) -> Any:

@@ -282,7 +282,7 @@ class GraphPredictor(Predictor):
         self.gate = StepGate.from_dict(card.step_gate) if card.step_gate is not None else None
         gate_needs = ("builtin", "point_separation") if self.gate is not None else ()
         # The face route solves the step's contact problem: the bodies' inertia, the physics, the friction.
-        face_needs = ("body_inertia", "physics", "point_friction") if card.face is not None else ()
+        face_needs = ("body_inertia", "physics", "point_friction", "builtin") if card.face is not None else ()
         self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",)
                                          + physics_needs + gate_needs + face_needs)))
         self.new_point = self.inputs.index("new_point") if "new_point" in self.inputs else None
@@ -341,9 +341,11 @@ class GraphPredictor(Predictor):
                 warm["builtin"] = impulses
         if self.card.face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
             face = self.card.face
-            impulses = solved_on_labels(bodies, points, impulses.astype(np.float64), np.asarray(friction, np.float64),
-                                        world.physics, face["pressing"], face["share"], face["rounds"],
-                                        face["label_friction"])
+            impulses, residual = solved_on_labels(bodies, points, impulses.astype(np.float64),
+                                                  np.asarray(friction, np.float64), world.physics, face["pressing"],
+                                                  face["share"], face["rounds"], face["label_friction"])
+            if face["max_residual"] is not None and residual > face["max_residual"]:
+                impulses = points["builtin"].copy()  # labels the limits would not let the solve meet: Box2D's start
             stages["g2p"] += time.perf_counter() - t0
             t0 = time.perf_counter()
         if self.gate is not None:

@@ -409,7 +409,7 @@ class Pick(Provider):
         starts = []
         forms = self.mode == "solved-forms"
         for i, threshold in enumerate((pressing, *self.SOLVED_PRESSING) if forms else (pressing,)):
-            starts.append(solved_on_labels(bodies, points, labels, mu, physics, threshold, share, frame=frame))
+            starts.append(solved_on_labels(bodies, points, labels, mu, physics, threshold, share, frame=frame)[0])
             if forms and i == 0:  # Box2D's self-stress: its warm start less the part of it that moves the bodies
                 face = contact_face(labels, mu, pressing=threshold, share=share)
                 solved = solve_on_face(bodies, points, face, mu, physics, frame)

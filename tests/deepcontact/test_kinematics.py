@@ -310,7 +310,7 @@ def test_a_perfect_classifiers_labels_solved_on_give_the_solutions_motion_inside
     face = contact_face(exact, mu)
     labels = np.stack([(face != OPEN).astype(float),
                        np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0))], axis=1)
-    served = solved_on_labels(bodies, points, labels, mu, Physics.thesis(), pressing=0.5, share=1.0)
+    served, residual = solved_on_labels(bodies, points, labels, mu, Physics.thesis(), pressing=0.5, share=1.0)
     assert not served[face == OPEN].any()
     assert (served[:, 0] >= 0).all() and (np.abs(served[:, 1]) <= mu * served[:, 0] + 1e-9).all()
     after = contact_velocities(bodies, points, served, Physics.thesis())
@@ -318,9 +318,12 @@ def test_a_perfect_classifiers_labels_solved_on_give_the_solutions_motion_inside
     assert np.abs(after - exact_after).max() < 0.02
     # Labels read at a fixed friction: the same where the world's is that friction.
     np.testing.assert_array_equal(served, solved_on_labels(bodies, points, labels, mu, Physics.thesis(),
-                                                           pressing=0.5, share=1.0, label_friction=0.5))
-    # Read pressing above 2 N s, every point lets go: nothing to solve, nothing served.
-    assert not solved_on_labels(bodies, points, labels, mu, Physics.thesis(), pressing=2.0).any()
+                                                           pressing=0.5, share=1.0, label_friction=0.5)[0])
+    # Read pressing above 2 N s, every point lets go: nothing to solve, nothing served, and the
+    # bodies close on each other where the labels say nothing presses: a large residual.
+    nothing, wrong = solved_on_labels(bodies, points, labels, mu, Physics.thesis(), pressing=2.0)
+    assert not nothing.any()
+    assert residual < 0.1 < wrong
 
 
 def test_face_errors_count_each_kind_of_wrong_label():

@@ -272,8 +272,9 @@ def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_
     world = World((lower, upper), wire.decode_physics(world_msg))
     labels, _ = classifier.predict(sent_bodies, sent_points, world, 0)
     settings = face["face"]
-    expected = solved_on_labels(sent_bodies, sent_points, labels.astype(np.float64), mu.astype(np.float64),
-                                world.physics, settings["pressing"], settings.get("share", 1.0), settings["rounds"])
+    expected, _ = solved_on_labels(sent_bodies, sent_points, labels.astype(np.float64), mu.astype(np.float64),
+                                   world.physics, settings["pressing"], settings.get("share", 1.0), settings["rounds"],
+                                   settings.get("label_friction"))
     srv = Server(models=tmp_path, bind="127.0.0.1:0").start()
     try:
         with grpc.insecure_channel(srv.address) as channel:
