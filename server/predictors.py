@@ -194,6 +194,8 @@ class ModelPredictor(Predictor):
         self._specs = _DomainSpecs(card.gridspec, card.fixed_grid, card.name, normalization=True,
                                    max_nodes=max_grid_nodes)
         self.requires = tuple(sorted(set(needs(card.gridspec.inputs) + _combine_needs(card.combine))))
+        if "point_friction" in self.requires:  # the grids are built without it (deepcontact.features)
+            raise ModelCardError(f"{card.name}: a grid model cannot read the friction channel; a graph model can")
         self.infer = self.run_session
         self._warm_shapes: set[tuple[int, ...]] = set()
         self._warm_lock = threading.Lock()
@@ -286,11 +288,19 @@ class GraphPredictor(Predictor):
         self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",)
                                          + physics_needs + gate_needs + face_needs)))
         self.new_point = self.inputs.index("new_point") if "new_point" in self.inputs else None
+        self.fallback: Predictor | None = None  # a face card's fallback (load_model attaches it)
         self.infer = self.run_session
         first = (np.zeros((1, 8), np.float32), np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32))
         self.run_session(np.zeros((1, len(self.inputs)), np.float32), np.zeros((1, 2), np.int32),
                          np.zeros((1, 1), np.float32), *(first if self.physics else ()))
         # (the first run plans memory: not on a served step)
+
+    def check_domain(self, domain: Domain) -> None:
+        if self.fallback is not None:  # no grid here; a grid model served in its place may have one
+            self.fallback.check_domain(domain)
+
+    def warm_up(self, domain: Domain) -> float:
+        return self.fallback.warm_up(domain) if self.fallback is not None else 0.0
 
     def run_session(self, points: np.ndarray, ends: np.ndarray, dynamic: np.ndarray,
                     geometry: np.ndarray | None = None, masses: np.ndarray | None = None,
@@ -309,8 +319,8 @@ class GraphPredictor(Predictor):
         t0 = time.perf_counter()
         if len(points) == 0:
             return np.zeros((0, 2), np.float32), {}
-        if self.card.face is not None and friction is None:
-            raise ValueError(f"{self.name} solves on its labels and needs each point's friction")
+        if (self.card.face is not None or "point_friction" in self.requires) and friction is None:
+            raise ValueError(f"{self.name} needs each point's friction")
         ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32, copy=False)
         dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
         stages = {"p2g": 0.0, "inference": 0.0, "g2p": 0.0}
@@ -318,7 +328,8 @@ class GraphPredictor(Predictor):
         physics = contact_physics(bodies, points) if self.physics else ()
         warm, new = points, None
         for _ in range(self.card.passes):
-            x = channel_values(self.inputs, Step(bodies, warm, previous, world.physics)).astype(np.float32)
+            x = channel_values(self.inputs, Step(bodies, warm, previous, world.physics,
+                                                 friction=friction)).astype(np.float32)
             if self.new_point is not None:  # new to Box2D, whatever an earlier pass served there
                 if new is None:
                     new = x[:, self.new_point].copy()
@@ -343,9 +354,12 @@ class GraphPredictor(Predictor):
             face = self.card.face
             impulses, residual = solved_on_labels(bodies, points, impulses.astype(np.float64),
                                                   np.asarray(friction, np.float64), world.physics, face["pressing"],
-                                                  face["share"], face["rounds"], face["label_friction"])
+                                                  face["share"], face["rounds"], face["label_friction"],
+                                                  damping=face["damping"])
             if face["max_residual"] is not None and residual > face["max_residual"]:
-                impulses = points["builtin"].copy()  # labels the limits would not let the solve meet: Box2D's start
+                # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
+                impulses = points["builtin"].copy() if self.fallback is None else \
+                    self.fallback.predict(bodies, points, world, step, previous)[0]
             stages["g2p"] += time.perf_counter() - t0
             t0 = time.perf_counter()
         if self.gate is not None:
@@ -484,5 +498,16 @@ def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: i
     if not onnx_path.exists():
         raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {path.parent}")
     cls = GraphPredictor if card.kind == "graph" else ModelPredictor
-    return cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
-               max_grid_nodes=max_grid_nodes)
+    predictor = cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
+                    max_grid_nodes=max_grid_nodes)
+    fallback = card.face["fallback"] if card.face is not None else None
+    if fallback is not None:  # served where the face card's labels look wrong (deepcontact.modelcard)
+        fallback_path = path.with_name(f"{fallback}.json")
+        fallback_card = ModelCard.load(fallback_path)
+        if fallback_card.face is not None:
+            raise ModelCardError(f"{path}: its face falls back to {fallback!r}, which has a face of its own; "
+                                 f"name a card without one")
+        predictor.fallback = load_model(fallback_path, fallback_card, intra_op_threads=intra_op_threads,
+                                        inter_op_threads=inter_op_threads, max_grid_nodes=max_grid_nodes)
+        predictor.requires = tuple(sorted(set(predictor.requires) | set(predictor.fallback.requires)))
+    return predictor

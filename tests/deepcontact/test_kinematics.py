@@ -231,6 +231,22 @@ def test_a_solution_on_its_own_face_gives_its_motion_and_one_wrong_label_changes
     assert solve_on_face(bodies, points[:0], face[:0], mu[:0]).shape == (0, 2)
 
 
+def test_a_damped_solve_gives_the_same_motion_on_a_right_face_and_stays_bounded_on_a_wrong_one():
+    # Damped least squares (a card's face damping) is the exact route's answer where the face
+    # is the solution's own; on a face whose system is inconsistent it is no larger.
+    from deepcontact.kinematics import OPEN, STICKS, contact_face, solve_on_face
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+    exact_route = solve_on_face(bodies, points, face, mu, Physics.thesis())
+    damped = solve_on_face(bodies, points, face, mu, Physics.thesis(), damping=1e-10)
+    np.testing.assert_allclose(contact_velocities(bodies, points, damped, Physics.thesis()),
+                               contact_velocities(bodies, points, exact_route, Physics.thesis()), atol=1e-4)
+    wrong = np.where(face == OPEN, STICKS, face)  # every point said to press: points that let go held shut
+    assert np.abs(solve_on_face(bodies, points, wrong, mu, Physics.thesis(), damping=1e-10)).max() \
+        <= np.abs(solve_on_face(bodies, points, wrong, mu, Physics.thesis())).max() + 1e-9
+
+
 def test_a_repair_puts_back_a_sliding_point_said_to_stick_but_moves_other_labels():
     # One step of an active-set method on a settled pile: a point said to stick whose friction
     # the admitted solve takes to the cone's edge slides again, the way it slid. The same step

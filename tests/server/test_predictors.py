@@ -13,7 +13,7 @@ from deepcontact import wire
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
 from deepcontact.kinematics import Physics
-from deepcontact.modelcard import ModelCard
+from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 from deepcontact.transfer import g2p, p2g
 from server.predictors import GridIdentityPredictor, ModelPredictor, World, _Normalization
@@ -240,6 +240,41 @@ def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_
         np.testing.assert_array_equal(served, points["builtin"])
         assert not np.array_equal(own, points["builtin"])
     assert stages["g2p"] > 0
+
+
+def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong(tmp_path, thesis_steps):
+    # With max_residual and fallback, a step whose admitted solve misses its labels' equations by
+    # more than that share gets the named card's answer (here the classifier's own, which has no
+    # face): at a share of 0 every step with a residual does; at a large one none does.
+    import json
+    import shutil
+    from pathlib import Path
+
+    from server.predictors import load_model
+
+    shipped = Path(__file__).parents[2] / "models"
+    classifier = json.loads((shipped / "face.json").read_text())["alias_of"]
+    for name in (f"{classifier}.json", f"{classifier}.onnx"):
+        shutil.copy(shipped / name, tmp_path)
+    world_msg, steps = thesis_steps
+    lower, upper, _ = wire.decode_world(world_msg)
+    world = World((lower, upper), wire.decode_physics(world_msg))
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5)
+
+    def served(name, **face):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"name": name, "alias_of": classifier,
+                                                           "face": {"pressing": 0.75, "rounds": 200, **face}}))
+        return load_model(tmp_path / f"{name}.json").predict(bodies, points, world, 0, friction=mu)[0]
+
+    own = load_model(tmp_path / f"{classifier}.json").predict(bodies, points, world, 0)[0]
+    np.testing.assert_array_equal(served("always", max_residual=1e-12, fallback=classifier), own)
+    np.testing.assert_array_equal(served("never", max_residual=1e9, fallback=classifier), served("plain"))
+    assert not np.array_equal(served("plain"), own)
+    with pytest.raises(ModelCardError, match="has a face of its own"):
+        served("chain", max_residual=0.3, fallback="plain")
+    with pytest.raises(ModelCardError, match="no model card"):
+        served("missing", max_residual=0.3, fallback="nowhere")
 
 
 def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_the_friction(tmp_path, thesis_steps):
