@@ -83,7 +83,8 @@ def replay(predictor, path: Path, max_steps: int):
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # a loop over steps, not points
         c = step.contacts
         world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
-        served = predictor.predict(step.bodies, c, world, 0, step.previous)[0]
+        extra = {"friction": step.friction} if "point_friction" in getattr(predictor, "requires", ()) else {}
+        served = predictor.predict(step.bodies, c, world, 0, step.previous, **extra)[0]
         yield (np.asarray(served, np.float64), c["builtin"].astype(np.float64), c["impulse"].astype(np.float64), step)
 
 

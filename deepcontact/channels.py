@@ -46,16 +46,18 @@ class Step:
     physics: gravity and time step, for the contact velocities.
     oracle: (P, 2) float32 this step's impulses solved from zero to
         convergence (recorded data only), for oracle targets.
+    friction: (P,) each contact's friction coefficient (the request's
+        point_friction; for recorded data, rebuilt from the scene and seed), or None.
 
     Derived arrays are computed once, when a channel first asks.
     """
 
-    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "_quantities", "_last_correction")
+    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "friction", "_quantities", "_last_correction")
 
     def __init__(self, bodies: np.ndarray | None, contacts: np.ndarray | None, previous: np.ndarray | None = None,
-                 physics: Physics = Physics(), oracle: np.ndarray | None = None):
+                 physics: Physics = Physics(), oracle: np.ndarray | None = None, friction: np.ndarray | None = None):
         self.bodies, self.contacts, self.previous = bodies, contacts, previous
-        self.physics, self.oracle = physics, oracle
+        self.physics, self.oracle, self.friction = physics, oracle, friction
         self._quantities = self._last_correction = None
 
     def velocities(self) -> np.ndarray:
@@ -94,6 +96,12 @@ class Step:
                 out[found] = c["builtin"][found].astype(np.float64) - before
             self._last_correction = out
         return self._last_correction
+
+    def point_friction(self) -> np.ndarray:
+        """(P,) each contact's friction coefficient."""
+        if self.friction is None:
+            raise ValueError("the friction channel needs each point's friction")
+        return self.friction
 
     def oracle_impulses(self) -> np.ndarray:
         if self.oracle is None:
@@ -189,18 +197,21 @@ def _oracle_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.nda
     return lambda a, step: step.oracle_impulses()[:, component] - a["builtin"][:, component]
 
 
-#: face_correction_*: the friction the recorded files' faces are read at (the records carry
-#: none; the thesis world's, at every pair), and the impulse (N s) a label is written as.
+#: face_correction_*: the friction the recorded files' faces are read at where a step has no
+#: friction of its own (Step.friction; the thesis world's, at every pair), and the impulse (N s)
+#: a label is written as.
 FACE_FRICTION = 0.5
 FACE_IMPULSE = 1.0
 
 
 def _face_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
-    """The recorded solve's face (deepcontact.kinematics.contact_face at FACE_FRICTION) written as
+    """The recorded solve's face (deepcontact.kinematics.contact_face at the step's friction, else
+    FACE_FRICTION) written as
     impulses, a pressing point FACE_IMPULSE along its normal and a sliding one +-FACE_IMPULSE along
     its tangent, minus the builtin warm start: served as a residual, a model's answer is its labels."""
     def channel(a: np.ndarray, step: Step) -> np.ndarray:
-        face = contact_face(a["impulse"].astype(np.float64), np.full(len(a), FACE_FRICTION))
+        mu = np.full(len(a), FACE_FRICTION) if step.friction is None else np.asarray(step.friction, np.float64)
+        face = contact_face(a["impulse"].astype(np.float64), mu)
         labels = ((face != OPEN).astype(np.float64) if component == 0 else
                   np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0)))
         return FACE_IMPULSE * labels - a["builtin"][:, component]
@@ -254,6 +265,9 @@ _DEFINITIONS = (
             needs=("builtin",)),
     Channel("builtin_tangent", "contacts", _field("builtin", 1), "N s", "engine's built-in warm start, tangent",
             needs=("builtin",), mirror=-1),
+    Channel("friction", "contacts", lambda a, step: step.point_friction(), "1",
+            "the point's friction coefficient, sqrt(f_A f_B) of its two bodies' (the face route's slide limit)",
+            needs=("point_friction",)),
     Channel("new_point", "contacts", _new_point, "1", "1 for a point new this step (no builtin warm start), else 0",
             needs=("builtin",)),
     Channel("vn", "contacts", _derived("velocities", 0), "m/s",
@@ -310,8 +324,8 @@ _DEFINITIONS = (
     Channel("oracle_correction_tangent", "contacts", _oracle_minus_builtin(1), "N s",
             "the oracle's impulse minus the builtin warm start, tangent", mirror=-1),
     Channel("face_correction_normal", "contacts", _face_minus_builtin(0), "N s",
-            "the recorded solve's face at friction 0.5 written as impulses (1 N s where a point presses) minus "
-            "the builtin warm start, normal"),
+            "the recorded solve's face at the step's friction (else 0.5) written as impulses (1 N s where a point "
+            "presses) minus the builtin warm start, normal"),
     Channel("face_correction_tangent", "contacts", _face_minus_builtin(1), "N s",
             "the same, tangent (+-1 N s where a point slides that way, 0 where it sticks)", mirror=-1),
     # The previous step's contact points, at their own positions.

@@ -118,7 +118,7 @@ def build_world(spec: SceneSpec, seed: int) -> Engine:
     after the static box at index 0) is the i-th placed body.
     """
     spec.validate()
-    rng = np.random.default_rng(seed)
+    rng, radii, is_box, friction, angles = _draws(spec, seed)
     w = spec.box_size[0]
 
     world = Box2D.b2World(gravity=(0.0, -spec.gravity), doSleep=False)
@@ -131,10 +131,6 @@ def build_world(spec: SceneSpec, seed: int) -> Engine:
     for x0, y0, x1, y1 in spec.walls().tolist():
         box.CreateEdgeFixture(vertices=[(x0, y0), (x1, y1)], friction=spec.friction[1], restitution=spec.restitution)
 
-    radii = rng.uniform(spec.radius[0], spec.radius[1], size=spec.bodies)
-    is_box = rng.random(spec.bodies) < spec.polygons
-    friction = rng.uniform(spec.friction[0], spec.friction[1], size=spec.bodies)
-    angles = rng.uniform(0.0, 2.0 * math.pi, size=spec.bodies)
     # Boxes are placed by their circumscribed circle so nothing overlaps.
     half_side = 0.5 * math.sqrt(math.pi) * radii
     reach = np.where(is_box, half_side * math.sqrt(2.0), radii)
@@ -153,6 +149,25 @@ def build_world(spec: SceneSpec, seed: int) -> Engine:
                 restitution=spec.restitution,
             )
     return Engine(world, spec.solver)
+
+
+def _draws(spec: SceneSpec, seed: int) -> tuple[np.random.Generator, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The seed's draws of each dynamic body's properties, (N,) each, in creation order:
+    radius (m), is a box, friction, angle (rad); and the generator, which places them next."""
+    rng = np.random.default_rng(seed)
+    radii = rng.uniform(spec.radius[0], spec.radius[1], size=spec.bodies)
+    is_box = rng.random(spec.bodies) < spec.polygons
+    friction = rng.uniform(spec.friction[0], spec.friction[1], size=spec.bodies)
+    angles = rng.uniform(0.0, 2.0 * math.pi, size=spec.bodies)
+    return rng, radii, is_box, friction, angles
+
+
+def body_friction(spec: SceneSpec, seed: int) -> np.ndarray:
+    """(B,) each body's friction coefficient in the world build_world(spec, seed) makes,
+    creation order (the records' body index, the static box first), without building it:
+    what recorded data, which carries none, is read with (Engine.body_friction of the same world;
+    float32 values, as Box2D keeps them)."""
+    return np.concatenate([[float(spec.friction[1])], _draws(spec, seed)[3]]).astype(np.float32).astype(np.float64)
 
 
 def _place_without_overlap(rng: np.random.Generator, reach: np.ndarray, w: float, h: float) -> np.ndarray:

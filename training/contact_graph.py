@@ -230,7 +230,8 @@ def one_world(steps: list[Step]) -> Step:
     contacts["body_a"] += shift.astype(contacts["body_a"].dtype)
     contacts["body_b"] += shift.astype(contacts["body_b"].dtype)
     oracle = None if steps[0].oracle is None else np.concatenate([s.oracle for s in steps])
-    return Step(bodies, contacts, None, steps[0].physics, oracle)
+    friction = None if steps[0].friction is None else np.concatenate([s.friction for s in steps])
+    return Step(bodies, contacts, None, steps[0].physics, oracle, friction)
 
 
 #: Each geometry column's sign (deepcontact.kinematics.contact_physics) when the world is

@@ -42,9 +42,9 @@ import numpy as np
 from deepcontact.channels import Step, channel_values, particle_positions
 from deepcontact.features import step_to_grids, targets_to_grids
 from deepcontact.gridspec import GridSpec
-from deepcontact.kinematics import Physics
 from deepcontact.transfer import DOMAIN_TOLERANCE, g2p
-from simclient.scene import spec_from_dict
+from simclient.provider import point_friction
+from simclient.scene import body_friction, spec_from_dict
 from training.dataset import Dataset, DatasetError
 
 CACHE_VERSION = 2
@@ -106,22 +106,20 @@ def open_dataset(path: str | os.PathLike) -> Dataset:
         raise GridDataError(str(exc)) from None
 
 
-def physics_of(scene: dict) -> Physics:
-    """The gravity and time step a recorded scene was simulated with."""
-    return spec_from_dict(scene).physics
-
-
 def iter_steps(path: str | os.PathLike, steps: np.ndarray, index: np.ndarray) -> Iterator[tuple[int, Step]]:
     """Yield ``(row, step)`` for the rows ``index`` (ascending) of ``steps``.
 
     ``step`` holds the bodies at collide time and the points after the solve,
     the previous step's points of the same simulation (None for its first
-    step), the scene's physics, and the oracle's impulses when the file has
-    them. Reads one simulation's span at a time: per-step reads decompress a
-    whole gzip chunk each (about 8 ms a step here), a span read once per seed.
+    step), the scene's physics, the oracle's impulses when the file has
+    them, and each point's friction (the records carry none: the seed's scene
+    gives it, simclient.scene.body_friction). Reads one simulation's span at a
+    time: per-step reads decompress a whole gzip chunk each (about 8 ms a step
+    here), a span read once per seed.
     """
     with h5py.File(path, "r") as f:
-        physics = physics_of(json.loads(f.attrs["scene"]))
+        scene = spec_from_dict(json.loads(f.attrs["scene"]))
+        physics = scene.physics
         bodies_ds, points_ds, oracle_ds = f["bodies"], f["points"], f.get("oracle")
         seeds = steps["seed"][index]
         bounds = np.flatnonzero(np.diff(seeds)) + 1
@@ -136,6 +134,8 @@ def iter_steps(path: str | os.PathLike, steps: np.ndarray, index: np.ndarray) ->
             p1 = int((rows["point_offset"] + rows["point_count"]).max())
             bodies, points = bodies_ds[b0:b1], points_ds[p0:p1]
             oracle = oracle_ds[p0:p1] if oracle_ds is not None else None
+            # The records carry no friction; the seed's scene gives every body's.
+            mu = point_friction(body_friction(scene, int(steps["seed"][first])), points)
 
             def span(row, offset, count, base):
                 return slice(int(row[offset]) - base, int(row[offset]) - base + int(row[count]))
@@ -145,7 +145,7 @@ def iter_steps(path: str | os.PathLike, steps: np.ndarray, index: np.ndarray) ->
                 pts = span(row, "point_offset", "point_count", p0)
                 prev = points[span(steps[i - 1], "point_offset", "point_count", p0)] if i > lead else None
                 yield int(i), Step(bodies[span(row, "body_offset", "body_count", b0)], points[pts], prev, physics,
-                                   None if oracle is None else oracle[pts])
+                                   None if oracle is None else oracle[pts], mu[pts])
 
 
 @dataclass

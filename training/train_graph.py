@@ -54,7 +54,7 @@ from training.teacher import Teacher, taught
 TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracle_correction_tangent"),
            "face": ("face_correction_normal", "face_correction_tangent")}
 
-CACHE_VERSION = 3  # GraphSet fields (3: speed)
+CACHE_VERSION = 4  # GraphSet fields (3: speed; 4: face targets read at each point's friction)
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
 #: relative-moving: each moving body's correction counts as at least this push (N s) in its step's
 #: denominator: about an eighth of what gravity gives a thesis disc in a step (0.785 kg x 0.098 m/s).

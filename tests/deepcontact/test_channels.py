@@ -72,6 +72,19 @@ def test_face_targets_write_the_recorded_solves_labels_as_impulses_less_builtin(
     np.testing.assert_allclose(got, [[-0.098, 0.0], [0.0, 0.0]], atol=1e-7)
 
 
+def test_the_friction_channel_reads_each_points_friction_and_face_targets_read_their_slides_at_it():
+    # The second point's friction (0.1 N s of 0.2) is at the limit of friction 0.5, inside that of 0.8.
+    bodies, contacts = two_bodies_on_the_floor()
+    contacts["impulse"] = [[0.098, 0.01], [0.2, -0.1]]
+    with pytest.raises(ValueError, match="needs each point's friction"):
+        channel_values(["friction"], Step(bodies, contacts))
+    step = Step(bodies, contacts, friction=np.array([0.5, 0.8]))
+    np.testing.assert_array_equal(channel_values(["friction"], step)[:, 0], [0.5, 0.8])
+    got = channel_values(["face_correction_normal", "face_correction_tangent"], step)
+    np.testing.assert_allclose(got, [[1 - 0.098, 0.0], [1.0, 0.0]], atol=1e-7)  # the second one sticks
+    assert needs(["friction"]) == ("point_friction",)
+
+
 def test_previous_channels_read_the_last_steps_points_and_are_empty_without_them():
     bodies, contacts = two_bodies_on_the_floor()
     assert len(channel_values(["previous_builtin_normal"], Step(bodies, contacts))) == 0
@@ -137,8 +150,9 @@ def test_each_channel_changes_sign_under_a_reflection_as_its_mirror_says():
     engine.collide()
     bodies, contacts = engine.bodies(), engine.contacts()
     contacts["impulse"] = contacts["builtin"] * 0.5  # recorded data carries it; any values do here
-    step = Step(bodies, contacts, before, spec.physics)
-    mirror = Step(*reflected(bodies, contacts), reflected(bodies, before)[1], spec.physics)
+    mu = np.full(len(contacts), 0.5)
+    step = Step(bodies, contacts, before, spec.physics, friction=mu)
+    mirror = Step(*reflected(bodies, contacts), reflected(bodies, before)[1], spec.physics, friction=mu)
     assert len(contacts) > 20 and np.abs(contacts["builtin"][:, 1]).max() > 1e-3
     for source in SOURCES:
         names = [n for n, c in CHANNELS.items() if c.source == source and not n.startswith("oracle")]

@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simclient.scene import (SceneSpec, add_scene_arguments, build_world, settled_world, spec_from_args, spec_from_dict,
-                             spec_to_dict)
+from simclient.scene import (SceneSpec, add_scene_arguments, body_friction, build_world, settled_world, spec_from_args,
+                             spec_from_dict, spec_to_dict)
 
 
 def parse(*argv: str) -> SceneSpec:
@@ -65,6 +65,14 @@ def test_family_flags_override_the_thesis_values():
     bodies = build_world(spec, 3).bodies()[1:]
     assert set(bodies["shape"]) == {0, 2}  # circles and boxes
     assert parse() == SceneSpec.thesis()
+
+
+def test_each_bodys_friction_follows_from_the_scene_and_seed_without_a_world():
+    # What recorded data, which carries no friction, is read with (training.grids.iter_steps).
+    spec = parse("--radius", "0.3", "0.55", "--friction", "0.2", "0.8")
+    for seed in (3, 4):
+        np.testing.assert_array_equal(body_friction(spec, seed), build_world(spec, seed).body_friction())
+    assert set(body_friction(SceneSpec.thesis(), 3).tolist()) == {0.5}
 
 
 def test_spec_round_trips_through_json_dict():

@@ -9,6 +9,7 @@ import onnxruntime as ort
 import pytest
 
 from deepcontact.cli import main
+from tests.training.conftest import SMALL
 from training.contact_graph import GRAPH_INPUTS, GraphSet, build_graph_set
 
 
@@ -723,6 +724,50 @@ def test_a_model_reading_last_steps_correction_is_served_what_training_saw(data,
             with pytest.raises(grpc.RpcError) as err:
                 stub.Predict(old)
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "keys" in err.value.details()
+    finally:
+        srv.stop()
+
+
+def test_a_model_reading_the_friction_is_served_the_requests_friction_and_refuses_requests_without(
+        data, tmp_path, thesis_steps):
+    # The records carry no friction: training reads it off the seed's scene (training.grids),
+    # the server off the request's point_friction (what the simulation client always sends).
+    import grpc
+
+    from deepcontact import wire
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.predictors import World, load_model
+    from server.serve import Server
+
+    models = tmp_path / "models"
+    assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--out",
+                 str(models / "rubs.onnx"), "--cache", str(tmp_path / "cache"), "--extra-inputs", "friction",
+                 "--targets", "face", *SMALL]) == 0
+    card = json.loads((models / "rubs.json").read_text())
+    assert card["gridspec"]["inputs"][-1] == "friction"
+    assert card["gridspec"]["normalization"]["friction"]["mean"] == pytest.approx(0.5)  # the thesis world's
+    world_msg, steps = thesis_steps
+    bodies, points = steps[0]
+    lower, upper, _ = wire.decode_world(world_msg)
+    world = World((lower, upper), wire.decode_physics(world_msg))
+    mu = np.full(len(points), 0.5, np.float32)
+    local = load_model(models / "rubs.json")
+    assert "point_friction" in local.requires
+    srv = Server(models=models).start()
+    try:
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            for friction in (mu, 2 * mu):
+                reply = stub.Predict(wire.encode_step(0, "rubs", bodies, points, world=world_msg,
+                                                      builtin=points["builtin"], friction=friction))
+                sent = wire.decode_step(wire.encode_step(0, "rubs", bodies, points, builtin=points["builtin"]),
+                                        max_bodies=10**4, max_points=10**5)
+                want, _ = local.predict(*sent, world, 0, friction=friction.astype(np.float64))
+                np.testing.assert_allclose(np.stack(wire.decode_impulses(reply), 1), want, atol=1e-6)
+            assert not np.allclose(want, local.predict(*sent, world, 0, friction=mu.astype(np.float64))[0])
+            with pytest.raises(grpc.RpcError) as err:
+                stub.Predict(wire.encode_step(0, "rubs", bodies, points, world=world_msg, builtin=points["builtin"]))
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "point_friction" in err.value.details()
     finally:
         srv.stop()
 
