@@ -106,8 +106,20 @@ class RecordedSolve:
     """`--model recorded`: serves the impulses the recorded solve ended at (the file's
     own final impulses), as a model would that fitted `train-graph`'s default target exactly."""
 
-    def predict(self, bodies, points, world, step, previous):
+    def predict(self, bodies, points, world, step, previous, friction=None):
         return points["impulse"].astype(np.float32), None
+
+
+def served_on_step(predictor, step) -> np.ndarray:
+    """(P, 2) float32 N s: what `predictor` (a server predictor or RecordedSolve) serves at a
+    recorded step (training.grids.iter_steps's Step), in a world spanning the step's points,
+    with each point's friction where the predictor needs it (a face card)."""
+    from server.predictors import World
+
+    c = step.contacts
+    world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
+    extra = {"friction": step.friction} if "point_friction" in getattr(predictor, "requires", ()) else {}
+    return np.asarray(predictor.predict(step.bodies, c, world, 0, step.previous, **extra)[0], np.float32)
 
 
 def band_table(served: np.ndarray, solver: np.ndarray, new: np.ndarray) -> list[dict]:
@@ -183,7 +195,6 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final", agr
     solve (ValueError when it has none). part: "whole", or the part of both corrections
     that moves the bodies ("body-space") or the self-stress ("self-stress"); with a part,
     agree must be None (the agreement is a normal-only rule)."""
-    from server.predictors import World
     from training.ensemble import agreed_mean
     from training.grids import iter_steps, open_dataset, select_steps
 
@@ -192,9 +203,8 @@ def replay(predictors, path: Path, max_steps: int, reference: str = "final", agr
     served, solver, new, lost, at_rest = [], [], [], [], []
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # loop over steps, not points
         c = step.contacts
-        world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
         builtin = c["builtin"].astype(np.float64)
-        warm = np.stack([p.predict(step.bodies, c, world, 0, step.previous)[0] for p in predictors])  # (M, P, 2)
+        warm = np.stack([served_on_step(p, step) for p in predictors])  # (M, P, 2)
         if reference == "oracle" and step.oracle is None:
             raise ValueError(f"{path} has no oracle impulses: record it with `deepcontact generate --oracle`")
         solved = (step.oracle if reference == "oracle" else c["impulse"]).astype(np.float64)

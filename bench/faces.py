@@ -75,16 +75,14 @@ def replay(predictor, path: Path, max_steps: int):
     (training.grids' record: bodies, contacts, physics) for up to max_steps recorded steps
     with contacts: the model's answer as served, Box2D's warm start and where the recorded
     solve ended."""
-    from server.predictors import World
+    from bench.corrections import served_on_step
     from training.grids import iter_steps, open_dataset, select_steps
 
     with open_dataset(path) as ds:
         steps = ds.steps
     for _, step in iter_steps(path, steps, select_steps(steps, max_steps)):  # a loop over steps, not points
         c = step.contacts
-        world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
-        extra = {"friction": step.friction} if "point_friction" in getattr(predictor, "requires", ()) else {}
-        served = predictor.predict(step.bodies, c, world, 0, step.previous, **extra)[0]
+        served = served_on_step(predictor, step)
         yield (np.asarray(served, np.float64), c["builtin"].astype(np.float64), c["impulse"].astype(np.float64), step)
 
 

@@ -57,7 +57,7 @@ def input_grids(card, recorded) -> list[np.ndarray]:
     physics = SceneSpec.thesis().physics
     norm = _Normalization(card.gridspec)
     grids, previous = [], None
-    for bodies, points in recorded:
+    for bodies, points, _ in recorded:
         if len(points):
             g = world_to_grids(bodies, points, card.gridspec, previous=previous, physics=physics, outside="drop")
             grids.append(norm.inputs(np.ascontiguousarray(g, np.float32)).copy())

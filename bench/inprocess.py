@@ -9,7 +9,8 @@ the model (`server.predictors.load_model`, one ONNX Runtime thread) and hands it
 a stream hands it: the step's bodies and points as the engine exports them (the
 records the wire carries, float32 already), the world the stream declares, passed
 through the wire once as the server decodes it (its time step and gravity are
-float32 there), and the last step's points for temporal channels. So the warm start
+float32 there), the last step's points for temporal channels, and each point's
+friction (float32, as the wire carries it) to a model that reads it. So the warm start
 is the served one to the bit, and a simulation takes the served trajectory. What it measures is what a round trip costs beyond the model's own work:
 `bench walltime` times a simulation this way beside the served one.
 
@@ -26,7 +27,7 @@ import numpy as np
 from deepcontact import wire
 from deepcontact.modelcard import unknown_model
 from server.predictors import Predictor, World, load_model
-from simclient.provider import Provider, as_warm_start
+from simclient.provider import Provider, as_warm_start, point_friction
 from simclient.scene import SceneSpec
 
 
@@ -63,7 +64,10 @@ class InProcess(Provider):
         """(normal (P,), tangent (P,)) float32 N s, the model's warm start for this step; None without points."""
         if len(points) == 0:
             return None  # the simulation sends no such step, so it is no temporal channel's previous
-        impulses, stages = self.predictor.predict(bodies, points, self.world, step, self._points)
+        # Each point's friction as the wire carries it (float32), to a model that reads it.
+        extra = {"friction": point_friction(engine.body_friction(), points).astype(np.float32)} \
+            if "point_friction" in self.predictor.requires else {}
+        impulses, stages = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
         self._points = points
         self.stages.append(stages)
         return as_warm_start(impulses)

@@ -63,27 +63,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # -- load generation (runs in worker processes) -------------------------------
 
 def _steps_source(replay: str | None, stream_index: int, limit: int = 250):
-    """An endless iterator of (bodies, points) for one stream."""
+    """An endless iterator of (bodies, points, friction) for one stream; friction: (P,)
+    float32, each point's friction coefficient, as the simulation client sends it."""
+    from simclient.provider import point_friction
+    from simclient.scene import SceneSpec, body_friction, build_world, spec_from_dict
+
     if replay:
         from training.dataset import Dataset
 
         with Dataset(replay) as ds:
             rows = np.flatnonzero(ds.steps["point_count"] > 0)
             start = (stream_index * 97) % max(len(rows) - limit, 1)
-            steps = [ds.step(int(i))[:2] for i in rows[start:start + limit]]
+            scene = spec_from_dict(ds.scene)
+            steps = []
+            for i in rows[start:start + limit]:
+                bodies, points, row = ds.step(int(i))
+                # The records carry no friction; the seed's scene gives every body's.
+                mu = point_friction(body_friction(scene, int(row["seed"])), points)
+                steps.append((bodies, points, mu.astype(np.float32)))
         while True:
             yield from steps
     else:
-        from simclient.scene import SceneSpec, build_world
-
         spec = SceneSpec.thesis()
         seed = 900 + stream_index % 100
         while True:
             engine = build_world(spec, seed)
+            mu = engine.body_friction()
             for _ in range(spec.steps):
                 engine.collide()
-                pair = engine.bodies(), engine.contacts()
-                yield pair
+                bodies, points = engine.bodies(), engine.contacts()
+                yield bodies, points, point_friction(mu, points).astype(np.float32)
                 engine.solve()
 
 
@@ -107,8 +116,8 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
             time.sleep(0.001)
         k = 0
         while time.time() < stop_at:
-            bodies, points = next(source)
-            request = wire.encode_step(k, model, bodies, points, builtin=points["builtin"])
+            bodies, points, friction = next(source)
+            request = wire.encode_step(k, model, bodies, points, builtin=points["builtin"], friction=friction)
             t0 = time.perf_counter()
             try:
                 reply = client.step(request, deadline_s)

@@ -44,14 +44,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def record_steps(seed: int, steps: int):
-    """[(bodies, points)] of a thesis world: what a client sends each step."""
+    """[(bodies, points, friction)] of a thesis world: what a client sends each step;
+    friction: (P,) float32, each point's friction coefficient (point_friction)."""
+    from simclient.provider import point_friction
     from simclient.scene import SceneSpec, build_world
 
     engine = build_world(SceneSpec.thesis(), seed)
+    mu = engine.body_friction()
     out = []
     for _ in range(steps):
         engine.collide()
-        out.append((engine.bodies(), engine.contacts()))
+        bodies, points = engine.bodies(), engine.contacts()
+        out.append((bodies, points, point_friction(mu, points).astype(np.float32)))
         engine.solve()
     return out
 
@@ -59,7 +63,7 @@ def record_steps(seed: int, steps: int):
 def time_steps(address: str, world, model: str, recorded, rounds: int) -> tuple[dict[str, list], list[float]]:
     """Send every recorded step `rounds` times; the first round warms up and is not kept.
 
-    recorded: [(bodies, points)] as record_steps gives them. Returns the server's
+    recorded: [(bodies, points, friction)] as record_steps gives them. Returns the server's
     stage timings per step (us; "outside_inference" is total - inference) and the
     client's round trips (s).
     """
@@ -67,8 +71,8 @@ def time_steps(address: str, world, model: str, recorded, rounds: int) -> tuple[
     round_trip = []
     with WarmStartClient(address, world=world) as client:
         for r in range(rounds):
-            for k, (bodies, points) in enumerate(recorded):  # one request per step: what is timed
-                msg = wire.encode_step(k, model, bodies, points, builtin=points["builtin"])
+            for k, (bodies, points, friction) in enumerate(recorded):  # one request per step: what is timed
+                msg = wire.encode_step(k, model, bodies, points, builtin=points["builtin"], friction=friction)
                 t0 = time.perf_counter()
                 reply = client.step(msg, timeout=10.0)
                 rt = time.perf_counter() - t0
@@ -118,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     finally:
         server.stop()
-    n_points = [len(p) for _, p in recorded]
+    n_points = [len(p) for _, p, _ in recorded]
     result = {
         "model": args.model, "seed": args.seed, "steps": len(recorded), "rounds": args.rounds,
         "intra_op_threads": args.intra_op_threads, "bind": args.bind,

@@ -337,6 +337,9 @@ def run(args: argparse.Namespace) -> int:
         if args.save_card and args.hidden:
             raise ValueError("--save-card with --hidden: a card carries the gate on the request's features only, "
                              "the one a server can compute")
+        if args.save_card and ModelCard.load(Path(args.models) / f"{args.model}.json").face is not None:
+            raise ValueError(f"--save-card: {args.model} solves on its labels (face); a gated alias of it would "
+                             f"serve its classifier's labels as impulses. Gate a graph model that answers impulses")
         report = measure(args, spec_from_args(args))
     except (OSError, ValueError) as exc:
         print(f"deepcontact bench step-gate: {exc}", file=sys.stderr)

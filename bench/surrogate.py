@@ -137,7 +137,8 @@ def _scores(args, sweeps: tuple[int, ...]) -> np.ndarray:
 
     from deepcontact.channels import channel_values
     from deepcontact.kinematics import contact_physics
-    from server.predictors import World, load_model
+    from bench.corrections import served_on_step
+    from server.predictors import load_model
     from training.graph_loss import (colour_points, friction_bounds, gauss_seidel_changes_after,
                                      projected_changes_after, step_log_norms)
     from training.grids import iter_steps, open_dataset, select_steps
@@ -178,8 +179,7 @@ def _scores(args, sweeps: tuple[int, ...]) -> np.ndarray:
 
     for _, step in iter_steps(args.data, steps, select_steps(steps)):  # loop over steps, not points
         c, b = step.contacts, step.bodies
-        world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
-        served = predictor.predict(b, c, world, 0, step.previous)[0].astype(np.float32)
+        served = served_on_step(predictor, step)
         v_free = channel_values(("vn", "vt"), step).astype(np.float32)
         geometry, masses, inverse = contact_physics(b, c)
         batch.append((served, c["builtin"].astype(np.float32), c["impulse"].astype(np.float32), v_free,

@@ -66,7 +66,9 @@ builtin impulses, is served instead), fallback (default null; with max_residual,
 another card beside this one, without a face of its own, whose answer is served at those steps
 in place of Box2D's), damping (default 0: the solve is the minimum-norm least-squares one; a
 number: damped least squares, the singular values below about sqrt(damping) of the largest
-damped away, solve_on_face).
+damped away, solve_on_face), max_points (default null: every step solved; a number: a step
+with more contact points than this is not solved, since the dense solve grows as the cube of
+the points, and is served the fallback card's answer, else Box2D's warm start).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -96,7 +98,7 @@ COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
 ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face"})
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
-                 "fallback": None, "damping": 0.0}
+                 "fallback": None, "damping": 0.0, "max_points": None}
 
 
 class ModelCardError(ValueError):
@@ -239,18 +241,20 @@ def _face_settings(face: Any, kind: str) -> dict:
     out = {**FACE_DEFAULTS, **face}
     optional = ("label_friction", "max_residual")
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
-                  for k in out if k != "fallback" and not (k in optional and out[k] is None))
-    fallback = out["fallback"]
+                  for k in out if k != "fallback" and not (k in optional + ("max_points",) and out[k] is None))
+    fallback, most = out["fallback"], out["max_points"]
     if not numbers or not out["pressing"] >= 0 or not out["share"] > 0 or not isinstance(out["rounds"], int) \
             or out["rounds"] < 1 or any(out[k] is not None and not out[k] > 0 for k in optional) \
             or not out["damping"] >= 0 or not (fallback is None or isinstance(fallback, str) and fallback) \
-            or (fallback is not None and out["max_residual"] is None):
+            or (fallback is not None and out["max_residual"] is None and most is None) \
+            or not (most is None or isinstance(most, int) and most >= 1):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, "
-                             f"label_friction and max_residual null or > 0, damping >= 0, fallback null or "
-                             f"a card's name (with max_residual), got {face!r}")
+                             f"label_friction and max_residual null or > 0, damping >= 0, max_points null or a "
+                             f"whole number >= 1, fallback null or a card's name (with max_residual or "
+                             f"max_points), got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
-            "fallback": fallback, "damping": float(out["damping"])}
+            "fallback": fallback, "damping": float(out["damping"]), "max_points": most}
 
 
 def _read_card(path: Path) -> Any:

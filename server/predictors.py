@@ -321,9 +321,15 @@ class GraphPredictor(Predictor):
             return np.zeros((0, 2), np.float32), {}
         if (self.card.face is not None or "point_friction" in self.requires) and friction is None:
             raise ValueError(f"{self.name} needs each point's friction")
+        stages = {"p2g": 0.0, "inference": 0.0, "g2p": 0.0}
+        most = self.card.face["max_points"] if self.card.face is not None else None
+        if most is not None and len(points) > most:
+            # Too large a step to solve in time: no labels asked for (timed as g2p).
+            impulses = self._fallback(bodies, points, world, step, previous)
+            stages["g2p"] = time.perf_counter() - t0
+            return impulses.astype(np.float32, copy=False), stages
         ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32, copy=False)
         dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
-        stages = {"p2g": 0.0, "inference": 0.0, "g2p": 0.0}
         # The operator does not depend on the warm start: one computation serves every pass.
         physics = contact_physics(bodies, points) if self.physics else ()
         warm, new = points, None
@@ -350,16 +356,15 @@ class GraphPredictor(Predictor):
             if self.card.passes > 1:
                 warm = points.copy()
                 warm["builtin"] = impulses
-        if self.card.face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
-            face = self.card.face
+        face = self.card.face
+        if face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
             impulses, residual = solved_on_labels(bodies, points, impulses.astype(np.float64),
                                                   np.asarray(friction, np.float64), world.physics, face["pressing"],
                                                   face["share"], face["rounds"], face["label_friction"],
                                                   damping=face["damping"])
             if face["max_residual"] is not None and residual > face["max_residual"]:
                 # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
-                impulses = points["builtin"].copy() if self.fallback is None else \
-                    self.fallback.predict(bodies, points, world, step, previous)[0]
+                impulses = self._fallback(bodies, points, world, step, previous)
             stages["g2p"] += time.perf_counter() - t0
             t0 = time.perf_counter()
         if self.gate is not None:
@@ -369,6 +374,14 @@ class GraphPredictor(Predictor):
         # The wire names the stages around inference p2g and g2p; here they are the
         # point features and the output's denormalization and combination.
         return impulses.astype(np.float32, copy=False), stages
+
+
+    def _fallback(self, bodies, points, world, step, previous) -> np.ndarray:
+        """(P, 2) N s served where a face card does not serve its solve: its fallback card's
+        answer, else Box2D's warm start (the request's builtin impulses)."""
+        if self.fallback is None:
+            return points["builtin"].copy()
+        return self.fallback.predict(bodies, points, world, step, previous)[0]
 
 
 def _combine_needs(how: str) -> tuple[str, ...]:

@@ -11,9 +11,16 @@
 #                         stopping rule reads, scored on that mean (training/round2_graph.sh;
 #                         each run starts from the last one's weights, so all three are
 #                         rebuilt on the way, with their own cards)
-#   models/default.json   alias of graph-projected-max-1-799-r8-e9-reflect-sym-mirror, the variant
-#                         chosen per state on the choosing seeds (docs/results.md, "The
-#                         symmetric default")
+#   models/graph-face-r8-e12.onnx, models/graph-face-fr-r8.onnx + .json
+#                         the same network trained to label the points (which let go, stick,
+#                         slide which way: train-graph --targets face) on the thesis world, 12
+#                         epochs; then 5 more on the thesis world and the scene family with
+#                         each point's friction as an input (graph-face-fr-r8)
+#   models/default.json   the face route: an alias of graph-face-fr-r8 whose labels the server
+#                         solves the step on and admits, falling back to
+#                         graph-projected-max-1-799-r8-e9-reflect-sym-mirror where the admitted
+#                         solve misses its labels or the step is large (docs/results.md, "Each
+#                         point's friction")
 #   models/pressure.onnx  + pressure.json, pressure-new-points.json   the thesis's kind of model
 #   models/residual.onnx  + residual.json, residual-new-points.json   Box2D's warm start + a correction
 #
@@ -22,8 +29,10 @@
 #   GRID_ONLY=1 make default-model               the thesis's grid models alone (the default as shipped)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). On 2 cores about 2 h for the default (1 h 59 min on Intel AVX-512 cores on
-# 2026-11-30; 2 h 17 min with AVX2 before train-graph traced its step once), and the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
+# (DEFAULT_ONLY=1). On 2 cores about 3 h for the default: 2 h for its graph model (1 h 59 min on
+# Intel AVX-512 cores on 2026-11-30; 2 h 17 min with AVX2 before train-graph traced its step
+# once) and about an hour for its classifier (20, 19 and 17 min for its three runs on 2 AMD
+# AVX-512 cores, 2026-12-01); the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
 # "Since the default became ...-r8-e9-reflect-sym-mirror"; GRID_ONLY=1 rebuilds them alone).
 # The other models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
@@ -49,7 +58,9 @@ RECIPE=(--loss grid --lr-schedule constant --config "$CONFIG" --batch-size 16 --
 
 SECONDS=0
 CHAIN=(graph-mse-1-799-r8 graph-mse-1-799-r8-e9-reflect graph-projected-max-1-799-r8-e9-reflect-sym)
-DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror
+DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror   # the graph model: the default's fallback
+FACE=graph-face-fr-r8                                         # the classifier the default solves on
+WHY="the face route: graph-face-fr-r8's labels (each point's friction an input) read pressing above 0.75 N s, the step solved on them and admitted in 200 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 200 points, the graph model $DEFAULT is served (docs/results.md, Each point's friction); rebuilt by make default-model"
 if [ "${GRID_ONLY:-0}" != 1 ]; then
 # The shipped files of the chain, kept before the runs overwrite them, so that each rebuild is
 # compared with what it replaced (below).
@@ -68,9 +79,27 @@ for name in "${CHAIN[@]}"; do
     "$PY" -m training.recover_weights "$SHIPPED/$name.json" --against "runs/graph-cache/$name.weights.npz" || true
 done
 
+# The default's classifier (the face route, docs/results.md "Each point's friction"): the same
+# network trained to label the points on the thesis world (6 epochs, 6 more at half the rate),
+# then with each point's friction as one more input on the thesis world and the scene family.
+rm -f runs/resume/graph-face-r8.state.npz runs/resume/graph-face-r8-e12.state.npz runs/resume/$FACE.state.npz
+FACE_RUN=(--max-val-steps 2000 --seed 0 --quiet --targets face --loss mse --rounds 8 --patience 3)
+"$DC" train-graph --train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 "${FACE_RUN[@]}" \
+    --out runs/face-chain/graph-face-r8.onnx --resume runs/resume/graph-face-r8.state.npz --epochs 6
+"$DC" train-graph --train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 "${FACE_RUN[@]}" \
+    --out models/graph-face-r8-e12.onnx --resume runs/resume/graph-face-r8-e12.state.npz --epochs 6 --lr 1e-3 \
+    --init runs/graph-cache/graph-face-r8.weights.npz
+"$DC" train-graph --train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 \
+    --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5 --max-steps-per-file 100000 "${FACE_RUN[@]}" \
+    --out models/$FACE.onnx --resume runs/resume/$FACE.state.npz --epochs 5 --lr 1e-3 \
+    --init runs/graph-cache/graph-face-r8-e12.weights.npz --extra-inputs friction
+echo "$FACE trained after ${SECONDS} s"
+
 tmp=models/.default.json.part
-printf '{\n  "name": "default",\n  "alias_of": "%s",\n  "why": "%s"\n}\n' "$DEFAULT" \
-    "the variant with the fewest iterations on Builtin's states of the choosing seeds and of every reporting world (docs/results.md, The symmetric default); rebuilt by make default-model" > "$tmp"
+printf '%s\n' "{" '  "name": "default",' "  \"alias_of\": \"$FACE\"," \
+    "  \"why\": \"$WHY\"," \
+    "  \"face\": {\"pressing\": 0.75, \"rounds\": 200, \"max_residual\": 0.3, \"max_points\": 200, \"fallback\": \"$DEFAULT\"}" \
+    "}" > "$tmp"
 mv "$tmp" models/default.json
 [ "${DEFAULT_ONLY:-0}" = 1 ] && { echo "done (default only) in ${SECONDS} s"; exit 0; }
 fi

@@ -218,7 +218,9 @@ def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_
     from server.predictors import load_model
 
     shipped = Path(__file__).parents[2] / "models"
-    target = ModelCard.alias_target(shipped / "default.json")
+    # the shipped default's network: its face fallback where the default is the face route
+    target = (ModelCard.load(shipped / "default.json").face or {}).get("fallback") \
+        or ModelCard.alias_target(shipped / "default.json")
     for name in (f"{target}.json", f"{target}.onnx"):
         shutil.copy(shipped / name, tmp_path)
     f = len(FEATURES)  # a gate that answers the same at every step: its intercept alone decides
@@ -242,10 +244,11 @@ def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_
     assert stages["g2p"] > 0
 
 
-def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong(tmp_path, thesis_steps):
+def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong_or_the_step_is_large(tmp_path, thesis_steps):
     # With max_residual and fallback, a step whose admitted solve misses its labels' equations by
     # more than that share gets the named card's answer (here the classifier's own, which has no
-    # face): at a share of 0 every step with a residual does; at a large one none does.
+    # face): at a share of 0 every step with a residual does; at a large one none does. The same
+    # for a step with more points than max_points, before any label is asked for.
     import json
     import shutil
     from pathlib import Path
@@ -271,6 +274,10 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     np.testing.assert_array_equal(served("always", max_residual=1e-12, fallback=classifier), own)
     np.testing.assert_array_equal(served("never", max_residual=1e9, fallback=classifier), served("plain"))
     assert not np.array_equal(served("plain"), own)
+    # A step with more points than max_points is not solved: the fallback's answer, else Box2D's.
+    np.testing.assert_array_equal(served("large", max_points=len(points) - 1, fallback=classifier), own)
+    np.testing.assert_array_equal(served("large-builtin", max_points=len(points) - 1), points["builtin"])
+    np.testing.assert_array_equal(served("small", max_points=len(points), fallback=classifier), served("plain"))
     with pytest.raises(ModelCardError, match="has a face of its own"):
         served("chain", max_residual=0.3, fallback="plain")
     with pytest.raises(ModelCardError, match="no model card"):
