@@ -375,7 +375,6 @@ class GraphPredictor(Predictor):
         # point features and the output's denormalization and combination.
         return impulses.astype(np.float32, copy=False), stages
 
-
     def _fallback(self, bodies, points, world, step, previous) -> np.ndarray:
         """(P, 2) N s served where a face card does not serve its solve: its fallback card's
         answer, else Box2D's warm start (the request's builtin impulses)."""
