@@ -206,6 +206,16 @@ def _candidates(name: str) -> list[str]:
     return rest.split("+") if head in Pick.MODES else [name]
 
 
+def served_by_note(summaries: dict[str, dict]) -> str:
+    """A line per warm start whose server answered some steps with another card's answer (a face
+    card's fallback: the step too large, its labels missed, or its route past the deadline;
+    docs/server.md, Deadlines), or "" when none did."""
+    lines = [f"- {name}: {sum(by.values()):,} of {s['steps_with_contacts']:,} steps with contacts answered by "
+             + ", ".join(f"{card} ({n:,})" for card, n in sorted(by.items()))
+             for name, s in summaries.items() if (by := s.get("served_by"))]
+    return "\nAnswered by another card than the model's route:\n" + "\n".join(lines) + "\n" if lines else ""
+
+
 def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int], deadline_ms: float) -> str:
     """summary.json and results.md in ``out``, each written whole or not at all; returns the table.
 
@@ -222,7 +232,7 @@ def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int
         "ratios_to_builtin": {name: {k: r.to_dict() for k, r in rs.items()} for name, rs in ratios.items()},
         "per_seed_mean_iterations": {name: [_seed_mean(r) for r in rs] for name, rs in runs.items()},
         "picks": picks})
-    table = markdown_table(summaries, seeds, spec.name, ratios) + pick_table(picks)
+    table = markdown_table(summaries, seeds, spec.name, ratios) + pick_table(picks) + served_by_note(summaries)
     tmp = out / ".results.md.part"
     tmp.write_text(table)
     tmp.replace(out / "results.md")

@@ -27,6 +27,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
     (("bench", "admission"), "bench.admission", "what admitting a motion (nearest_admissible) costs a step, beside Box2D's solve"),
     (("bench", "corrections"), "bench.corrections", "a served model's corrections against the solver's, by size: where it errs"),
+    (("bench", "face-solve"), "bench.face_solve", "the face route's solve by step size: its system, the dual solve against gelsy, the admission"),
     (("bench", "faces"), "bench.faces", "a served model's answer read as an active set (open, sticks, slides): how many labels a step are wrong"),
     (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
     (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
@@ -58,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
         (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     }
-    group_help = {("bench",): "benchmarks (admission, corrections, engine, faces, generate, graph-size, inference, iterations, load, order, scale, server, soak, step-gate, surrogate, transfer, walltime)"}
+    group_help = {("bench",): "benchmarks (admission, corrections, engine, face-solve, faces, generate, graph-size, inference, iterations, load, order, scale, server, soak, step-gate, surrogate, transfer, walltime)"}
     for words, module, help_text in COMMANDS:
         for depth in range(1, len(words)):
             prefix = words[:depth]

@@ -381,6 +381,12 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     c = np.asarray(impulses, np.float64)
     if len(points) == 0:
         return np.zeros((0, 2))
+    keep = np.ones(len(points)) if open_points is None else (~np.asarray(open_points, bool)).astype(np.float64)
+    if np.array_equal(project_to_cones(c, mu) * keep[:, None], c):
+        # Admissible as it is (half of a thesis world's steps under 100 points solved on their labels,
+        # `deepcontact bench face-solve`):
+        # the rounds would end in the first, at c, after a factorization that costs more than they do.
+        return c.copy()
     f = contact_frame(bodies, points) if frame is None else frame
     jt = contact_jacobian_sparse(f)  # at most six entries a column
     gram = (jt @ jt.T).tocsc()
@@ -401,7 +407,6 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     else:  # no dynamic body: nothing to keep
         factors = [np.zeros(1, i32), np.zeros(0, i32), np.zeros(0)] * 2
         perms = [np.zeros(0, i32)] * 2
-    keep = np.ones(len(points)) if open_points is None else (~np.asarray(open_points, bool)).astype(np.float64)
     z = np.empty(2 * len(points))
     _compiled.admission_rounds(jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64),
                                rows, *factors, *perms, np.ascontiguousarray(c.ravel()),
@@ -473,7 +478,7 @@ def repair_face(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu
 
 def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: np.ndarray,
                   physics: Physics = Physics(), frame: ContactFrame | None = None,
-                  damping: float = 0.0) -> np.ndarray:
+                  damping: float = 0.0, solver: str = "gelsy") -> np.ndarray:
     """The step's contact problem solved as if its solution lay on `face`, (P, 2) N s.
 
     face: (P,) contact_face labels; mu: (P,) friction coefficients; bodies, points,
@@ -488,8 +493,10 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     nearest_admissible, to let the limits choose it). Nothing is kept in the cones
     here. The system is square but singular in a pile held at more points than it
     has freedoms, and inconsistent where the face is wrong: least squares either way
-    (the minimum-norm solution, by a complete orthogonal factorization, LAPACK's gelsy:
-    about 2 ms a step at 140 points where an SVD took 5; the operator is built sparse).
+    (the minimum-norm solution: with `solver` "gelsy" by a complete orthogonal factorization,
+    LAPACK's gelsy; with "dual" by minimum_norm_solve, about twice as fast where the system is
+    consistent and a little damped in its weakest directions, gelsy where it is not; the
+    system is built from the point pairs, face_system).
     With `damping` > 0 it is damped least squares instead, (S^T S + l I) x = S^T b with
     l = damping max|S|^2, by Cholesky: the same impulses where the system is consistent and
     well posed, bounded ones where a wrong face makes it inconsistent and near singular (the
@@ -501,16 +508,9 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
     if len(pressing) == 0:
         return np.zeros((n_points, 2))
-    operator = contact_operator(f)  # (2P, 2P): relative velocity per unit impulse
     velocity = contact_velocities(bodies, points, physics=physics).ravel()  # (2P,) m/s before any impulse
-    slide = np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0))[pressing] \
-        * np.asarray(mu, np.float64)[pressing]
-    # Unknowns: each pressing point's normal impulse (its tangent slide times it where it slides)
-    # and each sticking point's tangent impulse; equations at the same rows.
-    rows = np.concatenate([2 * pressing, 2 * sticking + 1])
-    system = np.concatenate([operator[np.ix_(rows, 2 * pressing)] + operator[np.ix_(rows, 2 * pressing + 1)] * slide,
-                             operator[np.ix_(rows, 2 * sticking + 1)]], axis=1)
-    x = _least_squares(system, -velocity[rows], damping)
+    system, rows, slide = face_system(f, face, mu)
+    x = _least_squares(system, -velocity[rows], damping, solver)
     out = np.zeros((n_points, 2))
     out[pressing, 0] = x[:len(pressing)]
     out[pressing, 1] = slide * x[:len(pressing)]
@@ -518,9 +518,49 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     return out
 
 
-def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
+def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """solve_on_face's linear system on a face's unknowns: (system (m, m) m/s per N s, rows (m,),
+    slide (k,)).
+
+    face: (P,) contact_face labels; mu: (P,) friction coefficients. The k pressing points'
+    normal impulses come first, then the sticking points' tangent ones; a sliding point's
+    column is its normal column plus its tangent one times slide (+-mu). rows are the
+    equations' indices into the (2P,) relative velocities (normal 2 i, tangent 2 i + 1), in the
+    unknowns' order. The same numbers as contact_operator's rows and columns combined so, built
+    from the point pairs that share a dynamic body (a few thousand) without the (2P, 2P)
+    operator: at 160 points that one and its fancy indexing took about 2 ms.
+    """
+    face = np.asarray(face)
+    n_points = len(face)
+    pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
+    k = len(pressing)
+    m = k + len(sticking)
+    slide_of = np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0)) * np.asarray(mu, np.float64)
+    # Each point's equation row and unknown column, by direction (normal, tangent); -1 where it has none.
+    index = np.full((n_points, 2), -1)
+    index[pressing, 0] = np.arange(k)
+    index[sticking, 1] = k + np.arange(len(sticking))
+    i, j, blocks = _point_pairs(frame)  # blocks[p, d, e]: direction d at i per unit impulse e at j
+    at, values = [], []
+    for d in range(2):  # two directions of the equation, not a loop over points
+        row = index[i, d]
+        for col, value in ((index[j, 0], blocks[:, d, 0] + slide_of[j] * blocks[:, d, 1]),  # pressing j
+                           (index[j, 1], blocks[:, d, 1])):                                # sticking j
+            on = (row >= 0) & (col >= 0)
+            at.append(row[on] * m + col[on])
+            values.append(value[on])
+    system = np.bincount(np.concatenate(at), np.concatenate(values), minlength=m * m)
+    rows = np.concatenate([2 * pressing, 2 * sticking + 1])
+    return system.reshape(m, m), rows, slide_of[pressing]
+
+
+#: solve_on_face's ways to the minimum-norm least-squares solution.
+SOLVERS = ("gelsy", "dual")
+
+
+def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float, solver: str = "gelsy") -> np.ndarray:
     """solve_on_face's solve of system (m, m) x = rhs (m,): minimum-norm least squares
-    (damping 0) or damped, as solve_on_face says."""
+    (damping 0, by `solver`) or damped, as solve_on_face says."""
     import scipy.linalg
 
     if damping > 0:
@@ -531,17 +571,78 @@ def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float) -> np.nd
                                           check_finite=False)
         except np.linalg.LinAlgError:  # a damping below the product's rounding: the exact route
             pass
-    return scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
+    if solver not in SOLVERS:
+        raise ValueError(f"solver: one of {SOLVERS}, got {solver!r}")
+    x = minimum_norm_solve(system, rhs) if solver == "dual" else None
+    if x is None:  # gelsy asked for, or a system far from consistent
+        x = scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
+    return x
+
+
+#: minimum_norm_solve's ridge on S S^T, relative to its mean diagonal: far below the singular
+#: values that a face's system resolves, far above what S S^T's rounding leaves in its null
+#: space. On the thesis world's faces (seed 903, the default's labels; `deepcontact bench
+#: face-solve`) the answer agrees with LAPACK's gelsy to 7e-11 at the median and differs by more
+#: than 1e-3 at 1 % of the steps:
+#: where a singular value below about 3e-8 of the largest carries part of the answer (the
+#: ridge damps it) or where gelsy, at its rcond of machine precision, keeps a direction that
+#: is rounding (the pseudo-inverse agrees with the dual there).
+DUAL_RIDGE = 1e-15
+#: minimum_norm_solve's test of its answer: |S^T (S x - b)| at most this times |S^T b|.
+DUAL_OPTIMALITY = 1e-6
+
+
+def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+    """The minimum-norm solution of a consistent, possibly singular, system S (m, m) x = b (m,),
+    through its dual: x = S^T y with (S S^T + r I) y = b, r = DUAL_RIDGE times the mean of
+    S S^T's diagonal, by LU (LAPACK's gesv). Whatever y picks up in S S^T's null space S^T
+    sends to 0, so a tiny ridge serves. A face's system is singular in every pile (more points
+    than freedoms) and consistent where the face is the solution's: this is the minimum-norm
+    solution that gelsy gives (DUAL_RIDGE says how near), about twice as fast at 300 unknowns
+    (one matrix product and an LU, both blocked, where gelsy's pivoted QR is not: 3.6 against
+    6.5 ms at the thesis world's largest steps on two AVX2 cores, `deepcontact bench
+    face-solve`). None where the answer is not a
+    least-squares solution to DUAL_OPTIMALITY (a wrong face's inconsistent system, whose
+    residual the ridge would blow up through y): the caller solves it otherwise.
+    """
+    from scipy.linalg import lapack
+
+    m = len(rhs)
+    if m == 0:
+        return np.zeros(0)
+    gram = system @ system.T
+    scale = float(np.trace(gram)) / m
+    if not scale > 0:
+        return np.zeros(m)  # S = 0: every x solves it, 0 the least
+    gram.flat[::m + 1] += DUAL_RIDGE * scale
+    _, _, y, info = lapack.dgesv(gram, rhs, overwrite_a=True)
+    if info != 0:
+        return None
+    x = system.T @ y
+    gradient = system.T @ (system @ x - rhs)
+    if not np.linalg.norm(gradient) <= DUAL_OPTIMALITY * np.linalg.norm(system.T @ rhs):
+        return None
+    return x
 
 
 def contact_operator(frame: ContactFrame) -> np.ndarray:
     """J M^-1 J^T as a dense (2 P, 2 P) float64 matrix, m/s per N s: the relative (normal,
     tangent) velocity at each point (rows 2 i, 2 i + 1) that a unit impulse at each point
-    causes. Built from the pairs of points that share a dynamic body (a few thousand in a
-    thesis pile), not from a product of Jacobians: at 140 points this takes a few tenths of
-    a millisecond where the sparse product took about one."""
+    causes. Built from the pairs of points that share a dynamic body (_point_pairs), not from
+    a product of Jacobians."""
+    n_points = len(frame.n)
+    i, j, blocks = _point_pairs(frame)
+    at = (2 * i)[:, None, None] * (2 * n_points) + np.arange(2)[None, :, None] * (2 * n_points) \
+        + (2 * j)[:, None, None] + np.arange(2)[None, None, :]
+    return np.bincount(at.ravel(), blocks.ravel(), minlength=4 * n_points * n_points).reshape(2 * n_points, 2 * n_points)
+
+
+def _point_pairs(frame: ContactFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every ordered pair of points (i, j) that push on one dynamic body, once per body they
+    share: (i (Q,), j (Q,), blocks (Q, 2, 2) m/s per N s), blocks[q, d, e] the relative velocity
+    along direction d (normal, tangent) at point i that a unit impulse along e at point j causes
+    through that body. contact_operator is their sum; a thesis pile has a few thousand."""
     f = frame
-    n_points = len(f.n)
     point, body, push = [], [], []  # each point's push on each of its dynamic bodies
     for b, r, sign in ((f.b, f.rb, 1.0), (f.a, f.ra, -1.0)):
         on = np.flatnonzero(f.dynamic[b])
@@ -560,15 +661,14 @@ def contact_operator(frame: ContactFrame) -> np.ndarray:
     j = start[i] + np.arange(len(i)) - np.repeat(np.cumsum(count) - count, count)
     inverse = np.stack([f.inv_mass, f.inv_mass, f.inv_inertia], axis=1)[body[i]]  # (pairs, 3)
     blocks = np.einsum("pdc,pc,pec->pde", push[i], inverse, push[j])  # (pairs, 2, 2)
-    at = (2 * point[i])[:, None, None] * (2 * n_points) + np.arange(2)[None, :, None] * (2 * n_points) \
-        + (2 * point[j])[:, None, None] + np.arange(2)[None, None, :]
-    return np.bincount(at.ravel(), blocks.ravel(), minlength=4 * n_points * n_points).reshape(2 * n_points, 2 * n_points)
+    return point[i], point[j], blocks
 
 
 def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
                      physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                      rounds: int = 1000, label_friction: float | None = None,
-                     frame: ContactFrame | None = None, damping: float = 0.0) -> tuple[np.ndarray, float]:
+                     frame: ContactFrame | None = None, damping: float = 0.0,
+                     solver: str = "gelsy") -> tuple[np.ndarray, float]:
     """The warm start of the face route, (P, 2) N s: a classifier's answer read as labels,
     the step solved on them, the result admitted.
 
@@ -577,7 +677,7 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     contact_face as pressing above `pressing` N s and sliding at `share` of its limit (at
     `label_friction` times the normal answer when given, whatever the point's friction); mu:
     (P,) friction coefficients; bodies, points, physics as in contact_velocities. The step
-    is solved on those labels (solve_on_face, with its `damping`) and moved by the smallest self-stress that
+    is solved on those labels (solve_on_face, with its `damping` and `solver`) and moved by the smallest self-stress that
     every cone admits, the labels' open points held at 0 (nearest_admissible, at most
     `rounds` rounds). The simulation client's solved: composite and the server's face cards
     (deepcontact.modelcard) both serve this.
@@ -590,7 +690,7 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     frame = contact_frame(bodies, points) if frame is None else frame
     read_at = mu if label_friction is None else np.full(len(points), float(label_friction))
     face = contact_face(labels, read_at, pressing=pressing, share=share)
-    solved = solve_on_face(bodies, points, face, mu, physics, frame, damping)
+    solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver)
     admitted = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame)
     return admitted, face_residual(bodies, points, face, admitted, physics)
 

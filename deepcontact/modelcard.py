@@ -62,11 +62,14 @@ the sliding labels read at that friction everywhere, since the answer is a label
 uses each point's own either way), max_residual (default null: always served; a number: at a
 step whose served impulses leave their labels' equations unmet by more than this share,
 kinematics.face_residual, the labels are taken for wrong and Box2D's warm start, the request's
-builtin impulses, is served instead), fallback (default null; with max_residual, the name of
-another card beside this one, without a face of its own, whose answer is served at those steps
-in place of Box2D's), damping (default 0: the solve is the minimum-norm least-squares one; a
+builtin impulses, is served instead), fallback (default null: Box2D's warm start; the name of
+another card beside this one, without a face of its own, whose answer is served in its place at
+those steps, at steps past max_points, and where the route would miss the request's budget_us,
+docs/server.md "Deadlines"), damping (default 0: the solve is the minimum-norm least-squares one; a
 number: damped least squares, the singular values below about sqrt(damping) of the largest
-damped away, solve_on_face), max_points (default null: every step solved; a number: a step
+damped away, solve_on_face), solver (default "gelsy": the minimum-norm solution by LAPACK's
+gelsy; "dual": by kinematics.minimum_norm_solve, about twice as fast at the thesis world's largest
+steps and a little damped in the system's weakest directions), max_points (default null: every step solved; a number: a step
 with more contact points than this is not solved, since the dense solve grows as the cube of
 the points, and is served the fallback card's answer, else Box2D's warm start).
 
@@ -91,6 +94,7 @@ from typing import Any
 
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
+from deepcontact.kinematics import SOLVERS
 from deepcontact.step_gate import StepGate
 
 CARD_VERSION = 1
@@ -98,7 +102,7 @@ COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
 ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face"})
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
-                 "fallback": None, "damping": 0.0, "max_points": None}
+                 "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy"}
 
 
 class ModelCardError(ValueError):
@@ -241,20 +245,18 @@ def _face_settings(face: Any, kind: str) -> dict:
     out = {**FACE_DEFAULTS, **face}
     optional = ("label_friction", "max_residual")
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
-                  for k in out if k != "fallback" and not (k in optional + ("max_points",) and out[k] is None))
+                  for k in out if k not in ("fallback", "solver") and not (k in optional + ("max_points",) and out[k] is None))
     fallback, most = out["fallback"], out["max_points"]
     if not numbers or not out["pressing"] >= 0 or not out["share"] > 0 or not isinstance(out["rounds"], int) \
             or out["rounds"] < 1 or any(out[k] is not None and not out[k] > 0 for k in optional) \
             or not out["damping"] >= 0 or not (fallback is None or isinstance(fallback, str) and fallback) \
-            or (fallback is not None and out["max_residual"] is None and most is None) \
-            or not (most is None or isinstance(most, int) and most >= 1):
+            or not (most is None or isinstance(most, int) and most >= 1) or out["solver"] not in SOLVERS:
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, "
                              f"label_friction and max_residual null or > 0, damping >= 0, max_points null or a "
-                             f"whole number >= 1, fallback null or a card's name (with max_residual or "
-                             f"max_points), got {face!r}")
+                             f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
-            "fallback": fallback, "damping": float(out["damping"]), "max_points": most}
+            "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"]}
 
 
 def _read_card(path: Path) -> Any:

@@ -5,6 +5,8 @@ Exposed over HTTP by `deepcontact serve --metrics-port PORT` at /metrics:
     deepcontact_errors_total{code}           requests rejected, by gRPC status
     deepcontact_stage_seconds{stage}         decode, p2g, inference, g2p, total
     deepcontact_idle_streams_ended_total     streams the server ended after --stream-idle-s without a message
+    deepcontact_served_by_total{model,served_by}  steps a model answered with another card's answer
+                                             (a face card's fallback: too large, labels missed, or late)
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from prometheus_client import Counter, Histogram, start_http_server
 
 STEPS = Counter("deepcontact_steps_total", "Steps answered", ["model"])
 ERRORS = Counter("deepcontact_errors_total", "Requests rejected, by gRPC status code", ["code"])
+SERVED_BY = Counter("deepcontact_served_by_total", "Steps a model answered with another card's answer",
+                    ["model", "served_by"])
 IDLE_ENDED = Counter("deepcontact_idle_streams_ended", "Streams ended by the server after --stream-idle-s without a message")
 STAGE = Histogram(
     "deepcontact_stage_seconds", "Server-side time per stage of a step", ["stage"],

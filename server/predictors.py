@@ -38,6 +38,7 @@ from deepcontact.gridspec import GridSpec
 from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest, solved_on_labels
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
+from server.deadline import CostBySize
 from deepcontact.transfer import plan
 
 Domain = tuple[tuple[float, float], tuple[float, float]]
@@ -71,9 +72,13 @@ class Predictor:
     gridspec: GridSpec | None = None
     requires: tuple[str, ...] = ()
     batchable: bool = False  # infer(x) on one (1, ny, nx, C) grid, which server.batching can stack
+    takes_deadline: bool = False  # predict(..., deadline=) may answer otherwise to meet it
 
     def predict(self, bodies: np.ndarray, points: np.ndarray, world: World, step: int,
                 previous: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
+        """(impulses (P, 2) float32 N s, stages: seconds by stage name, "p2g", "inference",
+        "g2p"). A predictor that served another card's answer adds "served_by", that card's
+        name (a str; the service puts it on the reply)."""
         raise NotImplementedError
 
     def check_domain(self, domain: Domain) -> None:
@@ -289,6 +294,11 @@ class GraphPredictor(Predictor):
                                          + physics_needs + gate_needs + face_needs)))
         self.new_point = self.inputs.index("new_point") if "new_point" in self.inputs else None
         self.fallback: Predictor | None = None  # a face card's fallback (load_model attaches it)
+        self.face_cost = CostBySize()  # a face card's route, seconds by step size on this host
+        self.takes_deadline = card.face is not None
+        if card.face is not None:  # what the route's first solve would import, not on a served step
+            import scipy.linalg  # noqa: F401
+            import scipy.sparse.linalg  # noqa: F401
         self.infer = self.run_session
         first = (np.zeros((1, 8), np.float32), np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32))
         self.run_session(np.zeros((1, len(self.inputs)), np.float32), np.zeros((1, 2), np.int32),
@@ -313,20 +323,21 @@ class GraphPredictor(Predictor):
             feed.update(geometry=geometry, masses=masses, inverse=inverse)
         return self.session.run([self.card.output_name], feed)[0]
 
-    def predict(self, bodies, points, world, step, previous=None, friction=None):
+    def predict(self, bodies, points, world, step, previous=None, friction=None, deadline=None):
         """As Predictor.predict; friction: (P,) each point's friction coefficient, which a
-        card with `face` needs (the request's point_friction)."""
-        t0 = time.perf_counter()
+        card with `face` needs (the request's point_friction); deadline: time.perf_counter()
+        s by which a face card's answer is due (None: none), see _face_fits."""
+        t0 = started = time.perf_counter()
         if len(points) == 0:
             return np.zeros((0, 2), np.float32), {}
         if (self.card.face is not None or "point_friction" in self.requires) and friction is None:
             raise ValueError(f"{self.name} needs each point's friction")
         stages = {"p2g": 0.0, "inference": 0.0, "g2p": 0.0}
-        most = self.card.face["max_points"] if self.card.face is not None else None
-        if most is not None and len(points) > most:
-            # Too large a step to solve in time: no labels asked for (timed as g2p).
+        if self.card.face is not None and not self._face_fits(len(points), t0, deadline):
+            # Too large a step to solve, or to solve in time: no labels asked for (timed as g2p).
             impulses = self._fallback(bodies, points, world, step, previous)
             stages["g2p"] = time.perf_counter() - t0
+            stages["served_by"] = self.fallback.name if self.fallback is not None else "builtin"
             return impulses.astype(np.float32, copy=False), stages
         ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32, copy=False)
         dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
@@ -356,17 +367,14 @@ class GraphPredictor(Predictor):
             if self.card.passes > 1:
                 warm = points.copy()
                 warm["builtin"] = impulses
-        face = self.card.face
-        if face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
-            impulses, residual = solved_on_labels(bodies, points, impulses.astype(np.float64),
-                                                  np.asarray(friction, np.float64), world.physics, face["pressing"],
-                                                  face["share"], face["rounds"], face["label_friction"],
-                                                  damping=face["damping"])
-            if face["max_residual"] is not None and residual > face["max_residual"]:
-                # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
-                impulses = self._fallback(bodies, points, world, step, previous)
-            stages["g2p"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
+        if self.card.face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
+            impulses, served_by = self._solved_on_labels(bodies, points, world, step, previous, impulses, friction)
+            t1 = time.perf_counter()
+            stages["g2p"] += t1 - t0
+            self.face_cost.observe(len(points), t1 - started)
+            if served_by:
+                stages["served_by"] = served_by
+            t0 = t1
         if self.gate is not None:
             if not self.gate.serves_model(step_features(bodies, points, impulses)):
                 impulses = points["builtin"].copy()  # Box2D's own warm start: the gate expects the model to lose here
@@ -374,6 +382,34 @@ class GraphPredictor(Predictor):
         # The wire names the stages around inference p2g and g2p; here they are the
         # point features and the output's denormalization and combination.
         return impulses.astype(np.float32, copy=False), stages
+
+    def _face_fits(self, n_points: int, now: float, deadline: float | None) -> bool:
+        """Whether a face card serves its route on a step of n_points points begun at `now`:
+        not past its max_points, and, with a deadline (perf_counter() s), expected to end by
+        it (face_cost: the route's cost at each size, learned on this host). Where it does
+        not, the fallback answers, in a fraction of the time: the client gets the next best
+        answer in time rather than the best one too late (and then Box2D's own start)."""
+        most = self.card.face["max_points"]
+        if most is not None and n_points > most:
+            return False
+        return self.face_cost.fits(n_points, now, deadline)
+
+    def _solved_on_labels(self, bodies, points, world, step, previous, labels, friction) -> tuple[np.ndarray, str]:
+        """((P, 2) N s, served_by), a face card's warm start: the network's answer (labels,
+        (P, 2) N s) read as each point's label, the step solved on them and admitted
+        (kinematics.solved_on_labels), or the fallback's answer where the admitted solve
+        misses its labels by more than max_residual (served_by then names it, else "").
+        friction: (P,) each point's friction coefficient."""
+        face = self.card.face
+        impulses, residual = solved_on_labels(bodies, points, labels.astype(np.float64),
+                                              np.asarray(friction, np.float64), world.physics, face["pressing"],
+                                              face["share"], face["rounds"], face["label_friction"],
+                                              damping=face["damping"], solver=face["solver"])
+        if face["max_residual"] is not None and residual > face["max_residual"]:
+            # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
+            return (self._fallback(bodies, points, world, step, previous),
+                    self.fallback.name if self.fallback is not None else "builtin")
+        return impulses, ""
 
     def _fallback(self, bodies, points, world, step, previous) -> np.ndarray:
         """(P, 2) N s served where a face card does not serve its solve: its fallback card's

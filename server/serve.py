@@ -35,7 +35,7 @@ from server.batching import MicroBatcher
 from server.idle import IdleStreams
 from server.malformed import MalformedRequests
 from server.predictors import load_models, providers
-from server.service import SERVICE_NAME, FaultDelay, Limits, WarmStartService, add_to_server
+from server.service import DEADLINE_MARGIN_S, SERVICE_NAME, FaultDelay, Limits, WarmStartService, add_to_server
 
 log = logging.getLogger("deepcontact.server")
 # A stream silent this long is ended, freeing its worker thread (server.idle).
@@ -95,6 +95,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="testing clients: hold each reply this long, as a slow server would (default 0: off)")
     parser.add_argument("--fault-every", type=int, default=1, metavar="N",
                         help="with --fault-delay-ms: only steps whose index is a multiple of N (default 1: all)")
+    parser.add_argument("--deadline-margin-ms", type=float, default=1e3 * DEADLINE_MARGIN_S, metavar="MS",
+                        help="of each request's budget (the client's wait, budget_us), leave this much for the "
+                             "transport and the reply: a face card whose route would not end inside the rest "
+                             "serves its fallback instead (default %(default)g; docs/server.md, Deadlines)")
     parser.add_argument("--log-format", choices=("json", "text"), default="json", help="log lines (default json)")
 
 
@@ -121,7 +125,8 @@ class Server:
                  max_queue: int = 256, batch_max: int = 0, batch_delay_us: int = 500,
                  intra_op_threads: int = 1, inter_op_threads: int = 1, limits: Limits = Limits(),
                  random_seed: int = 0, credentials: grpc.ServerCredentials | None = None,
-                 fault: FaultDelay | None = None, stream_idle_s: float = STREAM_IDLE_S):
+                 fault: FaultDelay | None = None, stream_idle_s: float = STREAM_IDLE_S,
+                 deadline_margin_s: float = DEADLINE_MARGIN_S):
         self.models = load_models(models, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
                                   max_grid_nodes=limits.max_grid_nodes) if models else []
         self.batchers = []
@@ -133,7 +138,7 @@ class Server:
                 self.batchers.append(b)
         self.idle = IdleStreams(stream_idle_s) if stream_idle_s > 0 else None
         self.service = WarmStartService(self.models + providers(random_seed, limits.max_grid_nodes), limits, fault,
-                                        self.idle)
+                                        self.idle, deadline_margin_s)
         # Each open stream holds a worker thread, so the pool is as large as the RPC bound.
         self.grpc = grpc.server(futures.ThreadPoolExecutor(max_workers=max_concurrent, thread_name_prefix="rpc"),
                                 interceptors=(MalformedRequests(),), maximum_concurrent_rpcs=max_concurrent)
@@ -209,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
                         random_seed=args.random_seed,
                         credentials=credentials,
                         fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every) if args.fault_delay_ms else None,
-                        stream_idle_s=args.stream_idle_s)
+                        stream_idle_s=args.stream_idle_s, deadline_margin_s=args.deadline_margin_ms / 1e3)
     except (ModelCardError, OSError, ValueError) as exc:
         print(f"deepcontact serve: {exc}", file=sys.stderr)
         return 2
@@ -229,8 +234,9 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     """The first thing wrong with `deepcontact serve`'s arguments, in a sentence, or None."""
     if not args.models.is_dir():
         return f"{args.models} is not a folder of models"
-    if args.grace < 0 or args.fault_delay_ms < 0 or args.stream_idle_s < 0 or args.fault_every < 1:
-        return "--grace, --fault-delay-ms and --stream-idle-s must be >= 0, --fault-every >= 1"
+    if args.grace < 0 or args.fault_delay_ms < 0 or args.stream_idle_s < 0 or args.fault_every < 1 \
+            or not args.deadline_margin_ms >= 0:
+        return "--grace, --fault-delay-ms, --stream-idle-s and --deadline-margin-ms must be >= 0, --fault-every >= 1"
     if min(args.max_bodies, args.max_points, args.max_grid_nodes) < 1:
         return "--max-bodies, --max-points and --max-grid-nodes must be >= 1"
     if bool(args.tls_cert) != bool(args.tls_key):

@@ -33,6 +33,10 @@ from server.rejects import reject
 log = logging.getLogger("deepcontact.server")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["WarmStart"].full_name
 _PREDICT, _STREAM = f"/{SERVICE_NAME}/Predict", f"/{SERVICE_NAME}/Stream"
+#: Of a request's budget_us, what the service leaves for the transport and the reply (s;
+#: `deepcontact serve --deadline-margin-ms`): a loopback round trip's share outside the
+#: handler is about 0.5 ms on an idle host, and several times that beside a simulation.
+DEADLINE_MARGIN_S = 2e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,8 +101,11 @@ def add_to_server(service: "WarmStartService", server: grpc.Server) -> None:
 
 class WarmStartService(pb_grpc.WarmStartServicer):
     def __init__(self, predictors: list[Predictor], limits: Limits = Limits(), fault: FaultDelay | None = None,
-                 idle: IdleStreams | None = None):
+                 idle: IdleStreams | None = None, deadline_margin_s: float = DEADLINE_MARGIN_S):
         self.predictors = {p.name: p for p in predictors}
+        # A request's budget counts from the client's sending; this much of it is left for what
+        # happens outside the handler (the transport both ways, parsing before t0, the reply).
+        self.deadline_margin_s = deadline_margin_s
         self.limits = limits
         self.fault = fault
         self.idle = idle  # None: streams may stay open without sending for as long as they like
@@ -198,6 +205,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                                               max_points=self.limits.max_points)
             # Only a predictor that asks for the friction gets it: the others' predict() takes none.
             extra = {"friction": wire.decode_friction(request)} if "point_friction" in predictor.requires else {}
+            if predictor.takes_deadline and request.budget_us:
+                extra["deadline"] = t0 + 1e-6 * request.budget_us - self.deadline_margin_s
             predictor.check_domain(world.domain)
         except (wire.WireError, GridMismatch) as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
@@ -214,7 +223,11 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             raise _Reject(grpc.StatusCode.INTERNAL, f"{predictor.name} failed: {exc}") from None
         if self.fault is not None and self.fault.applies(request.step):
             time.sleep(self.fault.seconds)
+        served_by = stages.pop("served_by", "")
         reply = wire.encode_impulses(request.step, predictor.name, impulses)
+        if served_by:
+            reply.served_by = served_by
+            metrics.SERVED_BY.labels(model=predictor.name, served_by=served_by).inc()
         # Filled in place: building a Timings and copying it in costs more.
         timings = reply.timings
         timings.decode_us = _us(t1 - t0)

@@ -141,8 +141,12 @@ class WarmStartClient:
             return False
 
     def step(self, request: pb.StepRequest, timeout: float) -> pb.Impulses:
-        """Send one step on the stream and wait up to `timeout` s for its reply."""
+        """Send one step on the stream and wait up to `timeout` s for its reply. The request
+        carries the wait as its budget_us (unless the caller set one), so that a server can
+        answer a cheaper model in time rather than a dear one too late."""
         deadline = time.monotonic() + timeout
+        if not request.budget_us:
+            request.budget_us = min(int(timeout * 1e6), 2**32 - 1)
         reused = self._replies is not None
         got = self._exchange(request, timeout)
         if reused and isinstance(got, grpc.RpcError) and got.code() == grpc.StatusCode.CANCELLED:

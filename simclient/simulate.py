@@ -56,6 +56,7 @@ class StepRecord:
     fallback: bool
     fallback_reason: str | None  # StepFailed.reason, or NO_SERVER; None when not a fallback
     reconnect: bool  # this step's request went on a stream reopened after the first
+    served_by: str | None = None  # the reply's served_by: another card's answer than the model's route
 
 
 @dataclasses.dataclass
@@ -68,6 +69,7 @@ class _Served:
     codec_s: float = 0.0  # encoding the request and decoding the reply, seconds
     fallback_reason: str | None = None  # set: the step fell back to builtin
     reconnect: bool = False
+    served_by: str | None = None  # the reply's served_by, where set
 
 
 class _Laps:
@@ -108,7 +110,7 @@ def _ask_server(client, provider: Provider, engine, k: int, bodies, points, time
     return _Served(warm=warm, latency_ms=1e3 * (t2 - t1), codec_s=(t1 - t0) + (t3 - t2),
                    server_us={"decode": tm.decode_us, "p2g": tm.p2g_us, "inference": tm.inference_us,
                               "g2p": tm.g2p_us, "total": tm.total_us},
-                   reconnect=client.reconnects > streams)
+                   reconnect=client.reconnects > streams, served_by=reply.served_by or None)
 
 
 def _pick(provider, client, engine, k: int, bodies, points, timeout: float) -> _Served:
@@ -200,7 +202,7 @@ def _record(stats, after: np.ndarray, served: _Served, provider: Provider, *, co
         client_us=1e6 * (export_s + served.codec_s + inject_s), provider_ms=1e3 * provider_s,
         solve_ms=stats.solve_ms, collide_ms=1e3 * collide_s, export_ms=1e3 * export_s, inject_ms=1e3 * inject_s,
         fallback=served.fallback_reason is not None, fallback_reason=served.fallback_reason,
-        reconnect=served.reconnect)
+        reconnect=served.reconnect, served_by=served.served_by)
 
 
 def _columns(records: list[StepRecord]) -> dict[str, list]:
@@ -232,6 +234,8 @@ def summarize(records: list[StepRecord]) -> dict:
         "fallback_steps": sum(r.fallback for r in records),
         "fallbacks_by_reason": dict(collections.Counter(r.fallback_reason for r in records if r.fallback)),
         "reconnects": sum(r.reconnect for r in records),
+        # Steps a server answered with another card's (a face card's fallback; docs/server.md, Deadlines).
+        "served_by": dict(collections.Counter(r.served_by for r in records if r.served_by)),
         "median_client_us": stat(np.median, client),
         "total_solve_ms": float(sum(r.solve_ms for r in records)),
     }

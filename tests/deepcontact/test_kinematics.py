@@ -447,3 +447,63 @@ def test_the_contact_operator_is_the_jacobians_product():
     jt = contact_jacobian(bodies, points, f)
     inverse = np.stack([f.inv_mass, f.inv_mass, f.inv_inertia], axis=1)[f.dynamic].ravel()
     np.testing.assert_allclose(contact_operator(f), jt.T @ (inverse[:, None] * jt), atol=1e-12)
+
+
+def test_the_face_system_is_the_contact_operators_rows_and_columns_on_the_face():
+    # face_system builds solve_on_face's system from the point pairs; it is the dense operator's
+    # equation rows, with a sliding point's column its normal one plus +-mu times its tangent one.
+    from deepcontact.kinematics import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, contact_frame, contact_operator, face_system
+
+    bodies, points, _, mu = sliding_pile()
+    face = np.array([OPEN, STICKS, SLIDES_PLUS, SLIDES_MINUS] * len(points), np.int8)[:len(points)]
+    f = contact_frame(bodies, points)
+    system, rows, slide = face_system(f, face, mu)
+    op = contact_operator(f)
+    pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
+    np.testing.assert_array_equal(rows, np.concatenate([2 * pressing, 2 * sticking + 1]))
+    np.testing.assert_array_equal(slide, np.where(face == SLIDES_PLUS, 0.5, np.where(face == SLIDES_MINUS, -0.5, 0.0))[pressing])
+    expected = np.concatenate([op[np.ix_(rows, 2 * pressing)] + op[np.ix_(rows, 2 * pressing + 1)] * slide,
+                               op[np.ix_(rows, 2 * sticking + 1)]], axis=1)
+    np.testing.assert_allclose(system, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_the_dual_solve_is_the_minimum_norm_solution_of_a_singular_consistent_system_and_declines_an_inconsistent_one():
+    from deepcontact.kinematics import minimum_norm_solve
+
+    rng = np.random.default_rng(3)
+    left, right = rng.standard_normal((60, 45)), rng.standard_normal((45, 60))
+    system = left @ right  # rank 45 of 60: singular, as a face's system is in a pile
+    rhs = system @ rng.standard_normal(60)  # consistent
+    # The pseudo-inverse with the rank read right (gelsy at LAPACK's rcond of machine precision
+    # takes this product's rounding for 15 more singular values, and its answer is not the least).
+    expected = np.linalg.pinv(system, rcond=1e-10) @ rhs
+    np.testing.assert_allclose(minimum_norm_solve(system, rhs), expected, rtol=1e-7, atol=1e-9)
+    inconsistent = rhs + np.linalg.svd(system)[0][:, -1]  # plus a direction off its range
+    assert minimum_norm_solve(system, inconsistent) is None
+    np.testing.assert_array_equal(minimum_norm_solve(np.zeros((3, 3)), np.zeros(3)), np.zeros(3))
+    assert minimum_norm_solve(np.zeros((0, 0)), np.zeros(0)).shape == (0,)
+
+
+def test_both_solvers_give_a_solution_its_own_faces_motion():
+    from deepcontact.kinematics import OPEN, STICKS, contact_face, solve_on_face
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+    gelsy, dual = (solve_on_face(bodies, points, face, mu, Physics.thesis(), solver=s) for s in ("gelsy", "dual"))
+    after = contact_velocities(bodies, points, dual, Physics.thesis())
+    assert np.abs(after[face != OPEN, 0]).max() < 1e-9 and np.abs(after[face == STICKS, 1]).max() < 1e-9
+    np.testing.assert_allclose(dual, gelsy, atol=1e-6 * np.abs(gelsy).max())
+    with pytest.raises(ValueError, match="solver"):
+        solve_on_face(bodies, points, face, mu, Physics.thesis(), solver="svd")
+
+
+def test_impulses_already_admissible_come_back_as_they_are():
+    from deepcontact.kinematics import nearest_admissible, project_to_cones
+
+    bodies, points, exact, mu = sliding_pile()
+    inside = project_to_cones(exact, mu)
+    np.testing.assert_array_equal(nearest_admissible(bodies, points, inside, mu), inside)
+    held = np.zeros(len(points), bool)
+    held[0] = True
+    if inside[0].any():  # a point held open but pressing: not admissible as it is, so moved
+        assert not nearest_admissible(bodies, points, inside, mu, open_points=held)[0].any()

@@ -338,3 +338,56 @@ def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_
             assert "point_friction: holds negative values" in refused.value.details()
     finally:
         srv.stop()
+
+
+def test_a_face_card_serves_its_fallback_where_its_route_would_miss_the_clients_budget(tmp_path, thesis_steps):
+    # A request carries how long its client waits (budget_us). A face card whose route has been
+    # seen to cost more than is left answers its fallback card's answer in time, and says so
+    # (served_by); with room, or without a budget, it serves its route. Over real gRPC.
+    import grpc
+    import json
+    import shutil
+    from pathlib import Path
+
+    from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
+    from server.predictors import load_model
+    from server.serve import Server
+
+    shipped = Path(__file__).parents[2] / "models"
+    classifier = json.loads((shipped / "face.json").read_text())["alias_of"]
+    for name in (f"{classifier}.json", f"{classifier}.onnx"):
+        shutil.copy(shipped / name, tmp_path)
+    (tmp_path / "timed.json").write_text(json.dumps({"name": "timed", "alias_of": classifier, "face": {
+        "pressing": 0.75, "rounds": 200, "fallback": classifier}}))
+    world_msg, steps = thesis_steps
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5, np.float32)
+    lower, upper, _ = wire.decode_world(world_msg)
+    world = World((lower, upper), wire.decode_physics(world_msg))
+    sent_bodies, sent_points = wire.decode_step(wire.encode_step(0, "timed", bodies, points, builtin=points["builtin"]),
+                                                max_bodies=10**4, max_points=10**5)
+    own = load_model(tmp_path / f"{classifier}.json").predict(sent_bodies, sent_points, world, 0)[0]
+    srv = Server(models=tmp_path, bind="127.0.0.1:0", deadline_margin_s=0.0).start()
+    try:
+        timed = next(m for m in srv.models if m.name == "timed")
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+
+            def ask(budget_us):
+                request = wire.encode_step(0, "timed", bodies, points, world=world_msg, builtin=points["builtin"],
+                                           friction=mu)
+                request.budget_us = budget_us
+                reply = stub.Predict(request)
+                return np.stack(wire.decode_impulses(reply), axis=1), reply.served_by
+
+            route, by = ask(0)  # no budget: the route, whatever it costs
+            assert by == "" and not np.array_equal(route, own)
+            for _ in range(4):  # the route as seen on a host far slower than the budget
+                timed.face_cost.observe(len(points), 10.0)
+            late, by = ask(1_000_000)
+            assert by == classifier
+            np.testing.assert_array_equal(late, own)
+            np.testing.assert_array_equal(ask(0)[0], route)
+            assert ask(30_000_000)[1] == ""  # a budget with room for it
+    finally:
+        srv.stop()

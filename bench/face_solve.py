@@ -1,0 +1,140 @@
+"""`deepcontact bench face-solve`: what the face route's solve costs a step, by the step's size,
+and how near its two ways of solving agree.
+
+Records a thesis world on a benchmark seed (bench.server.record_steps), passes each step
+through the wire as the server receives it, reads the face card's classifier on it in this
+process, and times on every step with contacts:
+  system   face_system, the linear system on the labels' unknowns (from the point pairs)
+  operator the same system the way the route built it before: the dense (2P, 2P)
+           contact_operator, then its rows and columns on the face
+  dual     minimum_norm_solve: S S^T, an LU, S^T y (a card's solver "dual")
+  gelsy    the same least-squares problem by LAPACK's gelsy (solver "gelsy", the default)
+  admit    nearest_admissible at the card's rounds (and whether the solve was admissible
+           as it was, so that the admission had nothing to do)
+  route    solved_on_labels, all of it, with the card's solver (the server's G2P stage of a face card)
+and the relative difference |x_dual - x_gelsy| / |x_gelsy|. Medians by size, in ms; one
+process, one thread of BLAS (as `deepcontact serve` runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from deepcontact.io import write_json_atomic
+
+SIZES = ((1, 100), (100, 150), (150, 200), (200, 10**6))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    parser.add_argument("--model", default="default", help="a face card (default: default)")
+    parser.add_argument("--seed", type=int, default=903, help="thesis-world seed (default 903)")
+    parser.add_argument("--steps", type=int, default=250, help="steps recorded (default 250)")
+    parser.add_argument("--json", metavar="FILE", help="write the results here as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before SciPy loads OpenBLAS, as serve does
+    import scipy.linalg
+
+    from bench.server import record_steps
+    from deepcontact import kinematics as K
+    from deepcontact import wire
+    from deepcontact.modelcard import ModelCard, ModelCardError
+    from server.predictors import World, load_model
+    from simclient.scene import SceneSpec
+
+    path = args.models / f"{args.model}.json"
+    try:
+        card = ModelCard.load(path)
+        classifier = load_model(args.models / f"{ModelCard.alias_target(path)}.json")
+    except (OSError, ModelCardError) as exc:
+        print(f"deepcontact bench face-solve: {exc}", file=sys.stderr)
+        return 2
+    if card.face is None:
+        print(f"deepcontact bench face-solve: {path} has no face: name a face card", file=sys.stderr)
+        return 2
+    face_of = card.face
+    thesis = SceneSpec.thesis()
+    (lx, ly), (ux, uy) = thesis.domain
+    world = World(((float(lx), float(ly)), (float(ux), float(uy))), thesis.physics)
+    rows = []
+    for k, (bodies, points, friction) in enumerate(record_steps(args.seed, args.steps)):
+        if len(points) == 0:
+            continue
+        sent = wire.encode_step(k, args.model, bodies, points, builtin=points["builtin"], friction=friction)
+        bodies, points = wire.decode_step(sent, max_bodies=10**4, max_points=10**6)
+        mu = wire.decode_friction(sent).astype(np.float64)
+        extra = {"friction": mu.astype(np.float32)} if "point_friction" in classifier.requires else {}
+        labels = classifier.predict(bodies, points, world, k, **extra)[0].astype(np.float64)
+        face = K.contact_face(labels, mu, pressing=face_of["pressing"], share=face_of["share"])
+        if not (face != K.OPEN).any():
+            continue
+        frame = K.contact_frame(bodies, points)
+        t0 = time.perf_counter()
+        system, eq, slide = K.face_system(frame, face, mu)
+        t1 = time.perf_counter()
+        operator = K.contact_operator(frame)
+        pressing, sticking = eq[eq % 2 == 0], eq[eq % 2 == 1] - 1
+        np.concatenate([operator[np.ix_(eq, pressing)] + operator[np.ix_(eq, pressing + 1)] * slide,
+                        operator[np.ix_(eq, sticking + 1)]], axis=1)
+        t1b = time.perf_counter()
+        rhs = -K.contact_velocities(bodies, points, physics=world.physics).ravel()[eq]
+        t2 = time.perf_counter()
+        dual = K.minimum_norm_solve(system, rhs)
+        t3 = time.perf_counter()
+        gelsy = scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
+        t4 = time.perf_counter()
+        solved = K.solve_on_face(bodies, points, face, mu, world.physics, frame)
+        t5 = time.perf_counter()
+        K.nearest_admissible(bodies, points, solved, mu, open_points=face == K.OPEN, iterations=face_of["rounds"],
+                             frame=frame)
+        t6 = time.perf_counter()
+        K.solved_on_labels(bodies, points, labels, mu, world.physics, face_of["pressing"], face_of["share"],
+                           face_of["rounds"], face_of["label_friction"], damping=face_of["damping"], solver=face_of["solver"])
+        t7 = time.perf_counter()
+        differs = None if dual is None else float(np.linalg.norm(dual - gelsy) / max(np.linalg.norm(gelsy), 1e-300))
+        admissible = bool(np.array_equal(K.project_to_cones(solved, mu) * (face != K.OPEN)[:, None], solved))
+        rows.append({"points": len(points), "unknowns": len(rhs), "system_ms": 1e3 * (t1 - t0),
+                     "operator_ms": 1e3 * (t1b - t1), "admissible": admissible,
+                     "dual_ms": 1e3 * (t3 - t2), "gelsy_ms": 1e3 * (t4 - t3), "admit_ms": 1e3 * (t6 - t5),
+                     "route_ms": 1e3 * (t7 - t6), "differs": differs})
+    if not rows:
+        print(f"deepcontact bench face-solve: no step of seed {args.seed} has a pressing label", file=sys.stderr)
+        return 2
+    by_size = []
+    print(f"{args.model} on thesis seed {args.seed}: {len(rows)} steps; medians in ms")
+    print("| points | steps | unknowns | system | operator (before) | dual | gelsy | admission | solve admissible | "
+          "whole route |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for lo, hi in SIZES:
+        these = [r for r in rows if lo <= r["points"] < hi]
+        if not these:
+            continue
+        med = {key: float(np.median([r[key] for r in these])) for key in
+               ("unknowns", "system_ms", "operator_ms", "dual_ms", "gelsy_ms", "admit_ms", "route_ms")}
+        admissible = sum(r["admissible"] for r in these)
+        by_size.append({"points": [lo, hi], "steps": len(these), "admissible": admissible, **med})
+        label = f"{lo}-{hi - 1}" if hi < 10**6 else f"{lo}+"
+        print(f"| {label} | {len(these)} | {med['unknowns']:.0f} | {med['system_ms']:.2f} | {med['operator_ms']:.2f} | "
+              f"{med['dual_ms']:.2f} | {med['gelsy_ms']:.2f} | {med['admit_ms']:.2f} | {admissible} | "
+              f"{med['route_ms']:.2f} |")
+    differs = np.array([r["differs"] for r in rows if r["differs"] is not None])
+    declined = sum(r["differs"] is None for r in rows)
+    agreement = {"median": float(np.median(differs)) if len(differs) else None,
+                 "share_above_1e-6": float(np.mean(differs > 1e-6)) if len(differs) else None,
+                 "share_above_1e-3": float(np.mean(differs > 1e-3)) if len(differs) else None,
+                 "declined_to_gelsy": declined}
+    print(f"dual against gelsy, |x_dual - x_gelsy| / |x_gelsy|: median {agreement['median']:.1e}, above 1e-6 at "
+          f"{100 * agreement['share_above_1e-6']:.0f} % of steps, above 1e-3 at {100 * agreement['share_above_1e-3']:.0f} %; "
+          f"{declined} steps left to gelsy (an inconsistent system)")
+    if args.json:
+        write_json_atomic(Path(args.json), {"model": args.model, "seed": args.seed, "steps": len(rows),
+                                            "by_size": by_size, "agreement": agreement, "rows": rows})
+    return 0

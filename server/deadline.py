@@ -1,0 +1,83 @@
+"""What a route has cost at each step size, to tell whether it fits a step's deadline.
+
+A face card's route (the classifier, the solve on its labels, the admission) costs about
+the cube of the step's size and differs from host to host by a factor of three: a
+threshold fixed in the card would be wrong somewhere. A `CostBySize` learns it on the host
+that serves, from the steps it serves:
+
+    cost = CostBySize()
+    if cost.fits(len(points), time.perf_counter(), deadline):   # deadline: perf_counter() s
+        ... the dear route ...
+        cost.observe(len(points), seconds)
+    else:
+        ... the cheap one ...
+
+Steps are grouped by size in buckets of BUCKET_POINTS points. A bucket with TRIALS steps
+seen or more is estimated by the QUANTILE of its last WINDOW steps, so that steps that run
+long on a busy host (the reason for the deadline) count. A bucket with fewer is estimated from
+the nearest smaller one that has them, grown with the square of (size + OFFSET) (the route's
+fixed costs: the classifier, the set-up of the solve); with none such, the route fits. So a
+size a little larger than those known is tried and learned, one far larger is not tried until
+the sizes between are known, and one cold first call (planning, imports) decides nothing. A
+bucket turned away is tried again on every PROBE_EVERY-th step declined where its fastest
+recent step would still fit, so that an estimate a busy moment raised comes down again.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+
+import numpy as np
+
+BUCKET_POINTS = 10
+WINDOW = 16
+QUANTILE = 0.75
+PROBE_EVERY = 16
+TRIALS = 3
+OFFSET = 50
+
+class CostBySize:
+    """Recent costs of a route by step size (points), seconds; thread-safe."""
+
+    def __init__(self) -> None:
+        self._seen: dict[int, collections.deque] = {}
+        self._declined: collections.Counter = collections.Counter()
+        self._lock = threading.Lock()
+
+    def observe(self, points: int, seconds: float) -> None:
+        """One step of `points` points took `seconds` s along the route."""
+        k = points // BUCKET_POINTS
+        with self._lock:
+            self._seen.setdefault(k, collections.deque(maxlen=WINDOW)).append(float(seconds))
+
+    def estimate(self, points: int) -> float:
+        """Seconds the route is expected to take on a step of `points` points (0: nothing known
+        at this size or below)."""
+        return self._estimate(points)[0]
+
+    def _estimate(self, points: int) -> tuple[float, float]:
+        """(the estimate, the fastest recent step's seconds) at this size, as the module says."""
+        k = points // BUCKET_POINTS
+        with self._lock:
+            known = [b for b, recent in self._seen.items() if len(recent) >= TRIALS and b <= k]
+            if not known:
+                return 0.0, 0.0
+            b = max(known)
+            values = np.fromiter(self._seen[b], float, len(self._seen[b]))
+        grow = 1.0 if b == k else ((k * BUCKET_POINTS + OFFSET) / (b * BUCKET_POINTS + OFFSET)) ** 2
+        return grow * float(np.quantile(values, QUANTILE)), grow * float(values.min())
+
+    def fits(self, points: int, now: float, deadline: float | None) -> bool:
+        """Whether a step of `points` points started along the route at `now` should take it
+        to end by `deadline` (both time.perf_counter() s; None: no deadline, it always fits)."""
+        if deadline is None:
+            return True
+        expected, fastest = self._estimate(points)
+        if now + expected <= deadline:
+            return True
+        k = points // BUCKET_POINTS
+        with self._lock:
+            self._declined[k] += 1
+            probe = self._declined[k] % PROBE_EVERY == 0
+        return probe and now + fastest <= deadline
