@@ -27,6 +27,7 @@
 #include <Python.h>
 #include <stdint.h>
 #include <string.h>
+#include <time.h>
 
 /* BODY_DTYPE (48 bytes) and CONTACT_DTYPE (64 bytes): byte offsets of the fields read. */
 enum {
@@ -259,9 +260,19 @@ done:
  *
  * Arguments: jt as CSR (indptr int32 (R + 1,), indices int32, data float64: R = 3 D rows,
  * 2 P columns), L and U as CSC (int32, int32, float64; R x R), perm_r and perm_c int32
- * (R,), c float64 (2 P,), mu and keep float64 (P,), rho, iterations, tolerance, and z
- * float64 (2 P,) out. R = 0: no dynamic body, same_motion is the identity. Returns the
- * rounds run. */
+ * (R,), c float64 (2 P,), mu and keep float64 (P,), rho, iterations, tolerance, until
+ * (seconds of CLOCK_MONOTONIC, Python's time.monotonic(), after which no round starts; 0:
+ * none; read every UNTIL_EVERY rounds) and z float64 (2 P,) out. R = 0: no dynamic body,
+ * same_motion is the identity. Returns the rounds run. */
+#define UNTIL_EVERY 8
+
+static double monotonic_seconds(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
 static int valid_sparse(const Py_buffer *ptr, const Py_buffer *idx, const Py_buffer *val, Py_ssize_t major,
                         Py_ssize_t minor)
 {
@@ -304,12 +315,12 @@ static PyObject *admission_rounds(PyObject *self, PyObject *args)
 {
     Py_buffer b[16];
     Py_ssize_t rows;
-    double rho, tolerance;
+    double rho, tolerance, until;
     long iterations;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*y*y*ny*y*y*y*y*y*y*y*y*y*y*dldw*", &b[0], &b[1], &b[2], &rows, &b[3], &b[4],
+    if (!PyArg_ParseTuple(args, "y*y*y*ny*y*y*y*y*y*y*y*y*y*y*dlddw*", &b[0], &b[1], &b[2], &rows, &b[3], &b[4],
                           &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13], &rho, &iterations,
-                          &tolerance, &b[14]))
+                          &tolerance, &until, &b[14]))
         return NULL;
     const int n_bufs = 15;
     PyObject *result = NULL;
@@ -342,6 +353,8 @@ static PyObject *admission_rounds(PyObject *self, PyObject *args)
     Py_BEGIN_ALLOW_THREADS
     project_cones(c, mu, keep, n_points, z);
     while (round < iterations) {
+        if (until > 0 && round > 0 && round % UNTIL_EVERY == 0 && monotonic_seconds() >= until)
+            break;
         round++;
         for (Py_ssize_t k = 0; k < n2; k++) {
             y[k] = (c[k] + rho * (z[k] - s[k])) / (1.0 + rho);

@@ -35,6 +35,7 @@ body_space_part) stays in NumPy on a ContactFrame.
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 
@@ -351,7 +352,8 @@ def project_to_cones(impulses: np.ndarray, mu: np.ndarray) -> np.ndarray:
 
 def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu: np.ndarray,
                        open_points: np.ndarray | None = None, iterations: int = 1000, tolerance: float = 1e-5,
-                       rho: float = 100.0, frame: ContactFrame | None = None) -> np.ndarray:
+                       rho: float = 100.0, frame: ContactFrame | None = None,
+                       until: float | None = None) -> np.ndarray:
     """The impulses nearest `impulses` that move the bodies as they do and that every
     point's limits admit, (P, 2) N s.
 
@@ -369,7 +371,9 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     among the admissible points and reaching the set is what counts (on a settled
     pile rho = 100 converges in a few hundred rounds, rho = 1 in thousands).
     Where no such impulses exist (a body held at one point whose push leaves the
-    cone) it ends at the cones' point nearest the affine set. The answer is z:
+    cone) it ends at the cones' point nearest the affine set. `until` (time.perf_counter() s;
+    None: none) stops the rounds there, whatever they have reached (checked every 8 rounds; the
+    first 8 always run): a served step's deadline. The answer is z:
     inside the cones always. J is factorized sparse (SuperLU) once and the rounds run
     compiled (deepcontact/_kinematics.c; tests/deepcontact/test_kinematics.py keeps the
     NumPy rounds as the reference): a few microseconds a round at 140 points, where NumPy's
@@ -411,8 +415,16 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     _compiled.admission_rounds(jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64),
                                rows, *factors, *perms, np.ascontiguousarray(c.ravel()),
                                np.ascontiguousarray(mu, np.float64), keep, float(rho), int(iterations),
-                               float(tolerance), z)
+                               float(tolerance), _monotonic(until), z)
     return z.reshape(-1, 2)
+
+
+def _monotonic(until: float | None) -> float:
+    """A time.perf_counter() instant as time.monotonic()'s (the compiled rounds read that clock,
+    CLOCK_MONOTONIC); 0.0 for None."""
+    if until is None:
+        return 0.0
+    return max(1e-9, until - time.perf_counter() + time.monotonic())
 
 
 #: contact_face's labels: a point that lets go (no impulse), sticks (both velocities 0),
@@ -668,7 +680,7 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
                      physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                      rounds: int = 1000, label_friction: float | None = None,
                      frame: ContactFrame | None = None, damping: float = 0.0,
-                     solver: str = "gelsy") -> tuple[np.ndarray, float]:
+                     solver: str = "gelsy", until: float | None = None) -> tuple[np.ndarray, float]:
     """The warm start of the face route, (P, 2) N s: a classifier's answer read as labels,
     the step solved on them, the result admitted.
 
@@ -679,8 +691,8 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     (P,) friction coefficients; bodies, points, physics as in contact_velocities. The step
     is solved on those labels (solve_on_face, with its `damping` and `solver`) and moved by the smallest self-stress that
     every cone admits, the labels' open points held at 0 (nearest_admissible, at most
-    `rounds` rounds). The simulation client's solved: composite and the server's face cards
-    (deepcontact.modelcard) both serve this.
+    `rounds` rounds, and none begun after `until`, perf_counter() s). The simulation client's
+    solved: composite and the server's face cards (deepcontact.modelcard) both serve this.
 
     Returns (impulses (P, 2) N s, residual): face_residual of the impulses served, how far
     they leave the labels' equations unmet once every cone is kept (0: labels the limits
@@ -691,7 +703,8 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     read_at = mu if label_friction is None else np.full(len(points), float(label_friction))
     face = contact_face(labels, read_at, pressing=pressing, share=share)
     solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver)
-    admitted = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame)
+    admitted = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame,
+                                  until=until)
     return admitted, face_residual(bodies, points, face, admitted, physics)
 
 

@@ -368,7 +368,8 @@ class GraphPredictor(Predictor):
                 warm = points.copy()
                 warm["builtin"] = impulses
         if self.card.face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
-            impulses, served_by = self._solved_on_labels(bodies, points, world, step, previous, impulses, friction)
+            impulses, served_by = self._solved_on_labels(bodies, points, world, step, previous, impulses, friction,
+                                                         deadline)
             t1 = time.perf_counter()
             stages["g2p"] += t1 - t0
             self.face_cost.observe(len(points), t1 - started)
@@ -394,17 +395,20 @@ class GraphPredictor(Predictor):
             return False
         return self.face_cost.fits(n_points, now, deadline)
 
-    def _solved_on_labels(self, bodies, points, world, step, previous, labels, friction) -> tuple[np.ndarray, str]:
+    def _solved_on_labels(self, bodies, points, world, step, previous, labels, friction,
+                          deadline=None) -> tuple[np.ndarray, str]:
         """((P, 2) N s, served_by), a face card's warm start: the network's answer (labels,
         (P, 2) N s) read as each point's label, the step solved on them and admitted
         (kinematics.solved_on_labels), or the fallback's answer where the admitted solve
         misses its labels by more than max_residual (served_by then names it, else "").
-        friction: (P,) each point's friction coefficient."""
+        friction: (P,) each point's friction coefficient; deadline: perf_counter() s after
+        which no admission round begins (a route begun late answers with what it has rather
+        than miss)."""
         face = self.card.face
         impulses, residual = solved_on_labels(bodies, points, labels.astype(np.float64),
                                               np.asarray(friction, np.float64), world.physics, face["pressing"],
                                               face["share"], face["rounds"], face["label_friction"],
-                                              damping=face["damping"], solver=face["solver"])
+                                              damping=face["damping"], solver=face["solver"], until=deadline)
         if face["max_residual"] is not None and residual > face["max_residual"]:
             # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
             return (self._fallback(bodies, points, world, step, previous),

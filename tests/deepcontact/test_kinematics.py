@@ -507,3 +507,24 @@ def test_impulses_already_admissible_come_back_as_they_are():
     held[0] = True
     if inside[0].any():  # a point held open but pressing: not admissible as it is, so moved
         assert not nearest_admissible(bodies, points, inside, mu, open_points=held)[0].any()
+
+
+def test_the_admission_stops_its_rounds_at_its_deadline():
+    # until: no round begins after it (the clock read every eight rounds): a deadline already
+    # past leaves the first eight rounds' answer, which is inside every cone all the same.
+    import time
+
+    from deepcontact.kinematics import nearest_admissible, project_to_cones
+
+    bodies, points, exact, mu = sliding_pile()
+    start = exact * 1.3 + 0.05  # off the cones somewhere: the rounds have work to do
+    unbounded = nearest_admissible(bodies, points, start, mu, iterations=5000, tolerance=1e-12)
+    late = nearest_admissible(bodies, points, start, mu, iterations=5000, tolerance=1e-12,
+                              until=time.perf_counter() - 1.0)
+    eight = nearest_admissible(bodies, points, start, mu, iterations=8, tolerance=1e-12)
+    np.testing.assert_array_equal(late, eight)
+    assert not np.array_equal(late, unbounded)
+    np.testing.assert_array_equal(project_to_cones(late, mu), late)
+    far = nearest_admissible(bodies, points, start, mu, iterations=5000, tolerance=1e-12,
+                             until=time.perf_counter() + 3600.0)
+    np.testing.assert_array_equal(far, unbounded)
