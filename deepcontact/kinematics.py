@@ -379,9 +379,6 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     NumPy rounds as the reference): a few microseconds a round at 140 points, where NumPy's
     were about 0.1 ms.
     """
-    from scipy import sparse
-    from scipy.sparse.linalg import splu
-
     c = np.asarray(impulses, np.float64)
     if len(points) == 0:
         return np.zeros((0, 2))
@@ -392,6 +389,31 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
         # the rounds would end in the first, at c, after a factorization that costs more than they do.
         return c.copy()
     f = contact_frame(bodies, points) if frame is None else frame
+    jt, rows, factors, perms = admission_factors(f)
+    z = np.empty(2 * len(points))
+    _compiled.admission_rounds(*jt, rows, *factors, *perms, np.ascontiguousarray(c.ravel()),
+                               np.ascontiguousarray(mu, np.float64), keep, float(rho), int(iterations),
+                               float(tolerance), _monotonic(until), z)
+    return z.reshape(-1, 2)
+
+
+def admission_factors(frame: ContactFrame) -> tuple[list, int, list, list]:
+    """nearest_admissible's factorization of J^T J for a frame, as its compiled rounds take it:
+    (J^T's CSR arrays, its rows 3 D, the sparse L and U factors' CSC arrays, their row and column
+    permutations). It depends on the frame only, not on the impulses to admit: computed once per
+    frame and kept on it. (Begun on a thread of its own while a server's classifier ran, it
+    took nothing off the route on two cores: the GIL's share of it is most of it.)"""
+    cached = frame.__dict__.get("_admission_factors")
+    if cached is None:
+        cached = _admission_factors(frame)
+        object.__setattr__(frame, "_admission_factors", cached)  # a cache on a frozen frame, not a field
+    return cached
+
+
+def _admission_factors(f: ContactFrame) -> tuple[list, int, list, list]:
+    from scipy import sparse
+    from scipy.sparse.linalg import splu
+
     jt = contact_jacobian_sparse(f)  # at most six entries a column
     gram = (jt @ jt.T).tocsc()
     rows = gram.shape[0]
@@ -411,12 +433,7 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     else:  # no dynamic body: nothing to keep
         factors = [np.zeros(1, i32), np.zeros(0, i32), np.zeros(0)] * 2
         perms = [np.zeros(0, i32)] * 2
-    z = np.empty(2 * len(points))
-    _compiled.admission_rounds(jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64),
-                               rows, *factors, *perms, np.ascontiguousarray(c.ravel()),
-                               np.ascontiguousarray(mu, np.float64), keep, float(rho), int(iterations),
-                               float(tolerance), _monotonic(until), z)
-    return z.reshape(-1, 2)
+    return [jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64)], rows, factors, perms
 
 
 def _monotonic(until: float | None) -> float:
@@ -538,9 +555,10 @@ def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[
     normal impulses come first, then the sticking points' tangent ones; a sliding point's
     column is its normal column plus its tangent one times slide (+-mu). rows are the
     equations' indices into the (2P,) relative velocities (normal 2 i, tangent 2 i + 1), in the
-    unknowns' order. The same numbers as contact_operator's rows and columns combined so, built
-    from the point pairs that share a dynamic body (a few thousand) without the (2P, 2P)
-    operator: at 160 points that one and its fancy indexing took about 2 ms.
+    unknowns' order. The same numbers as contact_operator's rows and columns combined so, summed
+    over the pairs of points that share a dynamic body (a few thousand) without the (2P, 2P)
+    operator (at 160 points that one and its fancy indexing took about 2 ms, and the pairs in
+    NumPy about 1 ms), compiled (deepcontact/_kinematics.c).
     """
     face = np.asarray(face)
     n_points = len(face)
@@ -552,18 +570,14 @@ def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[
     index = np.full((n_points, 2), -1)
     index[pressing, 0] = np.arange(k)
     index[sticking, 1] = k + np.arange(len(sticking))
-    i, j, blocks = _point_pairs(frame)  # blocks[p, d, e]: direction d at i per unit impulse e at j
-    at, values = [], []
-    for d in range(2):  # two directions of the equation, not a loop over points
-        row = index[i, d]
-        for col, value in ((index[j, 0], blocks[:, d, 0] + slide_of[j] * blocks[:, d, 1]),  # pressing j
-                           (index[j, 1], blocks[:, d, 1])):                                # sticking j
-            on = (row >= 0) & (col >= 0)
-            at.append(row[on] * m + col[on])
-            values.append(value[on])
-    system = np.bincount(np.concatenate(at), np.concatenate(values), minlength=m * m)
+    system = np.zeros((m, m))
+    f, i64 = frame, np.int64
+    _compiled.face_system_sum(f.a.astype(i64), f.b.astype(i64), np.ascontiguousarray(f.dynamic, np.uint8),
+                              *(np.ascontiguousarray(x, np.float64) for x in (f.inv_mass, f.inv_inertia, f.n, f.t,
+                                                                              f.ra, f.rb)),
+                              index.astype(i64).ravel(), np.ascontiguousarray(slide_of), m, system)
     rows = np.concatenate([2 * pressing, 2 * sticking + 1])
-    return system.reshape(m, m), rows, slide_of[pressing]
+    return system, rows, slide_of[pressing]
 
 
 #: solve_on_face's ways to the minimum-norm least-squares solution.

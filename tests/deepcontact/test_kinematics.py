@@ -450,8 +450,9 @@ def test_the_contact_operator_is_the_jacobians_product():
 
 
 def test_the_face_system_is_the_contact_operators_rows_and_columns_on_the_face():
-    # face_system builds solve_on_face's system from the point pairs; it is the dense operator's
-    # equation rows, with a sliding point's column its normal one plus +-mu times its tangent one.
+    # face_system sums solve_on_face's system over the point pairs (compiled); it is the dense
+    # operator's equation rows, with a sliding point's column its normal one plus +-mu times its
+    # tangent one.
     from deepcontact.kinematics import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, contact_frame, contact_operator, face_system
 
     bodies, points, _, mu = sliding_pile()
@@ -465,6 +466,25 @@ def test_the_face_system_is_the_contact_operators_rows_and_columns_on_the_face()
     expected = np.concatenate([op[np.ix_(rows, 2 * pressing)] + op[np.ix_(rows, 2 * pressing + 1)] * slide,
                                op[np.ix_(rows, 2 * sticking + 1)]], axis=1)
     np.testing.assert_allclose(system, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_the_compiled_face_system_refuses_arrays_that_do_not_fit():
+    from deepcontact import _kinematics
+    from deepcontact.kinematics import contact_frame
+
+    bodies, points, _, _ = sliding_pile()
+    f = contact_frame(bodies, points)
+    n_points = len(points)
+    good = [f.a.astype(np.int64), f.b.astype(np.int64), f.dynamic.astype(np.uint8), f.inv_mass, f.inv_inertia,
+            f.n.ravel(), f.t.ravel(), f.ra.ravel(), f.rb.ravel(), np.full(2 * n_points, -1, np.int64),
+            np.zeros(n_points)]
+    _kinematics.face_system_sum(*good, 0, np.zeros(0))  # no unknowns: nothing to sum
+    with pytest.raises(ValueError, match="wrong size"):
+        _kinematics.face_system_sum(*good, 2, np.zeros(3))
+    outside = list(good)
+    outside[9] = np.full(2 * n_points, 5, np.int64)  # an unknown past the system's 2 columns
+    with pytest.raises(ValueError, match="out of range"):
+        _kinematics.face_system_sum(*outside, 2, np.zeros(4))
 
 
 def test_the_dual_solve_is_the_minimum_norm_solution_of_a_singular_consistent_system_and_declines_an_inconsistent_one():
