@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before SciPy loads OpenBLAS, as serve does
+    from server.heap import keep_freed_memory
+
+    keep_freed_memory()  # as serve does (server/heap.py)
     import scipy.linalg
 
     from bench.server import record_steps

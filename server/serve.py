@@ -32,6 +32,7 @@ from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCardError
 from server import metrics
 from server.batching import MicroBatcher
+from server.heap import keep_freed_memory
 from server.idle import IdleStreams
 from server.malformed import MalformedRequests
 from server.predictors import load_models, providers
@@ -199,6 +200,7 @@ def run(args: argparse.Namespace) -> int:
     # otherwise start a thread per core and make every small least-squares solve wait on
     # them, about twice as slow at the median on 2 busy cores and ten times at the p90.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    keep_freed_memory()  # a step's large arrays reused warm, not mapped afresh (server/heap.py)
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter() if args.log_format == "json"
                          else logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
