@@ -4,14 +4,17 @@ and how near its two ways of solving agree.
 Records a thesis world on a benchmark seed (bench.server.record_steps), passes each step
 through the wire as the server receives it, reads the face card's classifier on it in this
 process, and times on every step with contacts:
-  system   face_system, the linear system on the labels' unknowns (from the point pairs)
+  system   face_system, the linear system on the labels' unknowns (summed over the point pairs, in C)
   operator the same system the way the route built it before: the dense (2P, 2P)
            contact_operator, then its rows and columns on the face
-  dual     minimum_norm_solve: S S^T, an LU, S^T y (a card's solver "dual")
+  dual     minimum_norm_solve: S S^T, a Cholesky factorization, S^T y (a card's solver "dual")
   gelsy    the same least-squares problem by LAPACK's gelsy (solver "gelsy", the default)
   admit    nearest_admissible at the card's rounds (and whether the solve was admissible
            as it was, so that the admission had nothing to do)
   route    solved_on_labels, all of it, with the card's solver (the server's G2P stage of a face card)
+  glibc    the same route at once again with glibc's malloc at its starting thresholds, not
+           keeping freed memory as serve does (server/heap.py), and its extra over the route,
+           the median of the step-by-step differences
 and the relative difference |x_dual - x_gelsy| / |x_gelsy|. Medians by size, in ms; one
 process, one thread of BLAS (as `deepcontact serve` runs).
 """
@@ -43,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before SciPy loads OpenBLAS, as serve does
     from server.heap import keep_freed_memory
 
-    keep_freed_memory()  # as serve does (server/heap.py)
+    paired_heap = keep_freed_memory()  # as serve does (server/heap.py); False: not glibc
     import scipy.linalg
 
     from bench.server import record_steps
@@ -56,12 +59,13 @@ def run(args: argparse.Namespace) -> int:
     path = args.models / f"{args.model}.json"
     try:
         card = ModelCard.load(path)
-        classifier = load_model(args.models / f"{ModelCard.alias_target(path)}.json")
+        if card.face is None:
+            print(f"deepcontact bench face-solve: {path} has no face: name a face card", file=sys.stderr)
+            return 2
+        # The classifier whose answer the route reads: the card's alias target, or the card itself.
+        classifier = load_model(args.models / f"{ModelCard.alias_target(path) or args.model}.json")
     except (OSError, ModelCardError) as exc:
         print(f"deepcontact bench face-solve: {exc}", file=sys.stderr)
-        return 2
-    if card.face is None:
-        print(f"deepcontact bench face-solve: {path} has no face: name a face card", file=sys.stderr)
         return 2
     face_of = card.face
     thesis = SceneSpec.thesis()
@@ -98,36 +102,52 @@ def run(args: argparse.Namespace) -> int:
         t5 = time.perf_counter()
         K.nearest_admissible(bodies, points, solved, mu, open_points=face == K.OPEN, iterations=face_of["rounds"],
                              frame=frame)
-        t6 = time.perf_counter()
-        K.solved_on_labels(bodies, points, labels, mu, world.physics, face_of["pressing"], face_of["share"],
-                           face_of["rounds"], face_of["label_friction"], damping=face_of["damping"], solver=face_of["solver"])
-        t7 = time.perf_counter()
+        t6a = time.perf_counter()
+        route = (bodies, points, labels, mu, world.physics, face_of["pressing"], face_of["share"], face_of["rounds"],
+                 face_of["label_friction"])
+        route_kw = {"damping": face_of["damping"], "solver": face_of["solver"]}
+        # The route as served; with glibc's malloc also at its starting thresholds, the two in turn
+        # first on alternate steps (the second of two runs finds its inputs in cache).
+        heaps = ((True, False) if k % 2 else (False, True)) if paired_heap else (True,)
+        took = {}
+        for kept in heaps:
+            if paired_heap:
+                keep_freed_memory(kept=kept)
+            t6 = time.perf_counter()
+            K.solved_on_labels(*route, **route_kw)
+            took[kept] = 1e3 * (time.perf_counter() - t6)
+        route_ms, glibc_ms = took[True], took.get(False)
         differs = None if dual is None else float(np.linalg.norm(dual - gelsy) / max(np.linalg.norm(gelsy), 1e-300))
         admissible = bool(np.array_equal(K.project_to_cones(solved, mu) * (face != K.OPEN)[:, None], solved))
         rows.append({"points": len(points), "unknowns": len(rhs), "system_ms": 1e3 * (t1 - t0),
                      "operator_ms": 1e3 * (t1b - t1), "admissible": admissible,
-                     "dual_ms": 1e3 * (t3 - t2), "gelsy_ms": 1e3 * (t4 - t3), "admit_ms": 1e3 * (t6 - t5),
-                     "route_ms": 1e3 * (t7 - t6), "differs": differs})
+                     "dual_ms": 1e3 * (t3 - t2), "gelsy_ms": 1e3 * (t4 - t3), "admit_ms": 1e3 * (t6a - t5),
+                     "route_ms": route_ms, "route_glibc_heap_ms": glibc_ms, "differs": differs})
     if not rows:
         print(f"deepcontact bench face-solve: no step of seed {args.seed} has a pressing label", file=sys.stderr)
         return 2
     by_size = []
     print(f"{args.model} on thesis seed {args.seed}: {len(rows)} steps; medians in ms")
     print("| points | steps | unknowns | system | operator (before) | dual | gelsy | admission | solve admissible | "
-          "whole route |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "whole route | the same, heap as glibc starts | its extra, paired |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for lo, hi in SIZES:
         these = [r for r in rows if lo <= r["points"] < hi]
         if not these:
             continue
         med = {key: float(np.median([r[key] for r in these])) for key in
                ("unknowns", "system_ms", "operator_ms", "dual_ms", "gelsy_ms", "admit_ms", "route_ms")}
+        if paired_heap:
+            med["route_glibc_heap_ms"] = float(np.median([r["route_glibc_heap_ms"] for r in these]))
+            med["glibc_heap_extra_ms"] = float(np.median([r["route_glibc_heap_ms"] - r["route_ms"] for r in these]))
+        heap = (f"{med['route_glibc_heap_ms']:.2f} | {med['glibc_heap_extra_ms']:+.2f}" if paired_heap
+                else "– | –")
         admissible = sum(r["admissible"] for r in these)
         by_size.append({"points": [lo, hi], "steps": len(these), "admissible": admissible, **med})
         label = f"{lo}-{hi - 1}" if hi < 10**6 else f"{lo}+"
         print(f"| {label} | {len(these)} | {med['unknowns']:.0f} | {med['system_ms']:.2f} | {med['operator_ms']:.2f} | "
               f"{med['dual_ms']:.2f} | {med['gelsy_ms']:.2f} | {med['admit_ms']:.2f} | {admissible} | "
-              f"{med['route_ms']:.2f} |")
+              f"{med['route_ms']:.2f} | {heap} |")
     differs = np.array([r["differs"] for r in rows if r["differs"] is not None])
     declined = sum(r["differs"] is None for r in rows)
     agreement = {"median": float(np.median(differs)) if len(differs) else None,

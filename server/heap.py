@@ -2,11 +2,13 @@
 
 A served step allocates a few arrays of about a megabyte (a face card's 300 x 300 system,
 its S S^T, LAPACK's work) and frees them. glibc's malloc maps allocations that large
-(above its threshold, 128 KiB to start) fresh from the kernel and unmaps them on free, so
-every step touches them page by page anew: on two AVX2 cores the page faults cost about
-1.5 ms of a large step's 9.5 ms route (`deepcontact bench face-solve`). Raising the mapping
-threshold and the trim threshold keeps those pages in the heap, where the next step finds
-them warm. A server's memory then stays near its peak step's, a few tens of MiB.
+fresh from the kernel, or returns the freed top of its heap, depending on thresholds that
+start at 128 KiB and move with what was freed; a step that gets fresh pages touches them
+one page fault at a time. Fixing the mapping threshold and the trim threshold high keeps
+those pages in the heap, where the next step finds them warm. A server's memory then stays
+near its peak step's, a few tens of MiB. What it saves on a face card's route is in
+`deepcontact bench face-solve` (its "heap as glibc starts" column, the same route with the
+thresholds set back to glibc's starting values, paired step by step).
 """
 
 from __future__ import annotations
@@ -21,11 +23,15 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 MMAP_THRESHOLD = 32 << 20
 #: Free memory at the heap's top kept up to this many bytes before it is returned.
 TRIM_THRESHOLD = 256 << 20
+#: Both thresholds' starting values in glibc (M_MMAP_THRESHOLD's DEFAULT_MMAP_THRESHOLD_MIN).
+GLIBC_START = 128 << 10
 
 
-def keep_freed_memory() -> bool:
-    """Set glibc's malloc to keep freed memory for reuse (the module says why). True where it
-    took; False on a C library without mallopt (musl, macOS), where nothing changes."""
+def keep_freed_memory(kept: bool = True) -> bool:
+    """Set glibc's malloc to keep freed memory for reuse (the module says why), or with
+    kept=False set its thresholds to their starting values (fixed there: a measurement's
+    control). True where it took; False on a C library without mallopt (musl, macOS), where
+    nothing changes."""
     name = ctypes.util.find_library("c")
     try:
         libc = ctypes.CDLL(name)
@@ -33,4 +39,5 @@ def keep_freed_memory() -> bool:
     except (OSError, AttributeError, TypeError):
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    mmap, trim = (MMAP_THRESHOLD, TRIM_THRESHOLD) if kept else (GLIBC_START, GLIBC_START)
+    return bool(mallopt(_M_MMAP_THRESHOLD, mmap)) and bool(mallopt(_M_TRIM_THRESHOLD, trim))
