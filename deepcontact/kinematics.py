@@ -523,9 +523,9 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     here. The system is square but singular in a pile held at more points than it
     has freedoms, and inconsistent where the face is wrong: least squares either way
     (the minimum-norm solution: with `solver` "gelsy" by a complete orthogonal factorization,
-    LAPACK's gelsy; with "dual" by minimum_norm_solve, about twice as fast where the system is
-    consistent and a little damped in its weakest directions, gelsy where it is not; the
-    system is built from the point pairs, face_system).
+    LAPACK's gelsy; with "dual" by minimum_norm_solve, about 2.5 times as fast where the system
+    is consistent and a little damped in its weakest directions, gelsy where it is not; the
+    system is summed over the point pairs, face_system).
     With `damping` > 0 it is damped least squares instead, (S^T S + l I) x = S^T b with
     l = damping max|S|^2, by Cholesky: the same impulses where the system is consistent and
     well posed, bounded ones where a wrong face makes it inconsistent and near singular (the
@@ -621,13 +621,14 @@ DUAL_OPTIMALITY = 1e-6
 def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
     """The minimum-norm solution of a consistent, possibly singular, system S (m, m) x = b (m,),
     through its dual: x = S^T y with (S S^T + r I) y = b, r = DUAL_RIDGE times the mean of
-    S S^T's diagonal, by LU (LAPACK's gesv). Whatever y picks up in S S^T's null space S^T
-    sends to 0, so a tiny ridge serves. A face's system is singular in every pile (more points
-    than freedoms) and consistent where the face is the solution's: this is the minimum-norm
-    solution that gelsy gives (DUAL_RIDGE says how near), about twice as fast at 300 unknowns
-    (one matrix product and an LU, both blocked, where gelsy's pivoted QR is not: 3.6 against
-    6.5 ms at the thesis world's largest steps on two AVX2 cores, `deepcontact bench
-    face-solve`). None where the answer is not a
+    S S^T's diagonal, by Cholesky (LAPACK's potrf; gesv's LU where rounding leaves a pivot
+    below zero). Whatever y picks up in S S^T's null space S^T sends to 0, so a tiny ridge
+    serves. A face's system is singular in every pile (more points than freedoms) and
+    consistent where the face is the solution's: this is the minimum-norm solution that gelsy
+    gives (DUAL_RIDGE says how near), about 2.5 times as fast at 300 unknowns (one matrix
+    product and a Cholesky factorization, both blocked, where gelsy's pivoted QR is not: 2.0–2.9
+    against 5.2–7.2 ms at the thesis world's largest steps on two Xeon cores, `deepcontact
+    bench face-solve`). None where the answer is not a
     least-squares solution to DUAL_OPTIMALITY (a wrong face's inconsistent system, whose
     residual the ridge would blow up through y): the caller solves it otherwise.
     """
