@@ -15,8 +15,10 @@ process, and times on every step with contacts:
   glibc    the same route at once again with glibc's malloc at its starting thresholds, not
            keeping freed memory as serve does (server/heap.py), and its extra over the route,
            the median of the step-by-step differences
-and the relative difference |x_dual - x_gelsy| / |x_gelsy|. Medians by size, in ms; one
-process, one thread of BLAS (as `deepcontact serve` runs).
+and how far each solver's answer lies from the pseudo-inverse's with singular values below 1e-10
+of the largest taken as zero (numpy's pinv; a face's system has none between about 1e-12 and
+1e-6), |x - x_pinv| / |x_pinv|, and from each other. Medians by size, in ms; one process, one
+thread of BLAS (as `deepcontact serve` runs).
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ import numpy as np
 from deepcontact.io import write_json_atomic
 
 SIZES = ((1, 100), (100, 150), (150, 200), (200, 10**6))
+#: The reference solution's cut: singular values below this share of the largest count as zero.
+PINV_RCOND = 1e-10
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -98,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         t3 = time.perf_counter()
         gelsy = scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
         t4 = time.perf_counter()
+        pinv = np.linalg.pinv(system, rcond=PINV_RCOND) @ rhs
+        size = max(float(np.linalg.norm(pinv)), 1e-300)
         solved = K.solve_on_face(bodies, points, face, mu, world.physics, frame)
         t5 = time.perf_counter()
         K.nearest_admissible(bodies, points, solved, mu, open_points=face == K.OPEN, iterations=face_of["rounds"],
@@ -120,6 +126,8 @@ def run(args: argparse.Namespace) -> int:
         differs = None if dual is None else float(np.linalg.norm(dual - gelsy) / max(np.linalg.norm(gelsy), 1e-300))
         admissible = bool(np.array_equal(K.project_to_cones(solved, mu) * (face != K.OPEN)[:, None], solved))
         rows.append({"points": len(points), "unknowns": len(rhs), "system_ms": 1e3 * (t1 - t0),
+                     "gelsy_from_pinv": float(np.linalg.norm(gelsy - pinv)) / size,
+                     "dual_from_pinv": None if dual is None else float(np.linalg.norm(dual - pinv)) / size,
                      "operator_ms": 1e3 * (t1b - t1), "admissible": admissible,
                      "dual_ms": 1e3 * (t3 - t2), "gelsy_ms": 1e3 * (t4 - t3), "admit_ms": 1e3 * (t6a - t5),
                      "route_ms": route_ms, "route_glibc_heap_ms": glibc_ms, "differs": differs})
@@ -157,6 +165,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"dual against gelsy, |x_dual - x_gelsy| / |x_gelsy|: median {agreement['median']:.1e}, above 1e-6 at "
           f"{100 * agreement['share_above_1e-6']:.0f} % of steps, above 1e-3 at {100 * agreement['share_above_1e-3']:.0f} %; "
           f"{declined} steps left to gelsy (an inconsistent system)")
+    for solver in ("gelsy", "dual"):
+        off = np.array([r[f"{solver}_from_pinv"] for r in rows if r[f"{solver}_from_pinv"] is not None])
+        agreement[f"{solver}_from_pinv"] = {"median": float(np.median(off)), "above_1e-6": int(np.sum(off > 1e-6)),
+                                            "above_1e-3": int(np.sum(off > 1e-3)), "steps": len(off)}
+        print(f"{solver} against pinv (rcond {PINV_RCOND:g}): median {np.median(off):.1e}, above 1e-6 at "
+              f"{np.sum(off > 1e-6)} and above 1e-3 at {np.sum(off > 1e-3)} of {len(off)} steps")
     if args.json:
         write_json_atomic(Path(args.json), {"model": args.model, "seed": args.seed, "steps": len(rows),
                                             "by_size": by_size, "agreement": agreement, "rows": rows})

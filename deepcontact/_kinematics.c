@@ -25,6 +25,7 @@
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <math.h>
 #include <stdint.h>
 #include <string.h>
 #include <time.h>
@@ -254,8 +255,9 @@ done:
  * the affine set J^T x = J^T c (the bodies' motion kept) and the friction cones, each round
  *     x = same_motion((c + rho (z - s)) / (1 + rho)),  z' = cones(x + s),  s += x - z',
  * stopping once |x - z'| and |z' - z| are under `tolerance` at every entry. same_motion(y)
- * is y - J (G^-1 (J^T (y - c))), G = J^T J plus its ridge, factorized by SuperLU in
- * Python: Pr G Pc = L U (L unit lower, U upper, CSC). In NumPy each round was about twenty
+ * is y - J (G^-1 (J^T (y - c))), G = J^T J plus its ridge, factorized once per step
+ * (envelope_cholesky below; SuperLU's form, which it replaced): Pr G Pc = L U (L unit lower,
+ * U upper, CSC). In NumPy each round was about twenty
  * calls on a few hundred numbers, about 0.1 ms; here it is a few sparse passes.
  *
  * Arguments: jt as CSR (indptr int32 (R + 1,), indices int32, data float64: R = 3 D rows,
@@ -537,9 +539,230 @@ done:
     return result;
 }
 
+/* minimum_norm_solve's S S^T for a face's system S (m, m), row-major and mostly zeros (a
+ * point's equation couples it only to the points that share one of its bodies: about 3 % of
+ * the entries at the thesis world's largest steps). Each column's nonzero rows are gathered
+ * once and their outer product summed into the lower triangle of `gram` (row-major, zeroed,
+ * out), which is what LAPACK's potrf (lower, Fortran order: the upper triangle here) reads;
+ * the upper triangle is then mirrored so that the caller holds the whole matrix. BLAS's dense
+ * product took about 0.9 ms at 300 unknowns, summing what is not zero a few tens of µs.
+ *
+ * Arguments: system float64 (m * m,), m, gram float64 (m * m,), out. */
+static PyObject *sparse_gram(PyObject *self, PyObject *args)
+{
+    Py_buffer b[2];
+    Py_ssize_t m;
+    memset(b, 0, sizeof b);
+    if (!PyArg_ParseTuple(args, "y*nw*", &b[0], &m, &b[1]))
+        return NULL;
+    PyObject *result = NULL;
+    Py_ssize_t *rows = NULL;
+    double *vals = NULL;
+    if (m < 0 || b[0].len != m * m * (Py_ssize_t)sizeof(double) || b[1].len != b[0].len) {
+        PyErr_SetString(PyExc_ValueError, "_kinematics.sparse_gram: arrays of the wrong size");
+        goto done;
+    }
+    rows = PyMem_Malloc((size_t)(m ? m : 1) * sizeof(Py_ssize_t));
+    vals = PyMem_Malloc((size_t)(m ? m : 1) * sizeof(double));
+    if (rows == NULL || vals == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *system = b[0].buf;
+    double *gram = b[1].buf;
+    Py_BEGIN_ALLOW_THREADS
+    memset(gram, 0, (size_t)(m * m) * sizeof(double));
+    for (Py_ssize_t j = 0; j < m; j++) {
+        Py_ssize_t count = 0;
+        for (Py_ssize_t i = 0; i < m; i++) {
+            double v = system[i * m + j];
+            if (v != 0.0) {
+                rows[count] = i;
+                vals[count++] = v;
+            }
+        }
+        for (Py_ssize_t p = 0; p < count; p++) { /* rows ascend: q <= p is the lower triangle */
+            double *row = gram + rows[p] * m;
+            for (Py_ssize_t q = 0; q <= p; q++)
+                row[rows[q]] += vals[p] * vals[q];
+        }
+    }
+    for (Py_ssize_t i = 0; i < m; i++)
+        for (Py_ssize_t k = 0; k < i; k++)
+            gram[k * m + i] = gram[i * m + k];
+    Py_END_ALLOW_THREADS
+    result = Py_NewRef(Py_None);
+done:
+    PyMem_Free(rows);
+    PyMem_Free(vals);
+    for (int k = 0; k < 2; k++)
+        if (b[k].obj != NULL || b[k].buf != NULL)
+            PyBuffer_Release(&b[k]);
+    return result;
+}
+
+/* nearest_admissible's factorization of G = J^T J + ridge I (kinematics.admission_factors) as
+ * a Cholesky factorization in an envelope: rows and columns in the order `order` (a reverse
+ * Cuthill-McKee order of the bodies, computed by the caller), each row of the factor C stored
+ * from its first nonzero to the diagonal (a row's first nonzero is where G's is: the fill of a
+ * Cholesky factorization stays inside G's envelope). Written out as admission_rounds takes
+ * SuperLU's factors: Pr G Pc = L U with L unit lower and U upper, both CSC, perm_r = perm_c =
+ * the inverse of `order`; here L = C D^-1 (D: C's diagonal) and U = D C^T, so that a round's
+ * two triangular solves are unchanged. SciPy's SuperLU took about 0.8 ms at the thesis world's
+ * largest steps (300 rows), most of it in building and converting sparse matrices.
+ *
+ * Arguments: J^T's CSR arrays jp int32 (rows + 1,), ji int32, jd float64; rows; cols (J^T's
+ * columns, 2 P); order int32 (rows,), a permutation; ridge (relative to G's largest diagonal
+ * entry); out: lp, li, ld, up, ui, ud (int32 (rows + 1,), int32 and float64 of at least
+ * rows (rows + 1) / 2 each) and inverse int32 (rows,). Returns the number of entries of each
+ * factor. */
+static PyObject *envelope_cholesky(PyObject *self, PyObject *args)
+{
+    Py_buffer b[11];
+    Py_ssize_t rows, cols;
+    double ridge;
+    memset(b, 0, sizeof b);
+    if (!PyArg_ParseTuple(args, "y*y*y*nny*dw*w*w*w*w*w*w*", &b[0], &b[1], &b[2], &rows, &cols, &b[3], &ridge, &b[4],
+                          &b[5], &b[6], &b[7], &b[8], &b[9], &b[10]))
+        return NULL;
+    const int n_bufs = 11;
+    PyObject *result = NULL;
+    double *env = NULL, *col_vals = NULL;
+    Py_ssize_t *offset = NULL;
+    int32_t *first = NULL, *count = NULL, *col_rows = NULL;
+    const Py_ssize_t room = rows * (rows + 1) / 2, i32 = (Py_ssize_t)sizeof(int32_t), f64 = (Py_ssize_t)sizeof(double);
+    if (rows < 0 || cols < 0 || !valid_sparse(&b[0], &b[1], &b[2], rows, cols) || b[3].len != rows * i32
+        || b[4].len != (rows + 1) * i32 || b[5].len < room * i32 || b[6].len < room * f64
+        || b[7].len != (rows + 1) * i32 || b[8].len < room * i32 || b[9].len < room * f64 || b[10].len != rows * i32) {
+        PyErr_SetString(PyExc_ValueError, "_kinematics.envelope_cholesky: arrays of the wrong size or contents");
+        goto done;
+    }
+    const int32_t *jp = b[0].buf, *ji = b[1].buf, *order = b[3].buf;
+    const double *jd = b[2].buf;
+    int32_t *lp = b[4].buf, *li = b[5].buf, *up = b[7].buf, *ui = b[8].buf, *inverse = b[10].buf;
+    double *ld = b[6].buf, *ud = b[9].buf;
+    for (Py_ssize_t k = 0; k < rows; k++)
+        inverse[k] = -1;
+    for (Py_ssize_t k = 0; k < rows; k++) {
+        if (order[k] < 0 || order[k] >= rows || inverse[order[k]] >= 0) {
+            PyErr_SetString(PyExc_ValueError, "_kinematics.envelope_cholesky: order is not a permutation");
+            goto done;
+        }
+        inverse[order[k]] = (int32_t)k;
+    }
+    const Py_ssize_t nnz = rows ? jp[rows] : 0;
+    first = PyMem_Malloc((size_t)(rows + 1) * sizeof(int32_t));
+    offset = PyMem_Malloc((size_t)(rows + 1) * sizeof(Py_ssize_t));
+    count = PyMem_Calloc((size_t)(cols + 1), sizeof(int32_t));
+    col_rows = PyMem_Malloc((size_t)(nnz + 1) * sizeof(int32_t));
+    col_vals = PyMem_Malloc((size_t)(nnz + 1) * sizeof(double));
+    if (first == NULL || offset == NULL || count == NULL || col_rows == NULL || col_vals == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    /* J^T by columns (each point direction's pushes on its bodies), rows in the new order. */
+    for (Py_ssize_t k = 0; k < nnz; k++)
+        count[ji[k] + 1]++;
+    for (Py_ssize_t c = 0; c < cols; c++)
+        count[c + 1] += count[c];
+    for (Py_ssize_t r = 0; r < rows; r++)
+        for (int32_t k = jp[r]; k < jp[r + 1]; k++) {
+            int32_t at = count[ji[k]]++;
+            col_rows[at] = inverse[r];
+            col_vals[at] = jd[k];
+        }
+    /* count[c] is now column c's end, and its start the column before's. Each row's envelope
+     * starts at the least row it shares a column with. */
+    for (Py_ssize_t i = 0; i < rows; i++)
+        first[i] = (int32_t)i;
+    for (Py_ssize_t c = 0, start = 0; c < cols; start = count[c], c++) {
+        int32_t least = (int32_t)rows;
+        for (int32_t p = (int32_t)start; p < count[c]; p++)
+            if (col_rows[p] < least)
+                least = col_rows[p];
+        for (int32_t p = (int32_t)start; p < count[c]; p++)
+            if (least < first[col_rows[p]])
+                first[col_rows[p]] = least;
+    }
+    offset[0] = 0;
+    for (Py_ssize_t i = 0; i < rows; i++) /* row i holds columns first[i]..i from offset[i] - first[i] */
+        offset[i + 1] = offset[i] + (i - first[i] + 1);
+    env = PyMem_Calloc((size_t)(offset[rows] + 1), sizeof(double));
+    if (env == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_ssize_t entries = 0;
+    Py_BEGIN_ALLOW_THREADS
+#define AT(i, j) env[offset[i] + (j) - first[i]]
+    for (Py_ssize_t c = 0, start = 0; c < cols; start = count[c], c++)
+        for (int32_t p = (int32_t)start; p < count[c]; p++)
+            for (int32_t q = (int32_t)start; q < count[c]; q++)
+                if (col_rows[q] <= col_rows[p])
+                    AT(col_rows[p], col_rows[q]) += col_vals[p] * col_vals[q];
+    double top = 0.0;
+    for (Py_ssize_t i = 0; i < rows; i++)
+        if (AT(i, i) > top)
+            top = AT(i, i);
+    const double added = ridge * (top > 0.0 ? top : 1e-300);
+    for (Py_ssize_t i = 0; i < rows; i++) {
+        double *row = &AT(i, first[i]) - first[i]; /* row[j] for first[i] <= j <= i */
+        row[i] += added;
+        for (Py_ssize_t j = first[i]; j < i; j++) {
+            const double *other = &AT(j, first[j]) - first[j];
+            double acc = row[j];
+            for (Py_ssize_t k = first[i] > first[j] ? first[i] : first[j]; k < j; k++)
+                acc -= row[k] * other[k];
+            row[j] = acc / other[j];
+        }
+        double diag = row[i];
+        for (Py_ssize_t k = first[i]; k < i; k++)
+            diag -= row[k] * row[k];
+        row[i] = sqrt(diag > added ? diag : added); /* rounding below the ridge: the ridge */
+    }
+    /* U = D C^T: its column i is row i of C, each entry j times C's diagonal at j. */
+    up[0] = 0;
+    for (Py_ssize_t i = 0; i < rows; i++) {
+        for (Py_ssize_t j = first[i]; j <= i; j++) {
+            ui[entries] = (int32_t)j;
+            ud[entries++] = AT(j, j) * AT(i, j);
+        }
+        up[i + 1] = (int32_t)entries;
+    }
+    /* L = C D^-1: its column j holds the rows i >= j whose envelope reaches back to j. */
+    Py_ssize_t at = 0;
+    lp[0] = 0;
+    for (Py_ssize_t j = 0; j < rows; j++) {
+        const double diag = AT(j, j);
+        for (Py_ssize_t i = j; i < rows; i++)
+            if (first[i] <= j) {
+                li[at] = (int32_t)i;
+                ld[at++] = i == j ? 1.0 : AT(i, j) / diag;
+            }
+        lp[j + 1] = (int32_t)at;
+    }
+#undef AT
+    Py_END_ALLOW_THREADS
+    result = PyLong_FromSsize_t(entries);
+done:
+    PyMem_Free(env);
+    PyMem_Free(offset);
+    PyMem_Free(first);
+    PyMem_Free(count);
+    PyMem_Free(col_rows);
+    PyMem_Free(col_vals);
+    for (int k = 0; k < n_bufs; k++)
+        if (b[k].obj != NULL || b[k].buf != NULL)
+            PyBuffer_Release(&b[k]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"face_system_sum", face_system_sum, METH_VARARGS,
      "face_system's sum over the pairs of a dynamic body's pushes (see the C source)."},
+    {"envelope_cholesky", envelope_cholesky, METH_VARARGS,
+     "nearest_admissible's factorization, as admission_rounds takes it (see the C source)."},
+    {"sparse_gram", sparse_gram, METH_VARARGS, "S S^T of a mostly-zero square system (see the C source)."},
     {"admission_rounds", admission_rounds, METH_VARARGS,
      "nearest_admissible's ADMM rounds on a factorized gram (see the C source)."},
     {"point_kinematics", point_kinematics, METH_VARARGS,

@@ -374,7 +374,8 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     cone) it ends at the cones' point nearest the affine set. `until` (time.perf_counter() s;
     None: none) stops the rounds there, whatever they have reached (checked every 8 rounds; the
     first 8 always run): a served step's deadline. The answer is z:
-    inside the cones always. J is factorized sparse (SuperLU) once and the rounds run
+    inside the cones always. J^T J is factorized once (a Cholesky factor in the envelope
+    of a reverse Cuthill-McKee order of the bodies, admission_factors) and the rounds run
     compiled (deepcontact/_kinematics.c; tests/deepcontact/test_kinematics.py keeps the
     NumPy rounds as the reference): a few microseconds a round at 140 points, where NumPy's
     were about 0.1 ms.
@@ -401,8 +402,13 @@ def admission_factors(frame: ContactFrame) -> tuple[list, int, list, list]:
     """nearest_admissible's factorization of J^T J for a frame, as its compiled rounds take it:
     (J^T's CSR arrays, its rows 3 D, the sparse L and U factors' CSC arrays, their row and column
     permutations). It depends on the frame only, not on the impulses to admit: computed once per
-    frame and kept on it. (Begun on a thread of its own while a server's classifier ran, it
-    took nothing off the route on two cores: the GIL's share of it is most of it.)"""
+    frame and kept on it. The factor is Cholesky's, in C (_kinematics.envelope_cholesky), in the
+    envelope of a reverse Cuthill-McKee order of the bodies: about 0.4 against SciPy's SuperLU's
+    0.8-0.9 ms at the thesis world's largest steps (300 rows), most of that SciPy's building and
+    converting of sparse matrices; the envelope holds about twice SuperLU's entries, so the
+    rounds walk more (0.7 against 0.55 ms for 60). (Begun on a thread of its own while a
+    server's classifier ran, SuperLU's took nothing off the route on two cores: the GIL's share
+    of it was most of it.)"""
     cached = frame.__dict__.get("_admission_factors")
     if cached is None:
         cached = _admission_factors(frame)
@@ -411,29 +417,39 @@ def admission_factors(frame: ContactFrame) -> tuple[list, int, list, list]:
 
 
 def _admission_factors(f: ContactFrame) -> tuple[list, int, list, list]:
-    from scipy import sparse
-    from scipy.sparse.linalg import splu
-
     jt = contact_jacobian_sparse(f)  # at most six entries a column
-    gram = (jt @ jt.T).tocsc()
-    rows = gram.shape[0]
-    # J^T J is singular where a body's points cannot push it every way (one point, or none);
-    # a ridge far below its scale lets one sparse factorization serve, and what it adds in
-    # those directions J takes away again.
-    ridge = 1e-9 * max(float(gram.diagonal().max(initial=0.0)), 1e-300)
+    rows, cols = jt.shape
     i32 = np.int32
-    if rows:
-        # Symmetric positive definite: an ordering of G + G^T and pivots on the diagonal fill
-        # about a fifth less than SuperLU's general defaults, and each round walks the fill.
-        lu = splu((gram + ridge * sparse.identity(rows, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A",
-                  diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        factors = [a for m in (lu.L.tocsc(), lu.U.tocsc()) for a in (m.indptr.astype(i32), m.indices.astype(i32),
-                                                                      np.ascontiguousarray(m.data, np.float64))]
-        perms = [lu.perm_r.astype(i32), lu.perm_c.astype(i32)]
-    else:  # no dynamic body: nothing to keep
-        factors = [np.zeros(1, i32), np.zeros(0, i32), np.zeros(0)] * 2
-        perms = [np.zeros(0, i32)] * 2
-    return [jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64)], rows, factors, perms
+    jt_arrays = [jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64)]
+    if not rows:  # no dynamic body: nothing to keep
+        return jt_arrays, rows, [np.zeros(1, i32), np.zeros(0, i32), np.zeros(0)] * 2, [np.zeros(0, i32)] * 2
+    # J^T J couples two bodies where a point touches both: ordered so (reverse Cuthill-McKee on
+    # the bodies) its Cholesky factor stays in a narrow envelope, which each round walks twice.
+    order = np.ascontiguousarray((3 * _body_order(f)[:, None] + np.arange(3)).ravel(), i32)
+    room = rows * (rows + 1) // 2
+    lp, up, inverse = np.empty(rows + 1, i32), np.empty(rows + 1, i32), np.empty(rows, i32)
+    li, ui, ld, ud = np.empty(room, i32), np.empty(room, i32), np.empty(room), np.empty(room)
+    # J^T J is singular where a body's points cannot push it every way (one point, or none);
+    # a ridge far below its scale lets one factorization serve, and what it adds in those
+    # directions J takes away again.
+    entries = _compiled.envelope_cholesky(*jt_arrays, rows, cols, order, 1e-9, lp, li, ld, up, ui, ud, inverse)
+    factors = [lp, li[:entries].copy(), ld[:entries].copy(), up, ui[:entries].copy(), ud[:entries].copy()]
+    return jt_arrays, rows, factors, [inverse, inverse]
+
+
+def _body_order(f: ContactFrame) -> np.ndarray:
+    """The dynamic bodies (as numbered by contact_jacobian's rows) in reverse Cuthill-McKee
+    order of the graph that joins two bodies where a point touches both."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    n_dynamic = int(f.dynamic.sum())
+    row = np.full(len(f.dynamic), -1)
+    row[f.dynamic] = np.arange(n_dynamic)
+    a, b = row[f.a], row[f.b]
+    both = (a >= 0) & (b >= 0)
+    graph = sparse.csr_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n_dynamic, n_dynamic))
+    return reverse_cuthill_mckee(graph + graph.T, symmetric_mode=True).astype(np.int64)
 
 
 def _monotonic(until: float | None) -> float:
@@ -607,37 +623,46 @@ def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float, solver: 
 
 #: minimum_norm_solve's ridge on S S^T, relative to its mean diagonal: far below the singular
 #: values that a face's system resolves, far above what S S^T's rounding leaves in its null
-#: space. On the thesis world's faces (seed 903, the default's labels; `deepcontact bench
-#: face-solve`) the answer agrees with LAPACK's gelsy to 7e-11 at the median and differs by more
-#: than 1e-3 at 1 % of the steps:
-#: where a singular value below about 3e-8 of the largest carries part of the answer (the
-#: ridge damps it) or where gelsy, at its rcond of machine precision, keeps a direction that
-#: is rounding (the pseudo-inverse agrees with the dual there).
+#: space. A face's system has a clean gap between the two: on the thesis world's largest steps
+#: (seed 903, the default's labels) its singular values are above about 1e-6 of the largest or
+#: below 1e-12, the right-hand side nowhere in the latter (`deepcontact bench face-solve`).
 DUAL_RIDGE = 1e-15
+#: minimum_norm_solve's rounds of iterative refinement on S S^T y = b, each from the ridged
+#: factor: squaring S squares its condition (1e12 where a singular value is 1e-6 of the
+#: largest), so one solve is good to about 1e-4 in S's weakest directions; each round takes
+#: that error down about as far again, for two matrix-vector products and two triangular
+#: solves (a few per cent of the factorization).
+DUAL_REFINEMENTS = 2
 #: minimum_norm_solve's test of its answer: |S^T (S x - b)| at most this times |S^T b|.
 DUAL_OPTIMALITY = 1e-6
 
 
 def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
     """The minimum-norm solution of a consistent, possibly singular, system S (m, m) x = b (m,),
-    through its dual: x = S^T y with (S S^T + r I) y = b, r = DUAL_RIDGE times the mean of
-    S S^T's diagonal, by Cholesky (LAPACK's potrf; gesv's LU where rounding leaves a pivot
-    below zero). Whatever y picks up in S S^T's null space S^T sends to 0, so a tiny ridge
-    serves. A face's system is singular in every pile (more points than freedoms) and
-    consistent where the face is the solution's: this is the minimum-norm solution that gelsy
-    gives (DUAL_RIDGE says how near), about 2.5 times as fast at 300 unknowns (one matrix
-    product and a Cholesky factorization, both blocked, where gelsy's pivoted QR is not: 2.0–2.9
-    against 5.2–7.2 ms at the thesis world's largest steps on two Xeon cores, `deepcontact
-    bench face-solve`). None where the answer is not a
-    least-squares solution to DUAL_OPTIMALITY (a wrong face's inconsistent system, whose
-    residual the ridge would blow up through y): the caller solves it otherwise.
+    through its dual: x = S^T y with S S^T y = b, solved by Cholesky of S S^T + r I (r =
+    DUAL_RIDGE times the mean of its diagonal; gesv's LU where rounding leaves a pivot below
+    zero) and DUAL_REFINEMENTS rounds of iterative refinement. Whatever y picks up in S S^T's
+    null space S^T sends to 0, so a tiny ridge serves. A face's system is singular in every
+    pile (more points than freedoms) and consistent where the face is the solution's.
+
+    It is the pseudo-inverse's solution with singular values below about 3e-8 of the largest
+    taken as zero: on the thesis world's faces it agrees with numpy's pinv at rcond 1e-10
+    better than LAPACK's gelsy does, which keeps directions down to machine precision and on
+    about 2 % of the large steps adds an answer along one that is rounding (`deepcontact bench
+    face-solve` prints both distances). S S^T is summed from S's nonzeros in C
+    (_kinematics.sparse_gram; S is about 3 % full); the whole is three to four times cheaper
+    than gelsy at 300 unknowns. None where the answer is not a least-squares solution to
+    DUAL_OPTIMALITY (a wrong face's inconsistent system, whose residual the ridge would blow
+    up through y): the caller solves it otherwise.
     """
     from scipy.linalg import lapack
 
     m = len(rhs)
     if m == 0:
         return np.zeros(0)
-    gram = system @ system.T  # (BLAS's syrk, half the work on paper, is no faster on OpenBLAS here)
+    system = np.ascontiguousarray(system, np.float64)
+    gram = np.empty((m, m))
+    _compiled.sparse_gram(system, m, gram)
     scale = float(np.trace(gram)) / m
     if not scale > 0:
         return np.zeros(m)  # S = 0: every x solves it, 0 the least
@@ -646,9 +671,22 @@ def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None
     # leaves a null-space pivot below zero anyway, the LU that pivots past it.
     factor, info = lapack.dpotrf(gram, lower=True, clean=False, overwrite_a=False)
     if info == 0:
-        y, info = lapack.dpotrs(factor, rhs, lower=True)
+        def solve(b):
+            return lapack.dpotrs(factor, b, lower=True)
     else:
-        _, _, y, info = lapack.dgesv(gram, rhs, overwrite_a=True)
+        lu, piv, info = lapack.dgetrf(gram)
+
+        def solve(b):
+            return lapack.dgetrs(lu, piv, b)
+    if info != 0:
+        return None
+    y, info = solve(rhs)
+    for _ in range(DUAL_REFINEMENTS):
+        if info != 0:
+            return None
+        # Refined against S S^T itself, not the ridged matrix: the ridge only preconditions.
+        correction, info = solve(rhs - system @ (system.T @ y))
+        y += correction
     if info != 0:
         return None
     x = system.T @ y

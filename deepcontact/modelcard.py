@@ -68,8 +68,10 @@ those steps, at steps past max_points, and where the route would miss the reques
 docs/server.md "Deadlines"), damping (default 0: the solve is the minimum-norm least-squares one; a
 number: damped least squares, the singular values below about sqrt(damping) of the largest
 damped away, solve_on_face), solver (default "gelsy": the minimum-norm solution by LAPACK's
-gelsy; "dual": by kinematics.minimum_norm_solve, about 2.5 times as fast at the thesis world's largest
-steps, a little damped in the system's weakest directions and 0.001-0.025 of Builtin's iterations dearer in paired runs), max_points (default null: every step solved; a number: a step
+gelsy; "dual": by kinematics.minimum_norm_solve, its dual by Cholesky with two rounds of
+refinement, three to four times as fast at the thesis world's largest steps and nearer the
+pseudo-inverse's solution than gelsy, which on about 1 % of those steps answers along a direction
+that is rounding; the default card's since session 96), max_points (default null: every step solved; a number: a step
 with more contact points than this is not solved, since the dense solve grows as the cube of
 the points, and is served the fallback card's answer, else Box2D's warm start).
 

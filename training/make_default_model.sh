@@ -60,7 +60,7 @@ SECONDS=0
 CHAIN=(graph-mse-1-799-r8 graph-mse-1-799-r8-e9-reflect graph-projected-max-1-799-r8-e9-reflect-sym)
 DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror   # the graph model: the default's fallback
 FACE=graph-face-fr-r8                                         # the classifier the default solves on
-WHY="the face route: graph-face-fr-r8's labels (each point's friction an input) read pressing above 0.75 N s, the step solved on them and admitted in at most 60 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 200 points, the graph model $DEFAULT is served (docs/results.md, Each point's friction); rebuilt by make default-model"
+WHY="the face route: graph-face-fr-r8's labels (each point's friction an input) read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 60 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 200 points, the graph model $DEFAULT is served (docs/results.md, Each point's friction); rebuilt by make default-model"
 if [ "${GRID_ONLY:-0}" != 1 ]; then
 # The shipped files of the chain, kept before the runs overwrite them, so that each rebuild is
 # compared with what it replaced (below).
@@ -98,7 +98,7 @@ echo "$FACE trained after ${SECONDS} s"
 tmp=models/.default.json.part
 printf '%s\n' "{" '  "name": "default",' "  \"alias_of\": \"$FACE\"," \
     "  \"why\": \"$WHY\"," \
-    "  \"face\": {\"pressing\": 0.75, \"rounds\": 60, \"max_residual\": 0.3, \"max_points\": 200, \"fallback\": \"$DEFAULT\"}" \
+    "  \"face\": {\"pressing\": 0.75, \"rounds\": 60, \"max_residual\": 0.3, \"max_points\": 200, \"solver\": \"dual\", \"fallback\": \"$DEFAULT\"}" \
     "}" > "$tmp"
 mv "$tmp" models/default.json
 [ "${DEFAULT_ONLY:-0}" = 1 ] && { echo "done (default only) in ${SECONDS} s"; exit 0; }

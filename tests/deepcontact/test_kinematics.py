@@ -308,6 +308,35 @@ def test_the_compiled_admission_runs_numpys_rounds(rounds):
     np.testing.assert_allclose(compiled, reference, atol=1e-9)
 
 
+def test_the_admissions_factors_multiply_back_to_its_gram_in_their_order():
+    # Pr G Pc = L U, as admission_rounds reads SuperLU's factors: here a Cholesky factor in
+    # the envelope of a reverse Cuthill-McKee order, L unit lower and U = D L^T.
+    from scipy import sparse
+
+    from deepcontact import _kinematics
+    from deepcontact.kinematics import admission_factors, contact_frame, contact_jacobian_sparse
+
+    bodies, points, _, _ = sliding_pile()
+    frame = contact_frame(bodies, points)
+    jt_arrays, rows, (lp, li, ld, up, ui, ud), (perm_r, perm_c) = admission_factors(frame)
+    jt = contact_jacobian_sparse(frame)
+    gram = (jt @ jt.T).toarray()
+    gram += 1e-9 * gram.diagonal().max() * np.eye(rows)
+    lower = sparse.csc_matrix((ld, li, lp), shape=(rows, rows)).toarray()
+    upper = sparse.csc_matrix((ud, ui, up), shape=(rows, rows)).toarray()
+    np.testing.assert_array_equal(np.diag(lower), 1.0)
+    assert not np.triu(lower, 1).any() and not np.tril(upper, -1).any()
+    np.testing.assert_allclose(lower @ upper, gram[np.argsort(perm_r)][:, np.argsort(perm_c)],
+                               atol=1e-10 * np.abs(gram).max())
+    args = [*jt_arrays, rows, 2 * len(points)]
+    out = [np.empty(rows + 1, np.int32), np.empty(rows * rows, np.int32), np.empty(rows * rows),
+           np.empty(rows + 1, np.int32), np.empty(rows * rows, np.int32), np.empty(rows * rows), np.empty(rows, np.int32)]
+    with pytest.raises(ValueError, match="not a permutation"):
+        _kinematics.envelope_cholesky(*args, np.zeros(rows, np.int32), 1e-9, *out)
+    with pytest.raises(ValueError, match="wrong size"):
+        _kinematics.envelope_cholesky(*args, np.arange(rows - 1, dtype=np.int32), 1e-9, *out)
+
+
 def test_the_sparse_jacobian_is_the_dense_one():
     from deepcontact.kinematics import contact_frame, contact_jacobian, contact_jacobian_sparse
 
@@ -502,6 +531,32 @@ def test_the_dual_solve_is_the_minimum_norm_solution_of_a_singular_consistent_sy
     assert minimum_norm_solve(system, inconsistent) is None
     np.testing.assert_array_equal(minimum_norm_solve(np.zeros((3, 3)), np.zeros(3)), np.zeros(3))
     assert minimum_norm_solve(np.zeros((0, 0)), np.zeros(0)).shape == (0,)
+
+
+def test_the_dual_solve_refines_its_way_to_the_pseudo_inverse_where_squaring_loses_the_weak_directions():
+    from deepcontact.kinematics import minimum_norm_solve
+
+    rng = np.random.default_rng(4)
+    u, _ = np.linalg.qr(rng.standard_normal((80, 80)))
+    v, _ = np.linalg.qr(rng.standard_normal((80, 80)))
+    # A face's spectrum: singular values from 1 down to 1e-6 (S S^T's condition 1e12), then a null space.
+    sigma = np.concatenate([np.logspace(0, -6, 70), np.zeros(10)])
+    system = (u * sigma) @ v.T
+    rhs = system @ rng.standard_normal(80)
+    expected = np.linalg.pinv(system, rcond=1e-10) @ rhs
+    np.testing.assert_allclose(minimum_norm_solve(system, rhs), expected, rtol=1e-8, atol=1e-8 * np.abs(expected).max())
+
+
+def test_the_compiled_gram_of_a_mostly_zero_system_is_its_product_with_its_transpose():
+    from deepcontact import _kinematics
+
+    rng = np.random.default_rng(5)
+    system = rng.standard_normal((40, 40)) * (rng.random((40, 40)) < 0.05)
+    gram = np.empty((40, 40))
+    _kinematics.sparse_gram(system, 40, gram)
+    np.testing.assert_allclose(gram, system @ system.T, rtol=1e-13, atol=1e-13)
+    with pytest.raises(ValueError, match="wrong size"):
+        _kinematics.sparse_gram(system, 40, np.empty((40, 39)))
 
 
 def test_both_solvers_give_a_solution_its_own_faces_motion():
