@@ -27,7 +27,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepcontact.kinematics import BODY_DYNAMIC, OPEN, SLIDES_MINUS, SLIDES_PLUS, Physics, contact_face, contact_quantities
+from deepcontact.kinematics import (BODY_DYNAMIC, FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, Physics, contact_face,
+                                    contact_quantities)
 from deepcontact.records import CONTACT_DTYPE
 
 __all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "NEEDS", "SOURCES", "Channel", "Source", "Step",
@@ -198,10 +199,9 @@ def _oracle_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.nda
 
 
 #: face_correction_*: the friction the recorded files' faces are read at where a step has no
-#: friction of its own (Step.friction; the thesis world's, at every pair), and the impulse (N s)
-#: a label is written as.
+#: friction of its own (Step.friction; the thesis world's, at every pair); a label is written as
+#: an impulse of kinematics.FACE_IMPULSE.
 FACE_FRICTION = 0.5
-FACE_IMPULSE = 1.0
 
 
 def _face_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:

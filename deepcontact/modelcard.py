@@ -73,7 +73,14 @@ refinement, three to four times as fast at the thesis world's largest steps and 
 pseudo-inverse's solution than gelsy, which on about 1 % of those steps answers along a direction
 that is rounding; the default card's since session 96), max_points (default null: every step solved; a number: a step
 with more contact points than this is not solved, since the dense solve grows as the cube of
-the points, and is served the fallback card's answer, else Box2D's warm start).
+the points, and is served the fallback card's answer, else Box2D's warm start), retry_pressing
+(default []: none; a list of thresholds in N s, only with max_residual: where the step solved on
+the labels read at `pressing` misses max_residual, the labels are read again at each threshold in
+turn and the first reading whose solve meets it is served, the fallback only where none does;
+the step's factorizations are shared, so a retry costs its solve and admission rounds), close
+(default null: off; a speed in m/s: the points labelled open that the solve on the labels leaves
+closing faster than that are labelled pressing and the step solved again before the admission,
+kinematics.solved_on_labels).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -104,7 +111,7 @@ COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
 ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face"})
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
-                 "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy"}
+                 "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None}
 
 
 class ModelCardError(ValueError):
@@ -245,20 +252,27 @@ def _face_settings(face: Any, kind: str) -> dict:
     if not isinstance(face, dict) or set(face) - set(FACE_DEFAULTS):
         raise ModelCardError(f"model card face: an object with keys among {sorted(FACE_DEFAULTS)}, got {face!r}")
     out = {**FACE_DEFAULTS, **face}
-    optional = ("label_friction", "max_residual")
+    optional = ("label_friction", "max_residual", "close")
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
-                  for k in out if k not in ("fallback", "solver") and not (k in optional + ("max_points",) and out[k] is None))
+                  for k in out if k not in ("fallback", "solver", "retry_pressing")
+                  and not (k in optional + ("max_points",) and out[k] is None))
+    retries = out["retry_pressing"]
+    retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
+                                                   for r in retries) and (not retries or out["max_residual"] is not None)
     fallback, most = out["fallback"], out["max_points"]
     if not numbers or not out["pressing"] >= 0 or not out["share"] > 0 or not isinstance(out["rounds"], int) \
             or out["rounds"] < 1 or any(out[k] is not None and not out[k] > 0 for k in optional) \
             or not out["damping"] >= 0 or not (fallback is None or isinstance(fallback, str) and fallback) \
-            or not (most is None or isinstance(most, int) and most >= 1) or out["solver"] not in SOLVERS:
+            or not (most is None or isinstance(most, int) and most >= 1) or out["solver"] not in SOLVERS \
+            or not retries_ok:
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, "
-                             f"label_friction and max_residual null or > 0, damping >= 0, max_points null or a "
-                             f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, got {face!r}")
+                             f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
+                             f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
+                             f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
-            "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"]}
+            "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
+            "retry_pressing": [float(r) for r in retries]}
 
 
 def _read_card(path: Path) -> Any:

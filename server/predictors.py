@@ -35,7 +35,8 @@ import numpy as np
 from deepcontact.channels import Step, channel_values, needs
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
-from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest, solved_on_labels
+from deepcontact.kinematics import (BODY_DYNAMIC, Physics, contact_frame, contact_physics, points_at_rest,
+                                    solved_on_labels)
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
 from server.deadline import CostBySize
@@ -399,21 +400,27 @@ class GraphPredictor(Predictor):
                           deadline=None) -> tuple[np.ndarray, str]:
         """((P, 2) N s, served_by), a face card's warm start: the network's answer (labels,
         (P, 2) N s) read as each point's label, the step solved on them and admitted
-        (kinematics.solved_on_labels), or the fallback's answer where the admitted solve
-        misses its labels by more than max_residual (served_by then names it, else "").
+        (kinematics.solved_on_labels); where the admitted solve misses its labels by more than
+        max_residual, the labels read again at each of retry_pressing's thresholds in turn, and
+        the fallback's answer where no reading meets it (served_by then names it, else "").
         friction: (P,) each point's friction coefficient; deadline: perf_counter() s after
         which no admission round begins (a route begun late answers with what it has rather
-        than miss)."""
+        than miss), and no retry."""
         face = self.card.face
-        impulses, residual = solved_on_labels(bodies, points, labels.astype(np.float64),
-                                              np.asarray(friction, np.float64), world.physics, face["pressing"],
-                                              face["share"], face["rounds"], face["label_friction"],
-                                              damping=face["damping"], solver=face["solver"], until=deadline)
-        if face["max_residual"] is not None and residual > face["max_residual"]:
-            # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
-            return (self._fallback(bodies, points, world, step, previous),
-                    self.fallback.name if self.fallback is not None else "builtin")
-        return impulses, ""
+        frame = contact_frame(bodies, points)  # its factorizations are kept on it, for every reading
+        labels, mu = labels.astype(np.float64), np.asarray(friction, np.float64)
+        for k, pressing in enumerate([face["pressing"], *face["retry_pressing"]]):
+            if k and deadline is not None and time.perf_counter() >= deadline:
+                break
+            impulses, residual = solved_on_labels(bodies, points, labels, mu, world.physics, pressing, face["share"],
+                                                  face["rounds"], face["label_friction"], frame=frame,
+                                                  damping=face["damping"], solver=face["solver"], until=deadline,
+                                                  close=face["close"])
+            if face["max_residual"] is None or residual <= face["max_residual"]:
+                return impulses, ""
+        # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
+        return (self._fallback(bodies, points, world, step, previous),
+                self.fallback.name if self.fallback is not None else "builtin")
 
     def _fallback(self, bodies, points, world, step, previous) -> np.ndarray:
         """(P, 2) N s served where a face card does not serve its solve: its fallback card's

@@ -160,6 +160,26 @@ def test_cones_keep_what_is_inside_and_take_the_rest_to_the_nearest_edge_or_zero
                                [[1.0, 0.3], [1.2, 0.6], [0.0, 0.0], [0.8, -0.4], [2.0, 0.0]])
 
 
+def test_closing_relabels_the_open_labels_the_solve_drives_shut_the_wrong_one_and_its_neighbours_with_it():
+    # The heaviest pressing point of the answer's own face labelled open: the solve leaves its
+    # bodies closing there, and `close` labels it pressing again. But the same wrong solve also
+    # drives points shut that the answer leaves open, and they are labelled pressing with it:
+    # why the rule costs iterations (docs/results.md, "Points that close").
+    from deepcontact.kinematics import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face, solved_on_labels
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+    labels = np.stack([np.where(face != OPEN, FACE_IMPULSE, 0.0),
+                       np.where(face == SLIDES_PLUS, FACE_IMPULSE, np.where(face == SLIDES_MINUS, -FACE_IMPULSE, 0.0))], 1)
+    heaviest = int(np.argmax(np.where(face != OPEN, exact[:, 0], 0.0)))
+    wrong = labels.copy()
+    wrong[heaviest] = 0.0
+    left_open, _ = solved_on_labels(bodies, points, wrong, mu, Physics.thesis(), rounds=200)
+    closed, _ = solved_on_labels(bodies, points, wrong, mu, Physics.thesis(), rounds=200, close=1e-4)
+    assert left_open[heaviest, 0] == 0.0 < closed[heaviest, 0]
+    assert not left_open[face == OPEN, 0].any() and closed[face == OPEN, 0].any()
+
+
 def test_the_nearest_admissible_impulses_move_the_bodies_alike_and_keep_every_limit():
     # Box2D's warm start plus the part of this step's correction that moves the bodies
     # leaves friction outside its cone at some points. A self-stress alone (the bodies'

@@ -81,11 +81,13 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                                                     "face": {"pressing": 0.75, "rounds": 50}}))
     face = ModelCard.load(tmp_path / "face.json")
     assert face.face == {"pressing": 0.75, "share": 1.0, "rounds": 50, "label_friction": None, "max_residual": None,
-                         "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy"}
+                         "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [],
+                         "close": None}
     assert ModelCard.load(tmp_path / "classifier.json").face is None  # the classifier itself is served plain
     for bad, match in (({"pressing": -1}, "pressing >= 0"), ({"rounds": 0}, "rounds a whole number"),
                        ({"rounds": 2.5}, "rounds a whole number"), ({"labels": 1}, "keys among"),
-                       ({"label_friction": 0}, "max_residual null or > 0"), ({"max_residual": -1}, "null or > 0"),
+                       ({"label_friction": 0}, "max_residual and close null or > 0"), ({"max_residual": -1}, "null or > 0"),
+                       ({"close": 0}, "close null or > 0"), ({"retry_pressing": [0.9]}, "only with max_residual"),
                        ({"damping": -1e-10}, "damping >= 0"), ({"solver": "svd"}, "solver one of"),
                        ({"max_points": 0}, "max_points null or a whole number"),
                        ({"max_points": 150.5}, "max_points null or a whole number"),

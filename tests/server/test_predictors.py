@@ -278,6 +278,23 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     np.testing.assert_array_equal(served("large", max_points=len(points) - 1, fallback=classifier), own)
     np.testing.assert_array_equal(served("large-builtin", max_points=len(points) - 1), points["builtin"])
     np.testing.assert_array_equal(served("small", max_points=len(points), fallback=classifier), served("plain"))
+    # retry_pressing: where the first reading misses max_residual, the labels are read again at
+    # each threshold in turn; the first reading that meets it is served, the fallback where none does.
+    from deepcontact.kinematics import solved_on_labels
+
+    labels = own.astype(np.float64)
+    residual = {p: solved_on_labels(bodies, points, labels, mu, world.physics, p, 1.0, 200)[1] for p in (0.75, 0.9, 1.1)}
+    gate = 0.5 * (residual[0.75] + residual[1.1])  # one reading on each side of it
+    first, later = (0.75, 1.1) if residual[0.75] <= gate else (1.1, 0.75)
+    served_first = served("first-only", pressing=first)
+    np.testing.assert_array_equal(served("retried", pressing=later, retry_pressing=[later, first],
+                                         max_residual=gate, fallback=classifier), served_first)
+    np.testing.assert_array_equal(served("none-meets", pressing=later, retry_pressing=[later],
+                                         max_residual=gate, fallback=classifier), own)
+    with pytest.raises(ModelCardError, match="retry_pressing"):
+        served("retries-without-a-gate", retry_pressing=[0.9])
+    with pytest.raises(ModelCardError, match="retry_pressing"):
+        served("retries-not-a-list", retry_pressing=0.9, max_residual=0.3)
     with pytest.raises(ModelCardError, match="has a face of its own"):
         served("chain", max_residual=0.3, fallback="plain")
     with pytest.raises(ModelCardError, match="no model card"):
