@@ -11,16 +11,19 @@
 #                         stopping rule reads, scored on that mean (training/round2_graph.sh;
 #                         each run starts from the last one's weights, so all three are
 #                         rebuilt on the way, with their own cards)
-#   models/graph-face-r8-e12.onnx, models/graph-face-fr-r8.onnx + .json
+#   models/graph-face-r8-e12.onnx, graph-face-fr-r8, graph-face-fr-r8-long, graph-face-fr-r12,
+#   graph-face-fr-r12-e10 and graph-face-fr-r12-e10-mirror (.onnx + .json)
 #                         the same network trained to label the points (which let go, stick,
 #                         slide which way: train-graph --targets face) on the thesis world, 12
 #                         epochs; then 5 more on the thesis world and the scene family with
-#                         each point's friction as an input (graph-face-fr-r8)
-#   models/default.json   the face route: an alias of graph-face-fr-r8 whose labels the server
-#                         solves the step on and admits, falling back to
+#                         each point's friction as an input (graph-face-fr-r8), 6 more on every
+#                         step of both (-long), grown to twelve rounds for 5 (-r12) and 5 more
+#                         (-r12-e10), served with its mirror image (-mirror)
+#   models/default.json   the face route: an alias of graph-face-fr-r12-e10-mirror whose labels
+#                         the server solves the step on and admits, falling back to
 #                         graph-projected-max-1-799-r8-e9-reflect-sym-mirror where the admitted
-#                         solve misses its labels or the step is large (docs/results.md, "Each
-#                         point's friction")
+#                         solve misses its labels or the step is large (docs/results.md, "The
+#                         solve refined, the classifier trained on")
 #   models/pressure.onnx  + pressure.json, pressure-new-points.json   the thesis's kind of model
 #   models/residual.onnx  + residual.json, residual-new-points.json   Box2D's warm start + a correction
 #
@@ -29,10 +32,12 @@
 #   GRID_ONLY=1 make default-model               the thesis's grid models alone (the default as shipped)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). On 2 cores about 3 h for the default: 2 h for its graph model (1 h 59 min on
-# Intel AVX-512 cores on 2026-11-30; 2 h 17 min with AVX2 before train-graph traced its step
-# once) and about an hour for its classifier (20, 19 and 17 min for its three runs on 2 AMD
-# AVX-512 cores, 2026-12-01); the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
+# (DEFAULT_ONLY=1). On 2 cores about 5 h 30 min for the default: 6 min for its data (5 min 45 s
+# on 2 AMD AVX-512 cores, 2026-12-02), 2 h for its graph model (1 h 59 min on Intel AVX-512
+# cores on 2026-11-30; 2 h 17 min with AVX2 before train-graph traced its step once) and about
+# 3 h 30 min for its classifier (20, 19 and 17 min for its first three runs on 2 AMD AVX-512
+# cores, 2026-12-01; 45, 48 and 50 min for the next three on the same kind of host, 2026-12-02,
+# each beside benchmarks, 44, 47 and 49 min of it training); the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
 # "Since the default became ...-r8-e9-reflect-sym-mirror"; GRID_ONLY=1 rebuilds them alone).
 # The other models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
@@ -59,8 +64,10 @@ RECIPE=(--loss grid --lr-schedule constant --config "$CONFIG" --batch-size 16 --
 SECONDS=0
 CHAIN=(graph-mse-1-799-r8 graph-mse-1-799-r8-e9-reflect graph-projected-max-1-799-r8-e9-reflect-sym)
 DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror   # the graph model: the default's fallback
-FACE=graph-face-fr-r8                                         # the classifier the default solves on
-WHY="the face route: graph-face-fr-r8's labels (each point's friction an input) read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 60 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 200 points, the graph model $DEFAULT is served (docs/results.md, Each point's friction); rebuilt by make default-model"
+FACE_FR=graph-face-fr-r8                                      # the classifier with each point's friction
+FACE_NET=graph-face-fr-r12-e10                                # the same trained on, twelve rounds
+FACE=$FACE_NET-mirror                                         # served with its mirror image: what the default solves on
+WHY="the face route: $FACE_NET's labels (twelve rounds, each point's friction an input), the mean of its answer and its mirror image's, read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 60 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 300 points, the graph model $DEFAULT is served (docs/results.md, The solve refined, the classifier trained on); rebuilt by make default-model"
 if [ "${GRID_ONLY:-0}" != 1 ]; then
 # The shipped files of the chain, kept before the runs overwrite them, so that each rebuild is
 # compared with what it replaced (below).
@@ -79,26 +86,41 @@ for name in "${CHAIN[@]}"; do
     "$PY" -m training.recover_weights "$SHIPPED/$name.json" --against "runs/graph-cache/$name.weights.npz" || true
 done
 
-# The default's classifier (the face route, docs/results.md "Each point's friction"): the same
-# network trained to label the points on the thesis world (6 epochs, 6 more at half the rate),
-# then with each point's friction as one more input on the thesis world and the scene family.
-rm -f runs/resume/graph-face-r8.state.npz runs/resume/graph-face-r8-e12.state.npz runs/resume/$FACE.state.npz
+# The default's classifier (the face route, docs/results.md "Each point's friction" and "The
+# solve refined"): the same network trained to label the points on the thesis world (6 epochs, 6
+# more at half the rate), then with each point's friction as one more input on the thesis world
+# and the scene family (5 epochs on 100,000 steps of each file), then 6 epochs on every step of
+# both, then grown to twelve rounds for 5 more (rounds 9-12 start as pass-throughs) and 5 more at
+# half the rate, another draw; served with its mirror image (training/ensemble.py --mirror).
+rm -f runs/resume/graph-face-r8.state.npz runs/resume/graph-face-r8-e12.state.npz runs/resume/$FACE_FR.state.npz \
+    runs/resume/graph-face-fr-r8-long.state.npz runs/resume/graph-face-fr-r12.state.npz runs/resume/$FACE_NET.state.npz
 FACE_RUN=(--max-val-steps 2000 --seed 0 --quiet --targets face --loss mse --rounds 8 --patience 3)
+BOTH=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5
+      --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5)
 "$DC" train-graph --train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 "${FACE_RUN[@]}" \
     --out runs/face-chain/graph-face-r8.onnx --resume runs/resume/graph-face-r8.state.npz --epochs 6
 "$DC" train-graph --train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 "${FACE_RUN[@]}" \
     --out models/graph-face-r8-e12.onnx --resume runs/resume/graph-face-r8-e12.state.npz --epochs 6 --lr 1e-3 \
     --init runs/graph-cache/graph-face-r8.weights.npz
-"$DC" train-graph --train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 \
-    --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5 --max-steps-per-file 100000 "${FACE_RUN[@]}" \
-    --out models/$FACE.onnx --resume runs/resume/$FACE.state.npz --epochs 5 --lr 1e-3 \
+"$DC" train-graph "${BOTH[@]}" --max-steps-per-file 100000 "${FACE_RUN[@]}" \
+    --out models/$FACE_FR.onnx --resume runs/resume/$FACE_FR.state.npz --epochs 5 --lr 1e-3 \
     --init runs/graph-cache/graph-face-r8-e12.weights.npz --extra-inputs friction
+"$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" \
+    --out models/graph-face-fr-r8-long.onnx --resume runs/resume/graph-face-fr-r8-long.state.npz --epochs 6 --lr 1e-3 \
+    --init runs/graph-cache/$FACE_FR.weights.npz --extra-inputs friction
+"$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" --rounds 12 \
+    --out models/graph-face-fr-r12.onnx --resume runs/resume/graph-face-fr-r12.state.npz --epochs 5 --lr 1e-3 \
+    --init runs/graph-cache/graph-face-fr-r8-long.weights.npz --extra-inputs friction
+"$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" --rounds 12 --seed 1 \
+    --out models/$FACE_NET.onnx --resume runs/resume/$FACE_NET.state.npz --epochs 5 --lr 5e-4 \
+    --init runs/graph-cache/graph-face-fr-r12.weights.npz --extra-inputs friction
+"$PY" -m training.ensemble models/$FACE_NET.json --mirror --name $FACE
 echo "$FACE trained after ${SECONDS} s"
 
 tmp=models/.default.json.part
 printf '%s\n' "{" '  "name": "default",' "  \"alias_of\": \"$FACE\"," \
     "  \"why\": \"$WHY\"," \
-    "  \"face\": {\"pressing\": 0.75, \"rounds\": 60, \"max_residual\": 0.3, \"max_points\": 200, \"solver\": \"dual\", \"fallback\": \"$DEFAULT\"}" \
+    "  \"face\": {\"pressing\": 0.75, \"rounds\": 60, \"max_residual\": 0.3, \"max_points\": 300, \"solver\": \"dual\", \"fallback\": \"$DEFAULT\"}" \
     "}" > "$tmp"
 mv "$tmp" models/default.json
 [ "${DEFAULT_ONLY:-0}" = 1 ] && { echo "done (default only) in ${SECONDS} s"; exit 0; }
