@@ -762,8 +762,10 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     (sticking, or sliding where their tangent label says so) and the step solved again before
     the admission. A point said to let go that the solve then drives into its neighbour was
     pressing in the recorded solve at 4 of 5 such points of the validation steps, where the
-    opposite test (a pressing label that the solve gives a pull) is right at 1 in 14
-    (docs/results.md, "Points that close").
+    opposite test (a pressing label that the solve gives a pull) is right at 1 in 14; served, it
+    costs iterations all the same, since a wrong open label drives its truly open neighbours
+    shut as well and they are relabelled with it (docs/results.md, "The solve refined, the
+    classifier trained on"). Off in the shipped cards.
 
     Returns (impulses (P, 2) N s, residual): face_residual of the impulses served, how far
     they leave the labels' equations unmet once every cone is kept (0: labels the limits

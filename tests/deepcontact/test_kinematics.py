@@ -164,7 +164,7 @@ def test_closing_relabels_the_open_labels_the_solve_drives_shut_the_wrong_one_an
     # The heaviest pressing point of the answer's own face labelled open: the solve leaves its
     # bodies closing there, and `close` labels it pressing again. But the same wrong solve also
     # drives points shut that the answer leaves open, and they are labelled pressing with it:
-    # why the rule costs iterations (docs/results.md, "Points that close").
+    # why the rule costs iterations (docs/results.md, "The solve refined, the classifier trained on").
     from deepcontact.kinematics import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face, solved_on_labels
 
     bodies, points, exact, mu = sliding_pile()
