@@ -12,14 +12,14 @@
 #                         each run starts from the last one's weights, so all three are
 #                         rebuilt on the way, with their own cards)
 #   models/graph-face-r8-e12.onnx, graph-face-fr-r8, graph-face-fr-r8-long, graph-face-fr-r12,
-#   graph-face-fr-r12-e10 and graph-face-fr-r12-e10-mirror (.onnx + .json)
+#   graph-face-fr-r12-e10, graph-face-fr-r12-e15 and graph-face-fr-r12-e15-mirror (.onnx + .json)
 #                         the same network trained to label the points (which let go, stick,
 #                         slide which way: train-graph --targets face) on the thesis world, 12
 #                         epochs; then 5 more on the thesis world and the scene family with
 #                         each point's friction as an input (graph-face-fr-r8), 6 more on every
 #                         step of both (-long), grown to twelve rounds for 5 (-r12) and 5 more
-#                         (-r12-e10), served with its mirror image (-mirror)
-#   models/default.json   the face route: an alias of graph-face-fr-r12-e10-mirror whose labels
+#                         (-r12-e10) and 4 more (-r12-e15), served with its mirror image (-mirror)
+#   models/default.json   the face route: an alias of graph-face-fr-r12-e15-mirror whose labels
 #                         the server solves the step on and admits, falling back to
 #                         graph-projected-max-1-799-r8-e9-reflect-sym-mirror where the admitted
 #                         solve misses its labels or the step is large (docs/results.md, "The
@@ -32,12 +32,13 @@
 #   GRID_ONLY=1 make default-model               the thesis's grid models alone (the default as shipped)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). On 2 cores about 5 h 30 min for the default: 6 min for its data (5 min 45 s
+# (DEFAULT_ONLY=1). On 2 cores about 6 h for the default: 6 min for its data (5 min 45 s
 # on 2 AMD AVX-512 cores, 2026-12-02), 2 h for its graph model (1 h 59 min on Intel AVX-512
 # cores on 2026-11-30; 2 h 17 min with AVX2 before train-graph traced its step once) and about
-# 3 h 30 min for its classifier (20, 19 and 17 min for its first three runs on 2 AMD AVX-512
+# 3 h 50 min for its classifier (20, 19 and 17 min for its first three runs on 2 AMD AVX-512
 # cores, 2026-12-01; 45, 48 and 50 min for the next three on the same kind of host, 2026-12-02,
-# each beside benchmarks, 44, 47 and 49 min of it training); the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
+# each beside benchmarks, 44, 47 and 49 min of it training; 29 min 50 s for the last, alone,
+# 28 min 43 s of it training); the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
 # "Since the default became ...-r8-e9-reflect-sym-mirror"; GRID_ONLY=1 rebuilds them alone).
 # The other models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
@@ -65,7 +66,7 @@ SECONDS=0
 CHAIN=(graph-mse-1-799-r8 graph-mse-1-799-r8-e9-reflect graph-projected-max-1-799-r8-e9-reflect-sym)
 DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror   # the graph model: the default's fallback
 FACE_FR=graph-face-fr-r8                                      # the classifier with each point's friction
-FACE_NET=graph-face-fr-r12-e10                                # the same trained on, twelve rounds
+FACE_NET=graph-face-fr-r12-e15                                # the same trained on, twelve rounds
 FACE=$FACE_NET-mirror                                         # served with its mirror image: what the default solves on
 WHY="the face route: $FACE_NET's labels (twelve rounds, each point's friction an input), the mean of its answer and its mirror image's, read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 60 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 300 points, the graph model $DEFAULT is served (docs/results.md, The solve refined, the classifier trained on); rebuilt by make default-model"
 if [ "${GRID_ONLY:-0}" != 1 ]; then
@@ -93,7 +94,8 @@ done
 # both, then grown to twelve rounds for 5 more (rounds 9-12 start as pass-throughs) and 5 more at
 # half the rate, another draw; served with its mirror image (training/ensemble.py --mirror).
 rm -f runs/resume/graph-face-r8.state.npz runs/resume/graph-face-r8-e12.state.npz runs/resume/$FACE_FR.state.npz \
-    runs/resume/graph-face-fr-r8-long.state.npz runs/resume/graph-face-fr-r12.state.npz runs/resume/$FACE_NET.state.npz
+    runs/resume/graph-face-fr-r8-long.state.npz runs/resume/graph-face-fr-r12.state.npz \
+    runs/resume/graph-face-fr-r12-e10.state.npz runs/resume/$FACE_NET.state.npz
 FACE_RUN=(--max-val-steps 2000 --seed 0 --quiet --targets face --loss mse --rounds 8 --patience 3)
 BOTH=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5
       --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5)
@@ -112,8 +114,11 @@ BOTH=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5
     --out models/graph-face-fr-r12.onnx --resume runs/resume/graph-face-fr-r12.state.npz --epochs 5 --lr 1e-3 \
     --init runs/graph-cache/graph-face-fr-r8-long.weights.npz --extra-inputs friction
 "$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" --rounds 12 --seed 1 \
-    --out models/$FACE_NET.onnx --resume runs/resume/$FACE_NET.state.npz --epochs 5 --lr 5e-4 \
+    --out models/graph-face-fr-r12-e10.onnx --resume runs/resume/graph-face-fr-r12-e10.state.npz --epochs 5 --lr 5e-4 \
     --init runs/graph-cache/graph-face-fr-r12.weights.npz --extra-inputs friction
+"$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" --rounds 12 --seed 2 \
+    --out models/$FACE_NET.onnx --resume runs/resume/$FACE_NET.state.npz --epochs 4 --lr 3e-4 \
+    --init runs/graph-cache/graph-face-fr-r12-e10.weights.npz --extra-inputs friction
 "$PY" -m training.ensemble models/$FACE_NET.json --mirror --name $FACE
 echo "$FACE trained after ${SECONDS} s"
 
