@@ -18,7 +18,8 @@ order or for another step. `deepcontact bench soak` runs one long level.
 Without --server the command starts the servers it compares itself: one
 server process without micro-batching, one with it, and --server-processes
 processes sharing one port (SO_REUSEPORT). Writes DIR/load.json and
-DIR/latency_vs_load.png.
+DIR/latency_vs_load.png. A --server that serves TLS is dialled with --tls-ca
+(and --tls-cert/--tls-key where it requires client certificates).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.figures import save_figure
+from deepcontact import tls
 from deepcontact.io import write_json_atomic
 
 HIGHEST_US = 60_000_000
@@ -58,6 +60,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--deadline-ms", type=float, default=5000.0,
                         help="per-step deadline; a step past it counts as DEADLINE_EXCEEDED (default 5000)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
+    tls.add_client_arguments(parser)
+
+
+#: (--tls-ca, --tls-cert, --tls-key) as paths, or Nones: what crosses to the load processes
+#: (credentials objects do not), each of which builds its own.
+TlsFiles = tuple[str | None, str | None, str | None]
+PLAINTEXT: TlsFiles = (None, None, None)
+
+
+def tls_files(args: argparse.Namespace) -> TlsFiles:
+    """The client TLS flags of a command as run_level's client_tls."""
+    return tuple(None if f is None else str(f) for f in (args.tls_ca, args.tls_cert, args.tls_key))
 
 
 # -- load generation (runs in worker processes) -------------------------------
@@ -96,7 +110,7 @@ def _steps_source(replay: str | None, stream_index: int, limit: int = 250):
                 engine.solve()
 
 
-def _stream_worker(target, model, source, stream_index, timing, deadline_s, out: dict, lock):
+def _stream_worker(target, model, source, stream_index, timing, deadline_s, out: dict, lock, credentials=None):
     from hdrh.histogram import HdrHistogram
 
     from deepcontact import wire
@@ -110,7 +124,7 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
     ok = wrong_order = 0
     thesis = SceneSpec.thesis()  # the worlds these steps come from
     world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics)
-    with WarmStartClient(target, world=world, backoff_s=(0.01, 0.2)) as client:
+    with WarmStartClient(target, world=world, credentials=credentials, backoff_s=(0.01, 0.2)) as client:
         start_at, stop_at = timing()
         while time.time() < start_at:
             time.sleep(0.001)
@@ -149,8 +163,13 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
             out[name].add(h)
 
 
-def _process_worker(target, model, replay, stream_indices, deadline_s, ready, start_time, duration, result_path):
+def _process_worker(target, model, replay, stream_indices, deadline_s, ready, start_time, duration, result_path,
+                    client_tls=PLAINTEXT):
     from hdrh.histogram import HdrHistogram
+
+    from deepcontact.tls import client_credentials
+
+    credentials = client_credentials(*client_tls)  # checked by the command before any process started
 
     out = {"sent": 0, "ok": 0, "wrong_order": 0, "errors": {},
            "latency": HdrHistogram(1, HIGHEST_US, 3), "server_total": HdrHistogram(1, HIGHEST_US, 3),
@@ -169,7 +188,7 @@ def _process_worker(target, model, replay, stream_indices, deadline_s, ready, st
         return start_time.value, start_time.value + duration
 
     threads = [threading.Thread(target=_stream_worker, args=(target, model, sources[i], i, timing, deadline_s,
-                                                             out, lock)) for i in stream_indices]
+                                                             out, lock, credentials)) for i in stream_indices]
     for t in threads:
         t.start()
     for t in threads:
@@ -181,8 +200,9 @@ def _process_worker(target, model, replay, stream_indices, deadline_s, ready, st
 
 
 def run_level(target: str, model: str, clients: int, duration: float, *, replay: Path | None,
-              max_processes: int, deadline_s: float) -> dict:
-    """`clients` concurrent streams for `duration` seconds against target."""
+              max_processes: int, deadline_s: float, client_tls: TlsFiles = PLAINTEXT) -> dict:
+    """`clients` concurrent streams for `duration` seconds against target; client_tls: the client's
+    (CA, certificate, key) files for a TLS target (tls_files), PLAINTEXT for none."""
     from hdrh.histogram import HdrHistogram
 
     ctx = mp.get_context("spawn")  # no gRPC state crosses a fork
@@ -193,7 +213,7 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
     with tempfile.TemporaryDirectory(prefix="deepcontact-load-") as tmp:
         paths = [Path(tmp) / f"w{i}.json" for i in range(n_proc)]
         procs = [ctx.Process(target=_process_worker, args=(target, model, str(replay) if replay else None, g,
-                                                           deadline_s, ready, start_time, duration, str(p)))
+                                                           deadline_s, ready, start_time, duration, str(p), client_tls))
                  for g, p in zip(groups, paths)]
         for p in procs:
             p.start()
@@ -265,6 +285,10 @@ def run(args: argparse.Namespace) -> int:
     if args.replay is not None and not _has_contacts(args.replay):
         print(f"deepcontact bench load: {args.replay}: no steps with contacts to send", file=sys.stderr)
         return 2
+    problem = _tls_problem(args)
+    if problem:
+        print(f"deepcontact bench load: {problem}", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     if args.server:
         configs = [("given server", None)]
@@ -290,7 +314,21 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tls_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the client TLS flags, in a sentence, or None. They are for
+    --server: the servers this command starts serve plaintext on loopback."""
+    if any(tls_files(args)) and not args.server:
+        return ("--tls-ca, --tls-cert and --tls-key are for a --server that serves TLS; "
+                "the servers started here serve plaintext on loopback")
+    try:
+        tls.credentials_from_args(args)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
 def _run_configs(args, configs, levels, results: list[dict]) -> None:
+    credentials = tls.credentials_from_args(args)
     for label, servers in configs:
         procs = []
         try:
@@ -305,12 +343,13 @@ def _run_configs(args, configs, levels, results: list[dict]) -> None:
                 target = f"127.0.0.1:{port}"
             from simclient.client import WarmStartClient
 
-            with WarmStartClient(target) as probe:
+            with WarmStartClient(target, credentials=credentials) as probe:
                 if not probe.wait_ready(10) or args.model not in [m.name for m in probe.list_models()]:
                     raise RuntimeError(f"{target} does not serve {args.model!r}")
             for clients in levels:
                 r = run_level(target, args.model, clients, args.duration, replay=args.replay,
-                              max_processes=args.processes, deadline_s=args.deadline_ms / 1e3)
+                              max_processes=args.processes, deadline_s=args.deadline_ms / 1e3,
+                              client_tls=tls_files(args))
                 r["config"] = label
                 results.append(r)
                 lat = r["latency_ms"]

@@ -18,6 +18,10 @@ Checks, each a line of the summary and a field of the JSON:
     beside it).
 Writes DIR/soak.json and DIR/soak.png (RSS and steps answered per second
 over time); exits 1 if a check fails.
+
+To soak TLS, the server is given `--server-tls-cert/--server-tls-key` (and
+`--server-tls-client-ca` for mutual TLS; its certificate must name 127.0.0.1,
+which the clients dial) and the clients `--tls-ca` (and `--tls-cert/--tls-key`).
 """
 
 from __future__ import annotations
@@ -30,10 +34,13 @@ import time
 import urllib.request
 from pathlib import Path
 
+import grpc
 import numpy as np
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from bench import load
 from bench.figures import save_figure
+from deepcontact import tls
 from deepcontact.io import write_json_atomic
 from deepcontact.modelcard import unknown_model
 
@@ -56,6 +63,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rss-bound-mb", type=float, default=20.0,
                         help="most the server's RSS may grow after the warm-up, MB (default 20)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--server-tls-cert", type=Path, metavar="FILE",
+                        help="the server serves TLS with this PEM certificate chain (with --server-tls-key; it "
+                             "must name IP 127.0.0.1, which the clients dial, and they need --tls-ca)")
+    parser.add_argument("--server-tls-key", type=Path, metavar="FILE", help="PEM private key of --server-tls-cert")
+    parser.add_argument("--server-tls-client-ca", type=Path, metavar="FILE",
+                        help="the server requires client certificates signed by this CA (mutual TLS; the clients "
+                             "then need --tls-cert and --tls-key)")
+    tls.add_client_arguments(parser)
 
 
 # -- sampling the server ---------------------------------------------------------
@@ -140,29 +155,31 @@ def run(args: argparse.Namespace) -> int:
         (args.duration <= 0, "--duration must be > 0"), (args.clients < 1, "--clients must be >= 1"),
         (args.sample_s <= 0, "--sample-s must be > 0"), (warmup_s < 0, "--warmup-s must be >= 0"),
         (args.replay is not None and not args.replay.exists(), f"{args.replay}: no such data file")) if bad]
+    problems += [p for p in (_tls_problem(args),) if p]
     if problems:
         print(f"deepcontact bench soak: {'; '.join(problems)}", file=sys.stderr)
         return 2
-    from server.process import ServerProcess
-
+    credentials = tls.credentials_from_args(args)
     args.out.mkdir(parents=True, exist_ok=True)
     metrics_port = load._free_port()
     try:
-        server = ServerProcess(args.models, "--metrics-port", str(metrics_port), log=args.out / "server.log").start()
+        server = _server_process(args.models, ["--metrics-port", str(metrics_port), *_server_tls_args(args)],
+                                 args.out / "server.log", credentials).start()
     except (RuntimeError, TimeoutError) as exc:
         print(f"deepcontact bench soak: {exc}", file=sys.stderr)
         return 2
     try:
         from simclient.client import WarmStartClient
 
-        with WarmStartClient(server.address) as probe:
+        with WarmStartClient(server.address, credentials=credentials) as probe:
             names = [m.name for m in probe.list_models()]
             if args.model not in names:
                 print(f"deepcontact bench soak: {args.models}: {unknown_model(args.model, names)}", file=sys.stderr)
                 return 2
         with Sampler(server.proc.pid, metrics_port, args.sample_s) as sampler:
             level = load.run_level(server.address, args.model, args.clients, args.duration, replay=args.replay,
-                                   max_processes=args.processes, deadline_s=args.deadline_ms / 1e3)
+                                   max_processes=args.processes, deadline_s=args.deadline_ms / 1e3,
+                                   client_tls=load.tls_files(args))
     finally:
         server.stop()
     samples = sampler.samples
@@ -176,6 +193,65 @@ def run(args: argparse.Namespace) -> int:
     write_json_atomic(args.out / "soak.json", result)
     plot(result, args.out / "soak.png")
     return _report(result, args.out)
+
+
+def _tls_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the TLS flags, in a sentence, or None. The clients dial the server
+    this command starts, so client and server TLS come together, and every file is read
+    before a server starts."""
+    server_tls = args.server_tls_cert is not None or args.server_tls_key is not None
+    if (args.server_tls_cert is None) != (args.server_tls_key is None):
+        return "--server-tls-cert and --server-tls-key go together"
+    if args.server_tls_client_ca is not None and not server_tls:
+        return "--server-tls-client-ca needs --server-tls-cert and --server-tls-key"
+    if server_tls and args.tls_ca is None:
+        return "a TLS server needs --tls-ca, the CA its certificate is verified by"
+    if not server_tls and any(load.tls_files(args)):
+        return ("--tls-ca, --tls-cert and --tls-key dial the server started here, which serves TLS with "
+                "--server-tls-cert and --server-tls-key")
+    try:
+        tls.credentials_from_args(args)
+    except ValueError as exc:
+        return str(exc)
+    if server_tls:
+        try:
+            tls.server_credentials(args.server_tls_cert, args.server_tls_key, args.server_tls_client_ca)
+        except ValueError as exc:  # its message names serve's flags, which --server-tls-* pass on
+            return f"the server's TLS files (--server-tls-*): {exc}"
+    return None
+
+
+def _server_tls_args(args: argparse.Namespace) -> list[str]:
+    """`deepcontact serve`'s TLS flags for the server soak starts (none for plaintext)."""
+    if args.server_tls_cert is None:
+        return []
+    out = ["--tls-cert", str(args.server_tls_cert), "--tls-key", str(args.server_tls_key)]
+    return out + (["--tls-client-ca", str(args.server_tls_client_ca)] if args.server_tls_client_ca else [])
+
+
+def _server_process(models: Path, extra: list[str], log: Path, credentials: grpc.ChannelCredentials | None):
+    """A ServerProcess whose start-up health check dials it as the clients will: over TLS
+    with their credentials when it serves TLS."""
+    from server.process import ServerProcess
+
+    class _Server(ServerProcess):
+        def wait_healthy(self, timeout: float) -> None:
+            if credentials is None:
+                return super().wait_healthy(timeout)
+            try:
+                with grpc.secure_channel(self.address, credentials) as channel:
+                    status = health_pb2_grpc.HealthStub(channel).Check(
+                        health_pb2.HealthCheckRequest(service="deepcontact.v1.WarmStart"),
+                        timeout=max(timeout, 1.0), wait_for_ready=True).status
+            except grpc.RpcError as err:  # e.g. a handshake its certificates do not pass
+                self.stop()
+                raise RuntimeError(f"the server at {self.address} did not answer over TLS ({err.code().name}); "
+                                   f"its log: {log}") from None
+            if status != health_pb2.HealthCheckResponse.SERVING:
+                self.stop()
+                raise RuntimeError(f"server at {self.address} reports {status}")
+
+    return _Server(models, *extra, log=log)
 
 
 def _report(result: dict, out: Path) -> int:

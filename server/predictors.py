@@ -534,33 +534,68 @@ def providers(random_seed: int = 0, max_grid_nodes: int = MAX_GRID_NODES) -> lis
 
 
 def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: int = 1,
-                max_grid_nodes: int = MAX_GRID_NODES) -> list[ModelPredictor | GraphPredictor]:
-    """One predictor per card (`*.json`) in folder, each running the ONNX file
-    its card names (a GraphPredictor for kind "graph", else a ModelPredictor). An ONNX file that no card names, or a card whose file is
-    missing or does not match, stops the server with a message."""
+                max_grid_nodes: int = MAX_GRID_NODES, skip_bad: bool = False) -> list[ModelPredictor | GraphPredictor]:
+    """One predictor per card (`*.json`) in folder, in the cards' order, each running the
+    ONNX file its card names (a GraphPredictor for kind "graph", else a ModelPredictor).
+
+    Every card and ONNX file is checked (server.model_folder): a card that does not read,
+    names a missing or broken ONNX file or one that does not match it, an alias of a bad
+    card, a face whose fallback card is bad, an ONNX file that does not parse or that no
+    card names. Any bad file stops the server with one ModelCardError naming them all, so a
+    deployment does not serve part of its models by accident; with skip_bad the good ones
+    are served and each bad one is logged."""
+    from server import model_folder
+
     folder = Path(folder)
-    cards = {path: ModelCard.load(path) for path in sorted(folder.glob("*.json"))}
-    named = {card.onnx_file for card in cards.values()}
-    orphans = sorted(p.name for p in folder.glob("*.onnx") if p.name not in named)
-    if orphans:
-        raise ModelCardError(f"{folder}: no model card names {', '.join(orphans)}")
-    return [load_model(path, card, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
-                       max_grid_nodes=max_grid_nodes) for path, card in cards.items()]
+    problems = model_folder.FolderProblems(folder)
+    cards = model_folder.read_cards(folder, problems)
+    model_folder.check_onnx_files(folder, cards, problems)
+    loaded: dict[Path, ModelPredictor | GraphPredictor] = {}
+    # Cards without a fallback first: a face card whose fallback is bad is then told so.
+    for path, card in sorted(cards.items(), key=lambda item: (item[1].face is not None, item[0])):
+        problem = model_folder.dependency_problem(path, card, problems)
+        if problem is None:
+            try:
+                loaded[path] = load_model(path, card, intra_op_threads=intra_op_threads,
+                                          inter_op_threads=inter_op_threads, max_grid_nodes=max_grid_nodes)
+            except Exception as exc:  # any reason one card cannot be served is that card's problem
+                problem = model_folder.describe(exc)
+        if problem is not None:
+            problems.add(path, problem)
+    if not skip_bad:
+        problems.raise_if_any()
+    problems.log_skipped()
+    return [loaded[path] for path in sorted(loaded)]
 
 
 def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: int = 1,
                inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES) -> ModelPredictor | GraphPredictor:
-    """The predictor of one card (`card`: the card at `path`, when already read)."""
+    """The predictor of one card (`card`: the card at `path`, when already read).
+    ModelCardError naming the card for anything that keeps it from being served, also
+    an ONNX file ONNX Runtime cannot load (its own errors name neither card nor flag)."""
+    from server.model_folder import plain_name
+
     path = Path(path)
     card = ModelCard.load(path) if card is None else card
+    if not plain_name(card.onnx_file):  # a card serves a file of its own folder, never a path out of it
+        raise ModelCardError(f"{path}: names {card.onnx_file!r}, not a file name in {path.parent}")
     onnx_path = card.onnx_path(path)
-    if not onnx_path.exists():
+    if not onnx_path.is_file():
         raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {path.parent}")
     cls = GraphPredictor if card.kind == "graph" else ModelPredictor
-    predictor = cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
-                    max_grid_nodes=max_grid_nodes)
+    try:
+        predictor = cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
+                        max_grid_nodes=max_grid_nodes)
+    except Exception as exc:
+        if not type(exc).__module__.startswith("onnxruntime"):  # ours say which file and what does not match
+            raise
+        # onnxruntime's own (InvalidProtobuf, InvalidGraph, Fail, ...) name neither the card nor the folder.
+        raise ModelCardError(f"{path}: ONNX Runtime cannot serve {card.onnx_file} "
+                             f"({type(exc).__name__}: {' '.join(str(exc).split())})") from None
     fallback = card.face["fallback"] if card.face is not None else None
     if fallback is not None:  # served where the face card's labels look wrong (deepcontact.modelcard)
+        if not plain_name(f"{fallback}.json"):
+            raise ModelCardError(f"{path}: its face falls back to {fallback!r}, not a card's name in {path.parent}")
         fallback_path = path.with_name(f"{fallback}.json")
         fallback_card = ModelCard.load(fallback_path)
         if fallback_card.face is not None:

@@ -4,7 +4,12 @@
 
 Loads every ONNX model in the folder with its card, adds the providers
 (zero, random, bad, grid-identity), and serves WarmStart with gRPC health
-checking and server reflection.
+checking and server reflection. Every card and ONNX file is checked first, and
+the bad ones are named together; `--skip-bad-models` serves the good ones.
+
+Plaintext is for this machine only: an address other than loopback or a Unix
+socket needs `--tls-cert/--tls-key` (`--tls-client-ca` also requires client
+certificates from that CA), or `--insecure` to serve plaintext there anyway.
 
 SIGTERM or SIGINT: health reports NOT_SERVING at once, new RPCs are refused,
 open streams may finish for `--grace` seconds, then what is left is
@@ -28,6 +33,7 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
+from deepcontact import tls
 from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCardError
 from server import metrics
@@ -83,8 +89,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-seed", type=int, default=0, help="seed of the `random` provider (default 0)")
     parser.add_argument("--metrics-port", type=int, default=0,
                         help="serve Prometheus metrics on this port at /metrics (default 0: off)")
-    parser.add_argument("--tls-cert", type=Path, help="PEM certificate chain: serve TLS (with --tls-key)")
-    parser.add_argument("--tls-key", type=Path, help="PEM private key for --tls-cert")
+    parser.add_argument("--tls-cert", type=Path, metavar="FILE",
+                        help="PEM certificate chain: serve TLS (with --tls-key)")
+    parser.add_argument("--tls-key", type=Path, metavar="FILE", help="PEM private key for --tls-cert")
+    parser.add_argument("--tls-client-ca", type=Path, metavar="FILE",
+                        help="mutual TLS: PEM certificates of the CA whose signed client certificates are admitted; "
+                             "a client without one is refused in the handshake (needs --tls-cert and --tls-key)")
+    parser.add_argument("--insecure", action="store_true",
+                        help="serve plaintext on an address other than loopback or a Unix socket, which is refused "
+                             "without TLS; anyone who reaches the address can use the service")
+    parser.add_argument("--skip-bad-models", action="store_true",
+                        help="serve the good models of --models and log each bad card or ONNX file, rather than "
+                             "refuse to start naming them all")
     parser.add_argument("--stream-idle-s", type=float, default=STREAM_IDLE_S, metavar="S",
                         help="end a stream that has sent nothing for S seconds, so hung or vanished clients do not "
                              "hold --max-concurrent slots; simclient's client reopens on its next step "
@@ -127,9 +143,9 @@ class Server:
                  intra_op_threads: int = 1, inter_op_threads: int = 1, limits: Limits = Limits(),
                  random_seed: int = 0, credentials: grpc.ServerCredentials | None = None,
                  fault: FaultDelay | None = None, stream_idle_s: float = STREAM_IDLE_S,
-                 deadline_margin_s: float = DEADLINE_MARGIN_S):
+                 deadline_margin_s: float = DEADLINE_MARGIN_S, skip_bad_models: bool = False):
         self.models = load_models(models, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
-                                  max_grid_nodes=limits.max_grid_nodes) if models else []
+                                  max_grid_nodes=limits.max_grid_nodes, skip_bad=skip_bad_models) if models else []
         self.batchers = []
         if batch_max > 0:
             for m in (m for m in self.models if m.batchable):  # graph models have no grid to stack
@@ -195,6 +211,12 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(f"deepcontact serve: {problem}", file=sys.stderr)
         return 2
+    try:
+        credentials = (tls.server_credentials(args.tls_cert, args.tls_key, args.tls_client_ca) if args.tls_cert
+                       else None)
+    except ValueError as exc:  # a file that cannot be read, or a key of another certificate
+        print(f"deepcontact serve: {exc}", file=sys.stderr)
+        return 2
     # One BLAS thread per call: the server's parallelism is its requests. SciPy's OpenBLAS,
     # loaded on the first solve of a face card (deepcontact.kinematics.solve_on_face), would
     # otherwise start a thread per core and make every small least-squares solve wait on
@@ -205,9 +227,6 @@ def run(args: argparse.Namespace) -> int:
     handler.setFormatter(JsonFormatter() if args.log_format == "json"
                          else logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
-    credentials = None
-    if args.tls_cert:
-        credentials = grpc.ssl_server_credentials([(args.tls_key.read_bytes(), args.tls_cert.read_bytes())])
     try:
         server = Server(models=args.models, bind=args.bind, max_concurrent=args.max_concurrent,
                         max_queue=args.max_queue, batch_max=args.batch_max, batch_delay_us=args.batch_delay_us,
@@ -216,7 +235,8 @@ def run(args: argparse.Namespace) -> int:
                         random_seed=args.random_seed,
                         credentials=credentials,
                         fault=FaultDelay(args.fault_delay_ms / 1e3, args.fault_every) if args.fault_delay_ms else None,
-                        stream_idle_s=args.stream_idle_s, deadline_margin_s=args.deadline_margin_ms / 1e3)
+                        stream_idle_s=args.stream_idle_s, deadline_margin_s=args.deadline_margin_ms / 1e3,
+                        skip_bad_models=args.skip_bad_models)
     except (ModelCardError, OSError, ValueError) as exc:
         print(f"deepcontact serve: {exc}", file=sys.stderr)
         return 2
@@ -225,8 +245,12 @@ def run(args: argparse.Namespace) -> int:
         metrics.serve_metrics(args.metrics_port, host=server.host)
     if args.port_file:
         write_bytes_atomic(args.port_file, f"{server.port}\n".encode())
+    if credentials is None and not tls.is_local_bind(args.bind):  # only with --insecure (_argument_problem)
+        log.warning(f"serving plaintext on a non-loopback address, {server.address}: anyone who reaches it can "
+                    "use the service (--insecure)", extra={"address": server.address, "insecure": True})
     log.info("serving", extra={"address": server.address, "pid": os.getpid(),
                                "models": sorted(server.service.predictors), "tls": credentials is not None,
+                               "mutual_tls": args.tls_client_ca is not None,
                                "batch_max": args.batch_max, "fault_delay_ms": args.fault_delay_ms})
     _serve_until_signalled(server, args.grace)
     _exit(0)
@@ -243,6 +267,11 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
         return "--max-bodies, --max-points and --max-grid-nodes must be >= 1"
     if bool(args.tls_cert) != bool(args.tls_key):
         return "--tls-cert and --tls-key go together"
+    if args.tls_client_ca and not args.tls_cert:
+        return "--tls-client-ca needs --tls-cert and --tls-key: client certificates are checked by a TLS server"
+    if not args.tls_cert and not args.insecure and not tls.is_local_bind(args.bind):
+        return (f"--bind {args.bind} is not a loopback address or a Unix socket: serve it with --tls-cert and "
+                "--tls-key, or give --insecure to serve plaintext there")
     return None
 
 
