@@ -129,6 +129,24 @@ def contact_frame(bodies: np.ndarray, points: np.ndarray) -> ContactFrame:
                         np.stack([n[:, 1], -n[:, 0]], axis=1), p - centre[a], p - centre[b])
 
 
+def after_impulses(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray) -> np.ndarray:
+    """A copy of bodies (B,) BODY_DTYPE with their velocities after impulses (P, 2) N s
+    (normal, tangent) act at points (P,) CONTACT_DTYPE: +P on body B, -P on body A, on
+    dynamic bodies only (the others take no impulse). What a contact problem solved
+    around fixed impulses at some points starts from."""
+    f = contact_frame(bodies, points)
+    push = impulses[:, :1] * f.n + impulses[:, 1:] * f.t  # (P, 2) N s, on B
+    n_bodies = len(bodies)
+    dv = np.zeros((n_bodies, 2))
+    for k in range(2):  # x and y, each summed over the points of every body in one call
+        dv[:, k] = (np.bincount(f.b, push[:, k], n_bodies) - np.bincount(f.a, push[:, k], n_bodies))
+    dw = np.bincount(f.b, _cross(f.rb, push), n_bodies) - np.bincount(f.a, _cross(f.ra, push), n_bodies)
+    out = bodies.copy()
+    out["velocity"] += (dv * f.inv_mass[:, None]).astype(np.float32)
+    out["angular_velocity"] += (dw * f.inv_inertia).astype(np.float32)
+    return out
+
+
 def _records(array: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
     """`array` as C-contiguous records of `dtype` (no copy when it already is)."""
     if array.dtype == dtype and array.flags.c_contiguous:

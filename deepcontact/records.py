@@ -12,7 +12,7 @@ BODY_DTYPE = np.dtype(
     [
         ("index", "<i4"),  # creation order, 0-based
         ("type", "<i4"),  # 0 static, 1 kinematic, 2 dynamic
-        ("position", "<f4", (2,)),  # body origin (m)
+        ("position", "<f4", (2,)),  # centre of mass (m): the body origin of circles and centred boxes
         ("angle", "<f4"),  # (rad)
         ("velocity", "<f4", (2,)),  # linear velocity (m/s)
         ("angular_velocity", "<f4"),  # (rad/s)
@@ -35,7 +35,7 @@ CONTACT_DTYPE = np.dtype(
         ("builtin", "<f4", (2,)),  # previous step's impulse (normal, tangent) (N s)
         ("warm_start", "<f4", (2,)),  # where the solver started; NaN until solved
         ("impulse", "<f4", (2,)),  # final impulse; NaN until solved
-        ("reserved", "<f4"),
+        ("friction", "<f4"),  # the contact's friction coefficient at collide time (sqrt(f_A f_B) of its fixtures)
     ]
 )
 """One contact point as the patch exports it (64 bytes, b2DCContactPoint)."""

@@ -50,7 +50,8 @@ def encode_world(lower: tuple[float, float], upper: tuple[float, float],
 
 def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *,
                 world: pb.World | None = None, builtin: np.ndarray | None = None,
-                impulses: np.ndarray | None = None, friction: np.ndarray | None = None) -> pb.StepRequest:
+                impulses: np.ndarray | None = None, friction: np.ndarray | None = None,
+                joints: np.ndarray | None = None) -> pb.StepRequest:
     """A step from engine records.
 
     bodies: (B,) BODY_DTYPE in creation order, as the engine exports them
@@ -59,7 +60,9 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
         the dynamic bodies (-1 for static), with the separation and the keys.
     builtin, impulses: optional (P, 2) float (normal, tangent), N s.
     friction: optional (P,) each point's friction coefficient (Box2D's mix of its
-        two fixtures'; simclient.provider.point_friction).
+        two fixtures'; the engine exports it as points["friction"]).
+    joints: optional (J, 2) int each joint's body A and body B (engine body indices,
+        Engine.joints); they travel as rows of the moving bodies (-1 for static).
     """
     moving = bodies["type"] != 0
     dyn = bodies[moving]
@@ -91,6 +94,9 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
         msg.impulses = np.ascontiguousarray(impulses, F32).tobytes()
     if friction is not None:
         msg.point_friction = np.ascontiguousarray(friction, F32).tobytes()
+    if joints is not None and len(joints):
+        msg.joint_count = len(joints)
+        msg.joint_bodies = np.ascontiguousarray(row_of[np.asarray(joints)], I32).tobytes()
     return msg
 
 
@@ -227,7 +233,9 @@ def decode_step(msg: pb.StepRequest, *, max_bodies: int, max_points: int) -> tup
     if inertia is not None:
         words[1:, _INERTIA_WORD] = inertia[:, 0]
     ints[:, _INDEX_WORD] = np.arange(n_bodies + 1, dtype=np.int32)
-    ints[1:, _TYPE_WORD] = 2  # dynamic; row 0 stays 0, static: the walls travel as World edges
+    # Dynamic, or kinematic where the mass is 0 (Box2D gives every dynamic body a mass > 0): moved as
+    # sent, never by an impulse. Row 0 stays 0, static: the walls travel as World edges.
+    ints[1:, _TYPE_WORD] = np.where(b[:, 6] > 0, 2, 1)
     points, words, ints = _zero_records(CONTACT_DTYPE, n_points)
     for dst, src in _POINT_RUNS:
         words[:, dst] = p[:, src]
@@ -260,6 +268,18 @@ def decode_friction(msg: pb.StepRequest) -> np.ndarray | None:
     if len(friction) and friction.min() < 0:
         raise WireError("point_friction", "holds negative values")
     return friction[:, 0]
+
+
+def decode_joints(msg: pb.StepRequest) -> np.ndarray | None:
+    """Each joint's two bodies as rows of decode_step's bodies (0: static), (J, 2) int32, or
+    None when the request sends none. WireError when they do not fit joint_count or name
+    rows outside the request's bodies."""
+    if not msg.joint_count and not msg.joint_bodies:
+        return None
+    rows = _array(msg, "joint_bodies", msg.joint_count, 2, check=False, dtype=I32)
+    if len(rows) and (rows.min() < -1 or rows.max() >= msg.body_count):
+        raise WireError("joint_bodies", f"names rows outside -1..{msg.body_count - 1}")
+    return rows + 1
 
 
 def encode_impulses(step: int, model: str, impulses: np.ndarray, timings: pb.Timings | None = None) -> pb.Impulses:

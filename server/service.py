@@ -26,6 +26,7 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
 from server.batching import QueueFull
 from server.idle import IdleStreams
+from server.joints import predict_around_joints
 from deepcontact.channels import NEEDS
 from server.predictors import MAX_GRID_NODES, GridMismatch, Predictor, World
 from server.rejects import reject
@@ -205,6 +206,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                                               max_points=self.limits.max_points)
             # Only a predictor that asks for the friction gets it: the others' predict() takes none.
             extra = {"friction": wire.decode_friction(request)} if "point_friction" in predictor.requires else {}
+            # A provider (zero, random, ...) answers as it is; a model only about points free of joints.
+            joints = wire.decode_joints(request) if predictor.kind != "provider" else None
             if predictor.takes_deadline and request.budget_us:
                 extra["deadline"] = t0 + 1e-6 * request.budget_us - self.deadline_margin_s
             predictor.check_domain(world.domain)
@@ -214,6 +217,9 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         try:
             if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
                 impulses, stages = np.zeros((0, 2), np.float32), {}
+            elif joints is not None:
+                impulses, stages = predict_around_joints(predictor, bodies, points, joints, world, request.step,
+                                                         previous, **extra)
             else:
                 impulses, stages = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:

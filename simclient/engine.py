@@ -23,7 +23,7 @@ import dataclasses
 
 import numpy as np
 
-PATCH_REVISION = 2
+PATCH_REVISION = 3
 """Layout revision of the patch this module speaks (B2_DEEPCONTACT_REVISION)."""
 
 _BUILD_HINT = (
@@ -127,12 +127,18 @@ class Engine:
 
     def __init__(self, world: "Box2D.b2World", config: SolverConfig = SolverConfig()):
         self.world = world
-        self.config = config
-        world.velocityThreshold = config.velocity_threshold
-        world.positionThreshold = config.position_threshold
-        world.solverStatistics = config.statistics
         self.step_index = 0
         self._friction: np.ndarray | None = None  # body_friction(), read once
+        self._inv_dt0 = np.float32(0.0)  # 1 / the last solved step's dt, as Box2D keeps it (0 before the first)
+        self.configure(config)
+
+    def configure(self, config: SolverConfig) -> None:
+        """Solve the next steps with these settings (a session may change dt or the
+        iteration limits between steps, as world.Step's arguments allow)."""
+        self.config = config
+        self.world.velocityThreshold = config.velocity_threshold
+        self.world.positionThreshold = config.position_threshold
+        self.world.solverStatistics = config.statistics
 
     # -- phase 1 ---------------------------------------------------------
     def collide(self) -> int:
@@ -145,10 +151,27 @@ class Engine:
         self.world.ExportBodies(out)
         return out
 
+    def awake(self) -> np.ndarray:
+        """(B,) bool, creation order: the body is awake (static bodies never are). A step's points
+        that touch no awake body are not solved: nothing to warm-start there."""
+        out = np.empty(self.world.bodyCount, np.uint8)
+        if len(out):
+            self.world.ExportAwake(out)
+        return out.view(bool)
+
+    def joints(self) -> np.ndarray:
+        """Each joint's body A and body B, creation-order indices: (J, 2) int32, the world's joint order."""
+        out = np.empty((self.world.jointCount, 2), np.int32)
+        if len(out):
+            self.world.ExportJoints(out)
+        return out
+
     def body_friction(self) -> np.ndarray:
         """(B,) each body's friction coefficient (its first fixture's; 0 without one), creation
         order, the records' body index. Read from pybox2d once while the body count holds: a
-        loop over bodies in Python, not something to repeat every step."""
+        loop over bodies in Python, not something to repeat every step. The project's scenes
+        give each body one fixture; a live step's points carry their own friction
+        (`contacts()["friction"]`, any world)."""
         if self._friction is None or len(self._friction) != self.world.bodyCount:
             self._friction = np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in self.world.bodies])
         return self._friction
@@ -162,6 +185,16 @@ class Engine:
         out = np.empty(self.world.contactPointCount, dtype=CONTACT_DTYPE)
         self.world.ExportContacts(out)
         return out
+
+    def builtin_start(self) -> tuple[np.ndarray, np.ndarray]:
+        """Box2D's own warm start for this step as (normal, tangent) (n,) float32 (N s): the
+        points' `builtin` impulses scaled by the step's time ratio, as the solver scales them
+        (float32, as Box2D computes it), so that `set_warm_start(*engine.builtin_start())`
+        solves exactly as Box2D's own warm start would."""
+        builtin = self.contacts()["builtin"]
+        ratio = self._inv_dt0 * np.float32(self.config.dt)
+        return (np.ascontiguousarray(builtin[:, 0] * ratio, np.float32),
+                np.ascontiguousarray(builtin[:, 1] * ratio, np.float32))
 
     def set_warm_start(self, normal: np.ndarray, tangent: np.ndarray) -> None:
         """Start this step's solver from these impulses (N s), export order.
@@ -189,16 +222,16 @@ class Engine:
         self.world.SolveOracle(out, self.config.dt, int(max_iterations), float(threshold), start is not None)
         return out
 
-    def trial(self, normal: np.ndarray, tangent: np.ndarray) -> int:
+    def trial(self, normal: np.ndarray, tangent: np.ndarray, cap: int | None = None) -> int:
         """Velocity iterations this step's solve would take from these impulses
         (N s, (n,) float32 each, export order), under this engine's limit and
-        stopping rule; the world is unchanged. Sets the step's warm start to
-        them: call `set_warm_start` again before `solve()` to start elsewhere.
-        Each trial costs a whole velocity solve.
+        stopping rule (or at most `cap`); the world is unchanged, its joints
+        included. Sets the step's warm start to them: call `set_warm_start` again
+        before `solve()` to start elsewhere. Each trial costs a velocity solve.
         """
-        return len(self.trial_trace(normal, tangent))
+        return len(self.trial_trace(normal, tangent, cap))
 
-    def trial_trace(self, normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
+    def trial_trace(self, normal: np.ndarray, tangent: np.ndarray, cap: int | None = None) -> np.ndarray:
         """As `trial`, but the trial's residual trace: (iterations,) float32, N s,
         the largest impulse change of each sweep over the islands still iterating
         (as `StepStats.residual_trace` is for a solve). Its length is the
@@ -206,7 +239,8 @@ class Engine:
         that start left the step.
         """
         self.world.SetWarmStart(normal, tangent)
-        stats = self.world.SolveTrial(self.config.dt, self.config.velocity_iterations, self.config.velocity_threshold)
+        limit = self.config.velocity_iterations if cap is None else max(1, min(int(cap), self.config.velocity_iterations))
+        stats = self.world.SolveTrial(self.config.dt, limit, self.config.velocity_threshold)
         return np.frombuffer(stats["residual_trace"], dtype=np.float32)
 
     # -- phase 2 ---------------------------------------------------------
@@ -214,12 +248,15 @@ class Engine:
         """Finish the step begun by `collide()`."""
         c = self.config
         self.world.Solve(c.dt, c.velocity_iterations, c.position_iterations)
-        self.step_index += 1
-        return StepStats._from_world(self.world)
+        return self._solved()
 
     def step(self) -> StepStats:
         """A whole step with Box2D's own warm start (upstream `Step`)."""
         c = self.config
         self.world.Step(c.dt, c.velocity_iterations, c.position_iterations)
+        return self._solved()
+
+    def _solved(self) -> StepStats:
         self.step_index += 1
+        self._inv_dt0 = np.float32(1.0) / np.float32(self.config.dt)  # Box2D's m_inv_dt0 after a step
         return StepStats._from_world(self.world)

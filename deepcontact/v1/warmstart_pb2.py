@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1e\x64\x65\x65pcontact/v1/warmstart.proto\x12\x0e\x64\x65\x65pcontact.v1\"\x98\x01\n\x05World\x12\r\n\x05x_min\x18\x01 \x01(\x02\x12\r\n\x05y_min\x18\x02 \x01(\x02\x12\r\n\x05x_max\x18\x03 \x01(\x02\x12\r\n\x05y_max\x18\x04 \x01(\x02\x12\x12\n\nedge_count\x18\x05 \x01(\r\x12\r\n\x05\x65\x64ges\x18\x06 \x01(\x0c\x12\n\n\x02\x64t\x18\x07 \x01(\x02\x12\x11\n\tgravity_x\x18\x08 \x01(\x02\x12\x11\n\tgravity_y\x18\t \x01(\x02\"\xc1\x02\n\x0bStepRequest\x12\x0c\n\x04step\x18\x01 \x01(\x04\x12\r\n\x05model\x18\x02 \x01(\t\x12$\n\x05world\x18\x03 \x01(\x0b\x32\x15.deepcontact.v1.World\x12\x12\n\nbody_count\x18\x04 \x01(\r\x12\x0e\n\x06\x62odies\x18\x05 \x01(\x0c\x12\x13\n\x0bpoint_count\x18\x06 \x01(\r\x12\x0e\n\x06points\x18\x07 \x01(\x0c\x12\x0f\n\x07\x62uiltin\x18\x08 \x01(\x0c\x12\x10\n\x08impulses\x18\t \x01(\x0c\x12\x14\n\x0cpoint_bodies\x18\n \x01(\x0c\x12\x18\n\x10point_separation\x18\x0b \x01(\x0c\x12\x14\n\x0c\x62ody_inertia\x18\x0c \x01(\x0c\x12\x12\n\npoint_keys\x18\r \x01(\x0c\x12\x16\n\x0epoint_friction\x18\x0e \x01(\x0c\x12\x11\n\tbudget_us\x18\x0f \x01(\r\"d\n\x07Timings\x12\x11\n\tdecode_us\x18\x01 \x01(\r\x12\x0e\n\x06p2g_us\x18\x02 \x01(\r\x12\x14\n\x0cinference_us\x18\x03 \x01(\r\x12\x0e\n\x06g2p_us\x18\x04 \x01(\r\x12\x10\n\x08total_us\x18\x05 \x01(\r\"\x9a\x01\n\x08Impulses\x12\x0c\n\x04step\x18\x01 \x01(\x04\x12\r\n\x05model\x18\x02 \x01(\t\x12\x13\n\x0bpoint_count\x18\x03 \x01(\r\x12\x0e\n\x06normal\x18\x04 \x01(\x0c\x12\x0f\n\x07tangent\x18\x05 \x01(\x0c\x12(\n\x07timings\x18\x06 \x01(\x0b\x32\x17.deepcontact.v1.Timings\x12\x11\n\tserved_by\x18\x07 \x01(\t\"\x13\n\x11ListModelsRequest\"R\n\tModelInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04kind\x18\x02 \x01(\t\x12\x15\n\rgridspec_json\x18\x03 \x01(\t\x12\x12\n\nfixed_grid\x18\x04 \x01(\x08\"<\n\x0fListModelsReply\x12)\n\x06models\x18\x01 \x03(\x0b\x32\x19.deepcontact.v1.ModelInfo2\xe4\x01\n\tWarmStart\x12\x43\n\x06Stream\x12\x1b.deepcontact.v1.StepRequest\x1a\x18.deepcontact.v1.Impulses(\x01\x30\x01\x12@\n\x07Predict\x12\x1b.deepcontact.v1.StepRequest\x1a\x18.deepcontact.v1.Impulses\x12P\n\nListModels\x12!.deepcontact.v1.ListModelsRequest\x1a\x1f.deepcontact.v1.ListModelsReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1e\x64\x65\x65pcontact/v1/warmstart.proto\x12\x0e\x64\x65\x65pcontact.v1\"\x98\x01\n\x05World\x12\r\n\x05x_min\x18\x01 \x01(\x02\x12\r\n\x05y_min\x18\x02 \x01(\x02\x12\r\n\x05x_max\x18\x03 \x01(\x02\x12\r\n\x05y_max\x18\x04 \x01(\x02\x12\x12\n\nedge_count\x18\x05 \x01(\r\x12\r\n\x05\x65\x64ges\x18\x06 \x01(\x0c\x12\n\n\x02\x64t\x18\x07 \x01(\x02\x12\x11\n\tgravity_x\x18\x08 \x01(\x02\x12\x11\n\tgravity_y\x18\t \x01(\x02\"\xec\x02\n\x0bStepRequest\x12\x0c\n\x04step\x18\x01 \x01(\x04\x12\r\n\x05model\x18\x02 \x01(\t\x12$\n\x05world\x18\x03 \x01(\x0b\x32\x15.deepcontact.v1.World\x12\x12\n\nbody_count\x18\x04 \x01(\r\x12\x0e\n\x06\x62odies\x18\x05 \x01(\x0c\x12\x13\n\x0bpoint_count\x18\x06 \x01(\r\x12\x0e\n\x06points\x18\x07 \x01(\x0c\x12\x0f\n\x07\x62uiltin\x18\x08 \x01(\x0c\x12\x10\n\x08impulses\x18\t \x01(\x0c\x12\x14\n\x0cpoint_bodies\x18\n \x01(\x0c\x12\x18\n\x10point_separation\x18\x0b \x01(\x0c\x12\x14\n\x0c\x62ody_inertia\x18\x0c \x01(\x0c\x12\x12\n\npoint_keys\x18\r \x01(\x0c\x12\x16\n\x0epoint_friction\x18\x0e \x01(\x0c\x12\x11\n\tbudget_us\x18\x0f \x01(\r\x12\x13\n\x0bjoint_count\x18\x10 \x01(\r\x12\x14\n\x0cjoint_bodies\x18\x11 \x01(\x0c\"d\n\x07Timings\x12\x11\n\tdecode_us\x18\x01 \x01(\r\x12\x0e\n\x06p2g_us\x18\x02 \x01(\r\x12\x14\n\x0cinference_us\x18\x03 \x01(\r\x12\x0e\n\x06g2p_us\x18\x04 \x01(\r\x12\x10\n\x08total_us\x18\x05 \x01(\r\"\x9a\x01\n\x08Impulses\x12\x0c\n\x04step\x18\x01 \x01(\x04\x12\r\n\x05model\x18\x02 \x01(\t\x12\x13\n\x0bpoint_count\x18\x03 \x01(\r\x12\x0e\n\x06normal\x18\x04 \x01(\x0c\x12\x0f\n\x07tangent\x18\x05 \x01(\x0c\x12(\n\x07timings\x18\x06 \x01(\x0b\x32\x17.deepcontact.v1.Timings\x12\x11\n\tserved_by\x18\x07 \x01(\t\"\x13\n\x11ListModelsRequest\"R\n\tModelInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04kind\x18\x02 \x01(\t\x12\x15\n\rgridspec_json\x18\x03 \x01(\t\x12\x12\n\nfixed_grid\x18\x04 \x01(\x08\"<\n\x0fListModelsReply\x12)\n\x06models\x18\x01 \x03(\x0b\x32\x19.deepcontact.v1.ModelInfo2\xe4\x01\n\tWarmStart\x12\x43\n\x06Stream\x12\x1b.deepcontact.v1.StepRequest\x1a\x18.deepcontact.v1.Impulses(\x01\x30\x01\x12@\n\x07Predict\x12\x1b.deepcontact.v1.StepRequest\x1a\x18.deepcontact.v1.Impulses\x12P\n\nListModels\x12!.deepcontact.v1.ListModelsRequest\x1a\x1f.deepcontact.v1.ListModelsReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,17 +34,17 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_WORLD']._serialized_start=51
   _globals['_WORLD']._serialized_end=203
   _globals['_STEPREQUEST']._serialized_start=206
-  _globals['_STEPREQUEST']._serialized_end=527
-  _globals['_TIMINGS']._serialized_start=529
-  _globals['_TIMINGS']._serialized_end=629
-  _globals['_IMPULSES']._serialized_start=632
-  _globals['_IMPULSES']._serialized_end=786
-  _globals['_LISTMODELSREQUEST']._serialized_start=788
-  _globals['_LISTMODELSREQUEST']._serialized_end=807
-  _globals['_MODELINFO']._serialized_start=809
-  _globals['_MODELINFO']._serialized_end=891
-  _globals['_LISTMODELSREPLY']._serialized_start=893
-  _globals['_LISTMODELSREPLY']._serialized_end=953
-  _globals['_WARMSTART']._serialized_start=956
-  _globals['_WARMSTART']._serialized_end=1184
+  _globals['_STEPREQUEST']._serialized_end=570
+  _globals['_TIMINGS']._serialized_start=572
+  _globals['_TIMINGS']._serialized_end=672
+  _globals['_IMPULSES']._serialized_start=675
+  _globals['_IMPULSES']._serialized_end=829
+  _globals['_LISTMODELSREQUEST']._serialized_start=831
+  _globals['_LISTMODELSREQUEST']._serialized_end=850
+  _globals['_MODELINFO']._serialized_start=852
+  _globals['_MODELINFO']._serialized_end=934
+  _globals['_LISTMODELSREPLY']._serialized_start=936
+  _globals['_LISTMODELSREPLY']._serialized_end=996
+  _globals['_WARMSTART']._serialized_start=999
+  _globals['_WARMSTART']._serialized_end=1227
 # @@protoc_insertion_point(module_scope)

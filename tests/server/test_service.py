@@ -138,6 +138,10 @@ def test_the_grid_bound_is_the_operators_to_set(model_dir, thesis_steps):
     (lambda r: setattr(r, "body_count", 10**7), grpc.StatusCode.INVALID_ARGUMENT, "limit"),
     (lambda r: r.ClearField("world"), grpc.StatusCode.INVALID_ARGUMENT, "world"),
     (lambda r: setattr(r.world, "x_max", -1.0), grpc.StatusCode.INVALID_ARGUMENT, "domain"),
+    (lambda r: (setattr(r, "joint_count", 2), setattr(r, "joint_bodies", np.zeros(3, np.int32).tobytes())),
+     grpc.StatusCode.INVALID_ARGUMENT, "joint_bodies"),
+    (lambda r: (setattr(r, "joint_count", 1), setattr(r, "joint_bodies", np.array([0, 10**6], np.int32).tobytes())),
+     grpc.StatusCode.INVALID_ARGUMENT, "rows outside"),
 ])
 def test_bad_requests_get_a_status_that_names_the_problem(stub, thesis_steps, mutate, code, words):
     world, steps = thesis_steps
@@ -249,3 +253,43 @@ def test_a_stream_that_declares_a_new_world_gets_its_model_ready_before_the_firs
             assert reply.point_count == len(points) and client.reconnects == 0
     finally:
         srv.stop()
+
+
+def test_points_on_jointed_bodies_get_box2ds_start_and_the_model_answers_the_rest(stub, thesis_steps):
+    world, steps = thesis_steps
+    bodies, points = steps[0]
+    builtin = points["builtin"]
+    plain = np.stack(wire.decode_impulses(stub.Predict(request(world, bodies, points, "tiny", builtin=builtin))), 1)
+    touched = np.bincount(np.concatenate([points["body_a"], points["body_b"]]), minlength=len(bodies))
+    touched[0] = 0  # the box is static: a joint to it binds only the other body
+    a, b = np.argsort(touched)[-2:]  # the two bodies with the most contacts, on one joint
+    reply = stub.Predict(request(world, bodies, points, "tiny", builtin=builtin, joints=np.array([[a, b]])))
+    got = np.stack(wire.decode_impulses(reply), 1)
+    on_joint = np.isin(points["body_a"], [a, b]) | np.isin(points["body_b"], [a, b])
+    assert on_joint.any() and not on_joint.all()
+    np.testing.assert_array_equal(got[on_joint], builtin[on_joint])
+    assert np.isfinite(got).all() and not np.array_equal(got[~on_joint], builtin[~on_joint])
+    assert not reply.served_by
+    # The model sees the rest after the fixed impulses: near the joint its answer moves.
+    assert not np.array_equal(got[~on_joint], plain[~on_joint])
+
+
+def test_a_step_whose_every_point_is_on_a_joint_is_answered_with_box2ds_start(stub, thesis_steps):
+    world, steps = thesis_steps
+    bodies, points = steps[0]
+    chain = np.stack([np.arange(1, len(bodies) - 1), np.arange(2, len(bodies))], 1)  # every body on a joint
+    reply = stub.Predict(request(world, bodies, points, "tiny", builtin=points["builtin"], joints=chain))
+    np.testing.assert_array_equal(np.stack(wire.decode_impulses(reply), 1), points["builtin"])
+    assert reply.served_by == "builtin"
+    zero = stub.Predict(request(world, bodies, points, "zero", builtin=points["builtin"], joints=chain))
+    assert not np.stack(wire.decode_impulses(zero), 1).any()  # a provider answers as it is
+
+
+def test_a_kinematic_body_travels_with_mass_zero_and_is_decoded_as_kinematic(thesis_steps):
+    _, steps = thesis_steps
+    bodies, points = steps[0]
+    bodies = bodies.copy()
+    bodies["type"][5], bodies["mass"][5], bodies["inertia"][5] = 1, 0.0, 0.0  # kinematic, as Box2D exports it
+    decoded, _ = wire.decode_step(wire.encode_step(0, "m", bodies, points), max_bodies=10**4, max_points=10**5)
+    # Row 0 is the walls' stand-in; the request's bodies follow in order (the box, static, does not travel).
+    assert decoded["type"][5] == 1 and (np.delete(decoded["type"][1:], 4) == 2).all()

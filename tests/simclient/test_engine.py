@@ -287,3 +287,69 @@ def test_stock_box2d_is_refused_with_a_build_hint(tmp_path):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 3, result.stderr
     assert "make box2d" in result.stdout and "stock" in result.stdout
+
+
+def _jointed_world():
+    """A chain of ten links on revolute joints hung from a static anchor, falling onto discs on a floor."""
+    from simclient.engine import Engine, SolverConfig
+
+    world = Box2D.b2World(gravity=(0.0, -9.8))
+    floor = world.CreateStaticBody()
+    floor.CreateEdgeFixture(vertices=[(-10.0, 0.0), (10.0, 0.0)], friction=0.6)
+    previous = floor
+    for i in range(10):
+        link = world.CreateDynamicBody(position=(0.5 * i, 3.0))
+        link.CreatePolygonFixture(box=(0.25, 0.05), density=1.0, friction=0.3)
+        world.CreateRevoluteJoint(bodyA=previous, bodyB=link, anchor=(0.5 * i - 0.25, 3.0))
+        previous = link
+    for i in range(15):
+        disc = world.CreateDynamicBody(position=(np.sin(i) * 2.0, 0.3 + 0.45 * i))
+        disc.CreateCircleFixture(radius=0.2, density=1.0, friction=0.5)
+    return Engine(world, SolverConfig())
+
+
+def test_a_trial_in_a_world_with_joints_costs_what_the_solve_does_and_puts_the_joints_back():
+    tried, plain = _jointed_world(), _jointed_world()
+    probed = 0
+    for _ in range(200):
+        tried.collide()
+        if tried.world.contactPointCount:
+            normal, tangent = tried.builtin_start()
+            cost = tried.trial(np.zeros_like(normal), np.zeros_like(tangent), cap=7)  # a trial of another start
+            assert cost <= 7
+            cost = tried.trial(normal, tangent)
+            tried.set_warm_start(normal, tangent)
+            assert tried.solve().velocity_iterations == cost
+            probed += 1
+        else:
+            tried.solve()
+        plain.step()
+    assert probed > 100
+    assert tried.bodies().tobytes() == plain.bodies().tobytes()  # Box2D's own start, given back, bit for bit
+
+
+def test_joints_bodies_awake_and_each_points_friction_are_exported():
+    engine = _jointed_world()
+    joints = engine.joints()
+    assert joints.shape == (10, 2) and joints.dtype == np.int32
+    assert sorted(map(tuple, joints.tolist())) == [(i, i + 1) for i in range(10)]  # the floor is body 0
+    for _ in range(60):
+        engine.step()
+    engine.collide()
+    points, awake = engine.contacts(), engine.awake()
+    assert awake.dtype == bool and not awake[0] and awake[1:].all()  # static bodies never are
+    links = (points["body_a"] <= 10) & (points["body_b"] <= 10) & (points["body_a"] != points["body_b"])
+    floor_discs = (np.minimum(points["body_a"], points["body_b"]) == 0) & (np.maximum(points["body_a"], points["body_b"]) > 10)
+    np.testing.assert_allclose(points["friction"][floor_discs], np.sqrt(0.6 * 0.5), rtol=1e-6)  # Box2D's mix
+    assert links.any() or floor_discs.any()
+    engine.solve()
+
+
+def test_a_bodys_position_is_its_centre_of_mass():
+    from simclient.engine import Engine
+
+    world = Box2D.b2World(gravity=(0.0, 0.0))
+    body = world.CreateDynamicBody(position=(1.0, 2.0))
+    body.CreatePolygonFixture(box=(0.5, 0.5, (1.0, 0.0), 0.0), density=1.0)  # the box sits off the origin
+    np.testing.assert_allclose(Engine(world).bodies()["position"][0], tuple(body.worldCenter), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(tuple(body.worldCenter), (2.0, 2.0), atol=1e-6)

@@ -1,0 +1,59 @@
+"""Steps with joints: the learned models know contacts only.
+
+Every model the server runs was trained on contacts between free bodies; a
+joint's impulses are part of the same velocity problem, and a model that does
+not see them answers for a problem that is not the step's. So the server
+answers Box2D's own warm start (the request's builtin impulses) at every point
+that touches a jointed body, and asks the model only about the rest: the
+points between free bodies (and the static world), with the bodies'
+velocities taken after the fixed impulses at the jointed points, so that the
+rest is the contact problem left once those are given.
+
+    rows = wire.decode_joints(request)                 # (J, 2) body rows, 0 static
+    impulses, stages = predict_around_joints(predictor, bodies, points, rows, world, step, ...)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from deepcontact.kinematics import after_impulses
+
+#: served_by of a step whose every point touches a jointed body: nothing was left to ask a model about.
+ALL_JOINTED = "builtin"
+
+
+def jointed_points(points: np.ndarray, joints: np.ndarray, n_bodies: int) -> np.ndarray:
+    """(P,) bool: the point touches a body on a joint. joints: (J, 2) body rows (0: static,
+    which a joint does not bind: it is the world)."""
+    jointed = np.zeros(n_bodies, bool)
+    jointed[joints.reshape(-1)] = True
+    jointed[0] = False
+    return jointed[points["body_a"]] | jointed[points["body_b"]]
+
+
+def predict_around_joints(predictor, bodies: np.ndarray, points: np.ndarray, joints: np.ndarray, world, step: int,
+                          previous=None, friction: np.ndarray | None = None, **extra):
+    """(impulses (P, 2) float32 N s, stages) as predictor.predict gives them, with Box2D's own
+    warm start at the points that touch a jointed body (joints: (J, 2) body rows, 0 static;
+    friction: (P,) when the predictor takes it). stages["served_by"] is ALL_JOINTED where no
+    point is free of joints."""
+    builtin = points["builtin"].astype(np.float32)
+    fixed = jointed_points(points, joints, len(bodies))
+    if not fixed.any():
+        return predictor.predict(bodies, points, world, step, previous, **_with(friction, None, extra))
+    if fixed.all():
+        return builtin.copy(), {"served_by": ALL_JOINTED}
+    free = ~fixed
+    moved = after_impulses(bodies, points[fixed], builtin[fixed].astype(np.float64))
+    answer, stages = predictor.predict(moved, points[free], world, step, previous, **_with(friction, free, extra))
+    impulses = builtin.copy()
+    impulses[free] = answer
+    return impulses, stages
+
+
+def _with(friction, keep, extra: dict) -> dict:
+    """predict()'s keyword arguments: the friction at the kept points where the predictor takes it."""
+    if friction is None:
+        return extra
+    return {**extra, "friction": friction if keep is None else friction[keep]}
