@@ -34,24 +34,26 @@ from pathlib import Path
 
 import numpy as np
 
-from deepcontact import dispatch
+from deepcontact import dispatch, tls
 from bench.figures import save_figure
 from bench.stats import STATS, Ratio, ratio_interval
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
-from simclient.scene import add_scene_arguments, spec_from_args, spec_from_dict, spec_to_dict
-from simclient.simulate import DEFAULT_DEADLINE_MS, StepRecord, run_simulation, summarize
+from simclient import worlds
+from simclient.guard import Guard
+from simclient.simulate import DEFAULT_DEADLINE_MS, run_simulation, tls_files
+from simclient.stepping import StepRecord, summarize
 from simclient.composites import Pick
 from simclient.warmstarts import make_provider
 
 DEFAULT_WARM_STARTS = ("none,builtin,copy,copy2,copy0,extrapolate,"
                        "server:random,server:bad,server:grid-identity,server:pressure")
 # Summary fields that are wall-clock measurements: the only ones that differ between runs.
-TIMING_FIELDS = ("p50_latency_ms", "p99_latency_ms", "median_client_us", "total_solve_ms")
+TIMING_FIELDS = ("p50_latency_ms", "p99_latency_ms", "median_client_us", "total_solve_ms", "guard_trial_ms")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_scene_arguments(parser)
+    worlds.add_world_arguments(parser)
     parser.add_argument("--seeds", default="901-910", help="benchmark seeds (default 901-910)")
     parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS,
                         help=f"comma-separated (default {DEFAULT_WARM_STARTS}); shadow:W1+W2+... serves W1 and "
@@ -74,8 +76,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "over replicas, unix:PATH dials a Unix socket); server: warm starts with --ray ADDRESS need it, as the cluster's "
                              "workers cannot reach the one started here, on a Unix socket of this machine")
     parser.add_argument("--models", type=Path, default=Path("models"), help="models for the server started here (default models/)")
+    tls.add_client_arguments(parser)
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
                         help=f"per-step deadline for server replies (default {DEFAULT_DEADLINE_MS:g})")
+    parser.add_argument("--no-guard", action="store_true",
+                        help="serve each server: warm start's answer on every step; by default a guard serves it only "
+                             "while it beats Box2D's own start on the simulation's steps (trial solves, at most 4 %% "
+                             "of Box2D's sweeps; docs/worlds.md)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     dispatch.add_arguments(parser, workers_default="1, this process")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -84,11 +91,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _read_arguments(args: argparse.Namespace):
     """(spec, seeds, names, providers) of the command line, or ValueError saying what is wrong;
     warns on stderr of seeds that models were fitted or stopped on."""
-    spec = spec_from_args(args)
+    spec = worlds.spec_from_args(args)
     seeds = seed_ranges.parse_seeds(args.seeds)
+    if isinstance(spec, worlds.WorldSpec):  # a function that raises or returns no world: said before any work
+        worlds.build_user_world(spec.source, seeds[0])
     names = [w.strip() for w in args.warm_starts.split(",") if w.strip()]
     providers = {name: make_provider(name) for name in names}
     dispatch.check_arguments(args)
+    tls.client_credentials(*tls_files(args))  # unreadable or mismatched files: said before anything runs
+    if args.server is None and any(tls_files(args)):
+        raise ValueError("--tls-ca/--tls-cert/--tls-key dial a server of yours (--server); the one started here "
+                         "serves plaintext on a Unix socket")
     if any(p.uses_server for p in providers.values()) and args.server is None and args.ray not in (None, "local"):
         raise ValueError("server: warm starts on a Ray cluster need --server, an address its workers can reach "
                          "(e.g. dns:///server:50051)")
@@ -128,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
 
         if any(STAR in _candidates(n) for n in names):
             try:
-                names = expand_served(names, target)
+                names = expand_served(names, target, tls.client_credentials(*tls_files(args)))
             except (ValueError, ConnectionError) as exc:
                 print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
                 return 2
@@ -137,9 +150,10 @@ def run(args: argparse.Namespace) -> int:
             # Fail before any work if the server is away, lacks a model or refuses one for this
             # world (every seed's world has the scene's domain); each task connects on its own.
             try:
-                client = connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False)
+                client = connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False,
+                                 tls=tls_files(args))
                 try:
-                    declare_world(client, spec, provider.models)
+                    declare_world(client, worlds.world_message(spec, worlds.build(spec, seeds[0])), provider.models)
                 finally:
                     client.close()
             except Refused as exc:
@@ -150,7 +164,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
                 return 2
         runs = simulate_all(spec, names, seeds, target=target, deadline_ms=args.deadline_ms,
-                            workers=args.workers, ray=args.ray, quiet=args.quiet)
+                            workers=args.workers, ray=args.ray, quiet=args.quiet, guard=not args.no_guard,
+                            tls=tls_files(args))
     except dispatch.DispatchError as exc:
         print(f"deepcontact bench iterations: {exc}; no results written", file=sys.stderr)
         return 1
@@ -158,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         if server_proc is not None:
             server_proc.stop()
 
-    table = _write_results(args.out, runs, spec, seeds, args.deadline_ms)
+    table = _write_results(args.out, runs, spec, seeds, args.deadline_ms, guard=not args.no_guard)
     plot_figures(runs, spec.solver.velocity_iterations, spec.solver.velocity_threshold, args.out)
     print(table)
     print(f"wrote {args.out}/summary.json, results.md and figures")
@@ -168,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
 STAR = "server:*"
 
 
-def expand_served(names: list[str], target: str) -> list[str]:
+def expand_served(names: list[str], target: str, credentials=None) -> list[str]:
     """`server:*` as every model the server at `target` serves (not its built-in providers such
     as zero or grid-identity), in natural order (NAME-e2 before NAME-e10): a top-level entry
     becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face:/solved: one candidate per model.
@@ -177,7 +192,7 @@ def expand_served(names: list[str], target: str) -> list[str]:
 
     from simclient.client import WarmStartClient
 
-    client = WarmStartClient(target)
+    client = WarmStartClient(target, credentials=credentials)
     try:
         if not client.wait_ready(10.0):
             raise ConnectionError(f"no warm-start server at {target} to list for {STAR}")
@@ -206,6 +221,24 @@ def _candidates(name: str) -> list[str]:
     return rest.split("+") if head in Pick.MODES else [name]
 
 
+def guard_note(summaries: dict[str, dict], runs: dict[str, list[dict]]) -> str:
+    """A line per guarded warm start: the steps it served the learned start on and Box2D's, its
+    probes and switches, and what its trial solves cost against Builtin's own sweeps on the same
+    seeds (the guard's budget is 4 %); "" when no warm start ran under a guard."""
+    builtin = runs.get("builtin")
+    reference = sum(int(np.sum(_iterations(r))) for r in builtin) if builtin else 0
+    lines = []
+    for name, s in summaries.items():
+        if not s.get("guard_probes") and not s.get("guarded_steps") and not s.get("learned_steps"):
+            continue
+        cost = (f", trial sweeps {s['guard_trial_iterations'] / reference:.1%} of Builtin's"
+                if reference else f", {s['guard_trial_iterations']:,} trial sweeps")
+        lines.append(f"- {name}: the learned start on {s['learned_steps']:,} steps, Box2D's on "
+                     f"{s['guarded_steps']:,}; {s['guard_probes']:,} probes, {s['guard_switches']:,} switches{cost}")
+    return ("\nGuard (the learned start served only while it beats Box2D's; --no-guard turns it off):\n"
+            + "\n".join(lines) + "\n") if lines else ""
+
+
 def served_by_note(summaries: dict[str, dict]) -> str:
     """A line per warm start whose server answered some steps with another card's answer (a face
     card's fallback: the step too large, its labels missed, or its route past the deadline;
@@ -216,7 +249,8 @@ def served_by_note(summaries: dict[str, dict]) -> str:
     return "\nAnswered by another card than the model's route:\n" + "\n".join(lines) + "\n" if lines else ""
 
 
-def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int], deadline_ms: float) -> str:
+def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int], deadline_ms: float,
+                   guard: bool = False) -> str:
     """summary.json and results.md in ``out``, each written whole or not at all; returns the table.
 
     runs: {warm start: [run_simulation result per seed, in seed order]}.
@@ -227,12 +261,14 @@ def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int
     picks = {name: p for name, r in runs.items()
              if (p := pick_summary(name, r, runs.get("builtin"), cap=cap)) is not None}
     write_json_atomic(out / "summary.json", {
-        "seeds": seeds, "scene": spec.name, "scene_spec": spec_to_dict(spec), "deadline_ms": deadline_ms,
+        "seeds": seeds, "scene": spec.name, "scene_spec": worlds.spec_to_dict(spec), "deadline_ms": deadline_ms,
+        "guard": guard,
         "command": "deepcontact " + " ".join(sys.argv[1:]), "warm_starts": summaries,
         "ratios_to_builtin": {name: {k: r.to_dict() for k, r in rs.items()} for name, rs in ratios.items()},
         "per_seed_mean_iterations": {name: [_seed_mean(r) for r in rs] for name, rs in runs.items()},
         "picks": picks})
-    table = markdown_table(summaries, seeds, spec.name, ratios) + pick_table(picks) + served_by_note(summaries)
+    table = (markdown_table(summaries, seeds, spec.name, ratios) + guard_note(summaries, runs) + pick_table(picks)
+             + served_by_note(summaries))
     tmp = out / ".results.md.part"
     tmp.write_text(table)
     tmp.replace(out / "results.md")
@@ -240,14 +276,16 @@ def _write_results(out: Path, runs: dict[str, list[dict]], spec, seeds: list[int
 
 
 def simulate_all(spec, names: list[str], seeds: list[int], *, target: str | None, deadline_ms: float,
-                 workers: int | None = None, ray: str | None = None, quiet: bool = True) -> dict[str, list[dict]]:
+                 workers: int | None = None, ray: str | None = None, quiet: bool = True,
+                 guard: bool = False, tls=(None, None, None)) -> dict[str, list[dict]]:
     """Every (warm start, seed) simulation, one task each (deepcontact.dispatch).
 
     Returns {warm start: [run_simulation result per seed, in seed order]}.
-    target: the server for `server:` warm starts. Raises DispatchError.
+    target: the server for `server:` warm starts; guard: each `server:` warm start under a
+    guard (simclient.guard); tls: (ca, cert, key) PEM files to dial the server with. Raises DispatchError.
     """
     pairs = [(name, seed) for name in names for seed in seeds]
-    tasks = [dispatch.Task(f"{name} seed {seed}", (spec_to_dict(spec), name, seed, target, deadline_ms))
+    tasks = [dispatch.Task(f"{name} seed {seed}", (worlds.spec_to_dict(spec), name, seed, target, deadline_ms, guard, tuple(tls)))
              for name, seed in pairs]
     runs: dict[str, list[dict]] = {name: [] for name in names}
     with dispatch.Dispatcher(workers=workers, ray=ray) as dispatcher:
@@ -257,7 +295,8 @@ def simulate_all(spec, names: list[str], seeds: list[int], *, target: str | None
     return runs
 
 
-def simulate_one(spec_dict: dict, name: str, seed: int, target: str | None, deadline_ms: float) -> str:
+def simulate_one(spec_dict: dict, name: str, seed: int, target: str | None, deadline_ms: float,
+                 guard: bool = False, tls=(None, None, None)) -> str:
     """One task: warm start `name` on (scene, seed); the run_simulation result as JSON text.
 
     A `server:` warm start opens its own client to `target` for this simulation.
@@ -267,9 +306,11 @@ def simulate_one(spec_dict: dict, name: str, seed: int, target: str | None, dead
     provider = make_provider(name)  # a fresh provider per world: some keep state across steps
     client = None
     if provider.uses_server:
-        client = connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False)
+        client = connect(target, "+".join(provider.models), connect_timeout=10.0, allow_fallback=False,
+                         tls=tuple(tls))
     try:
-        result = run_simulation(spec_from_dict(spec_dict), seed, provider, client=client, deadline_ms=deadline_ms)
+        result = run_simulation(worlds.spec_from_dict(spec_dict), seed, provider, client=client,
+                                deadline_ms=deadline_ms, guard=Guard() if guard else None)
     finally:
         if client is not None:
             client.close()

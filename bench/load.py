@@ -46,7 +46,7 @@ HIGHEST_US = 60_000_000
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--server", metavar="HOST:PORT", help="load this server (default: start and compare our own)")
     parser.add_argument("--models", type=Path, default=Path("models"), help="models for servers started here (default models/)")
-    parser.add_argument("--model", default="pressure", help="model to request (default pressure)")
+    parser.add_argument("--model", default="default", help="model to request (default: default, the shipped model)")
     parser.add_argument("--clients", default="1,4,16,64", help="concurrency levels (default 1,4,16,64)")
     parser.add_argument("--duration", type=float, default=20.0, help="seconds per level (default 20)")
     parser.add_argument("--replay", type=Path, metavar="FILE.h5", help="send recorded steps from this data file")

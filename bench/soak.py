@@ -51,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=600.0, help="seconds of load (default 600)")
     parser.add_argument("--clients", type=int, default=8, help="concurrent lockstep streams (default 8)")
     parser.add_argument("--models", type=Path, default=Path("models"), help="models for the server (default models/)")
-    parser.add_argument("--model", default="pressure", help="model to request (default pressure)")
+    parser.add_argument("--model", default="default", help="model to request (default: default, the shipped model)")
     parser.add_argument("--replay", type=Path, metavar="FILE.h5",
                         help="send recorded steps from this data file (default: live thesis simulations)")
     parser.add_argument("--processes", type=int, default=8, help="most load-generating processes (default 8)")

@@ -121,6 +121,12 @@ class WarmStartClient:
             ready.cancel()
             return False
 
+    def set_world(self, world: pb.World) -> None:
+        """Declare another world (a new dt or gravity): the open stream, which declared the old
+        one, is closed, and the next step opens one led by this world."""
+        self.world = world
+        self._close_stream()
+
     def list_models(self, timeout: float = 5.0) -> list[pb.ModelInfo]:
         return list(self.stub.ListModels(pb.ListModelsRequest(), timeout=timeout).models)
 

@@ -116,3 +116,36 @@ def ray_cluster():
     except subprocess.TimeoutExpired:
         head.kill()
         head.wait()
+
+
+def shipped_model_files(names) -> list:
+    """The files of the shipped models `names` in models/: their cards, what each is an alias
+    of, a face card's fallback, and the ONNX files they name."""
+    import json
+    from pathlib import Path
+
+    shipped = Path(__file__).parents[1] / "models"
+    files, todo = set(), list(names)
+    while todo:
+        card = shipped / f"{todo.pop()}.json"
+        files.add(card)
+        d = json.loads(card.read_text())
+        todo += [d["alias_of"]] if d.get("alias_of") else []
+        todo += [d["face"]["fallback"]] if (d.get("face") or {}).get("fallback") else []
+        if d.get("onnx_file"):
+            files.add(shipped / d["onnx_file"])
+    return sorted(files)
+
+
+@pytest.fixture(scope="session")
+def default_server(tmp_path_factory):
+    """A real `deepcontact serve` process (Unix socket) on the shipped default and what it serves through."""
+    import shutil
+
+    from server.process import ServerProcess
+
+    folder = tmp_path_factory.mktemp("shipped")
+    for path in shipped_model_files(["default"]):
+        shutil.copy(path, folder)
+    with ServerProcess(folder, local_socket=True) as srv:
+        yield srv

@@ -8,22 +8,29 @@ from deepcontact.cli import main
 from tests.server.conftest import write_conv_model
 
 
-def test_the_demo_runs_the_shipped_selection_and_names_what_an_alias_is(tmp_path, capsys):
+def test_the_demo_prints_one_table_and_writes_the_details(tmp_path, capsys):
     models = tmp_path / "models"
     models.mkdir()
-    write_conv_model(models, "tiny")
+    write_conv_model(models, "pressure")
+    write_conv_model(models, "tiny", seed=1)
     (models / "default.json").write_text(json.dumps({"name": "default", "alias_of": "tiny"}))
     out = tmp_path / "out"
-    assert main(["demo", "--model", "default", "--models", str(models), "--out", str(out)]) == 0
-    captured = capsys.readouterr()
-    assert "default is tiny" in captured.err
-    assert "| server:default |" in captured.out and "| builtin |" in captured.out
-    assert "`shadow:server:default`: every candidate solved from the same state" in captured.out
+    assert main(["demo", "--models", str(models), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    rows = [line for line in printed.splitlines() if line.startswith("| ")]
+    assert rows[0] == "| warm start | mean iterations | / builtin | p50 latency ms | learned route |"
+    assert [r.split(" | ")[0] for r in rows[1:] if not r.startswith("|---")] == [
+        "| none", "| builtin", "| server:pressure, guard off", "| server:default, guard off", "| server:default"]
+    assert "| builtin | " in printed and " | 1.000 | – | – |" in printed
+    assert "below 1: fewer than Box2D's own" in printed
+    details = (out / "details.md").read_text()
+    assert "Ratios to builtin" in details and "Guard (the learned start" in details
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["warm_starts"]) == {"none", "builtin", "server:default", "shadow:server:default"}
-    assert summary["picks"]["shadow:server:default"]["candidates"] == ["builtin", "server:default"]
+    assert set(summary["warm_starts"]) == {"none", "builtin", "server:pressure, guard off",
+                                           "server:default, guard off", "server:default"}
+    assert (out / "fig21_convergence.png").exists()
 
 
 def test_the_demo_says_which_card_is_missing(tmp_path, capsys):
-    assert main(["demo", "--model", "nope", "--models", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
-    assert "no model card nope" in capsys.readouterr().err
+    assert main(["demo", "--models", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    assert "no model card pressure, default" in capsys.readouterr().err

@@ -16,12 +16,15 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server.serve import Server
 
 
-def write_conv_model(folder, name="tiny", fixed_grid=False, combine="replace", seed=0, inputs=None):
-    """A 1x1 convolution from the input channels (default the thesis's 6) to 2 outputs, with its card."""
+def write_conv_model(folder, name="tiny", fixed_grid=False, combine="replace", seed=0, inputs=None, weights=None):
+    """A 1x1 convolution from the input channels (default the thesis's 6) to 2 outputs, with its card;
+    weights: every weight this value (e.g. NaN, a model gone wrong) instead of random ones."""
     spec = GridSpec.thesis() if inputs is None else GridSpec.thesis(inputs=tuple(inputs))
     cin, cout = len(spec.inputs), len(spec.targets)
     rng = np.random.default_rng(seed)
     w = rng.normal(0, 0.1, (cout, cin, 1, 1)).astype(np.float32)
+    if weights is not None:
+        w[:] = weights
     nodes = [
         helper.make_node("Transpose", ["grids"], ["nchw"], perm=[0, 3, 1, 2]),
         helper.make_node("Conv", ["nchw", "w"], ["y"]),

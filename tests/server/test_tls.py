@@ -252,3 +252,30 @@ def test_client_credentials_say_what_is_wrong_in_one_line(pki, tmp_path):
 ])
 def test_is_local_bind(bind, local):
     assert tls.is_local_bind(bind) is local
+
+
+def test_simulate_and_bench_iterations_dial_a_mutual_tls_server(mtls_server, pki, tmp_path):
+    flags = ["--tls-ca", str(pki.ca), "--tls-cert", str(pki.client_cert), "--tls-key", str(pki.client_key)]
+    out = tmp_path / "r.json"
+    assert main(["simulate", "--seed", "901", "--steps", "30", "--warm-start", "server:tiny", "--server",
+                 mtls_server.address, "--deadline-ms", "1000", "--no-guard", "--out", str(out), "--quiet", *flags]) == 0
+    assert json.loads(out.read_text())["summary"]["fallback_steps"] == 0
+    assert main(["bench", "iterations", "--seeds", "901", "--steps", "30", "--warm-starts", "builtin,server:tiny",
+                 "--server", mtls_server.address, "--deadline-ms", "1000", "--out", str(tmp_path / "it"), "--quiet",
+                 *flags]) == 0
+    summary = json.loads((tmp_path / "it" / "summary.json").read_text())
+    assert summary["warm_starts"]["server:tiny"]["fallback_steps"] == 0
+
+
+def test_a_session_dials_a_mutual_tls_server_and_is_refused_without_a_certificate(mtls_server, pki):
+    from simclient import WarmStartSession
+    from simclient.scene import SceneSpec, build_world
+
+    world = build_world(SceneSpec.thesis(), 901).world
+    with WarmStartSession(world, mtls_server.address, model="tiny", deadline_ms=1000, guard=False,
+                          tls_ca=pki.ca, tls_cert=pki.client_cert, tls_key=pki.client_key) as session:
+        for _ in range(30):
+            session.step(0.01, 1000, 1000)
+        assert session.summary()["fallback_steps"] == 0
+    with pytest.raises(ConnectionError):  # the handshake fails: no server that answers
+        WarmStartSession(world, mtls_server.address, model="tiny", tls_ca=pki.ca, connect_timeout=1.0)

@@ -101,7 +101,8 @@ def test_bad_invocations_fail_before_simulating(server, tmp_path, capsys):
                  "--connect-timeout", "0.5", "--out", out]) == 2
     assert "--allow-fallback" in capsys.readouterr().err
     assert main(["simulate", "--seed", "1", "--warm-start", "server:tiny", "--server", "127.0.0.1:9",
-                 "--connect-timeout", "0.5", "--allow-fallback", "--steps", "10", "--out", out, "--quiet"]) == 0
+                 "--connect-timeout", "0.5", "--allow-fallback", "--steps", "10", "--no-guard", "--out", out,
+                 "--quiet"]) == 0
     assert json.loads((tmp_path / "x.json").read_text())["summary"]["fallback_steps"] > 0
     assert main(["simulate", "--seed", "1", "--warm-start", "builtin", "--out", "/proc/none/x.json"]) == 2
 
@@ -127,12 +128,14 @@ def test_a_world_the_server_refuses_ends_the_run_with_its_reason(tmp_path, capsy
 
 
 def test_declaring_a_world_says_refused_and_a_silent_server_is_no_refusal(server):
+    from simclient import worlds
     from simclient.client import Refused
     from simclient.simulate import declare_world
 
+    spec = SceneSpec.thesis()
     with WarmStartClient(server.address) as client:
         with pytest.raises(Refused, match="NOT_FOUND"):
-            declare_world(client, SceneSpec.thesis(), ["nope"])
+            declare_world(client, worlds.world_message(spec, worlds.build(spec, 901)), ["nope"])
     with WarmStartClient("127.0.0.1:9") as client:  # nothing listens: no answer, so no refusal either
         assert client.declare("tiny", timeout=0.2) is False
 

@@ -1,0 +1,230 @@
+"""The guard: serve the learned warm start only while it beats Box2D's own.
+
+A warm start learned on one kind of world can cost another kind many times
+Box2D's own iterations (a stack of boxes is not a pile of discs). The guard
+measures, on the simulation's own steps, both starts on the same state, and
+serves whichever is cheaper:
+
+    guard = Guard()
+    plan = guard.plan()                      # on each step with contacts, before asking
+    # plan.ask: ask the server this step; plan.probe: price both starts on it
+    guard.served("builtin", sweeps)          # a step that was not a probe
+    guard.probed(learned=..., builtin=..., trial_sweeps=..., builtin_sweeps=...)
+
+A probe prices the start that is not served with the engine's trial solve (a
+velocity solve that leaves the world as it was) and solves the step from the
+served one: one paired comparison for the cost of one extra velocity solve.
+The guard starts on Box2D's own start, so a world where the learned start
+loses never serves it, and switches to the learned start once its paired
+sweeps over the last probes come to at most `enter` of Box2D's; it switches
+back where they exceed `leave`. Probes come often at first and after a switch,
+then less often (their interval doubles while they agree), sooner when a
+learned step costs far more than Box2D's recent steps did (`alarm`), and
+never past a budget: the trial sweeps stay under `budget` of the sweeps Box2D's
+own start has been needing, so the guard costs at most that share of Box2D's
+solve time. A trial of the learned start stops at `cap` times Box2D's recent
+sweeps: past that it has lost, and how badly does not matter.
+
+With no stopping tolerance every step runs the same number of sweeps; a step's
+cost is then how far from converged its start leaves it (the last sweep's
+largest impulse change, N s), and the guard compares that instead.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+
+LEARNED = "learned"
+BUILTIN = "builtin"
+
+
+@dataclasses.dataclass(frozen=True)
+class GuardSettings:
+    """budget: trial sweeps per sweep of Box2D's own start, at most (0.04: 4 %).
+    window: the last paired probes a decision reads.
+    enter, leave: the learned start is served from a paired ratio (its cost over
+        Box2D's, summed over the window) at most `enter`, and left above `leave`.
+    severe: a probe whose learned start cost more than this many times Box2D's ends
+        the learned start's turn, whatever the window says.
+    interval: (first, longest) steps with contacts between probes.
+    alarm: where the learned start's recent steps (their median) cost more than this
+        many times Box2D's reference (an unpaired comparison, so only a warning), the
+        next step is a probe, whatever the budget, at most once an interval's length
+        (`interval[1]`); a single learned step at `panic` times the world's recent
+        steps (scale()) hands the next steps to Box2D's start at once.
+    cap: a trial of the learned start stops at this many times Box2D's recent sweeps.
+    free_probes: probes made whatever the budget (the first ones, on a run's first
+        steps with contacts, before any budget has been earned).
+    recent: how many of Box2D's last measured steps (served or priced) its reference,
+        their median, is taken over.
+    floor: where Box2D's recent steps took fewer sweeps than this, its own start is
+        served and nothing is probed: a learned start could save a step at most those
+        few sweeps and can cost it hundreds (a stack at rest needs one or two)."""
+
+    budget: float = 0.04
+    window: int = 8
+    enter: float = 0.9
+    leave: float = 1.2
+    severe: float = 3.0
+    interval: tuple[int, int] = (2, 16)
+    alarm: float = 3.0
+    panic: float = 10.0
+    cap: float = 1.0
+    free_probes: int = 2
+    recent: int = 9
+    floor: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.budget < 1 and self.window >= 1 and 0 < self.enter <= self.leave <= self.severe
+                and 1 <= self.interval[0] <= self.interval[1] and self.cap >= 1 and self.alarm >= 1
+                and self.recent >= 1 and self.floor >= 0 and self.panic >= self.alarm):
+            raise ValueError(f"inconsistent guard settings: {self}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What the guard wants of one step with contacts: ask the server for the learned
+    start (`ask`), and price both starts on it (`probe`, implies ask)."""
+
+    ask: bool
+    probe: bool
+
+
+class Guard:
+    """One simulation's guard (state across its steps). `mode` is the start it serves:
+    BUILTIN (Box2D's own) or LEARNED."""
+
+    def __init__(self, settings: GuardSettings = GuardSettings()):
+        self.settings = settings
+        self.mode = BUILTIN
+        self.pairs: collections.deque[tuple[float, float]] = collections.deque(maxlen=settings.window)
+        self._recent: collections.deque[float] = collections.deque(maxlen=settings.recent)
+        self._learned: collections.deque[float] = collections.deque(maxlen=settings.recent)  # served learned steps
+        self.reference: float | None = None  # Box2D's recent sweeps a step: the median of the last `recent` seen
+        self.earned = 0.0  # trial sweeps the budget allows so far
+        self.spent = 0  # trial sweeps made
+        self.interval = settings.interval[0]
+        self.countdown = 0  # steps with contacts until the next probe is due
+        self.pending = False  # an alarm asked for a probe
+        self.since_alarm = settings.interval[1] + 1  # steps since the last alarm
+        self.probes = 0
+        self.switches = 0
+
+    # -- before a step -----------------------------------------------------
+    def plan(self) -> Plan:
+        """Called once per step with contacts, before the warm start is chosen."""
+        if self.reference is None:  # the first step with contacts sets the scale of everything
+            return Plan(ask=False, probe=False)
+        if self.reference < self.settings.floor:
+            if self.mode == LEARNED:
+                self._switch(BUILTIN)
+            return Plan(ask=False, probe=False)
+        # An alarm's recheck is made whatever the budget says (alarms come at most one an
+        # interval's length apart); a scheduled probe waits until the budget allows it.
+        probe = self.pending or (self.countdown <= 0 and self._affordable())
+        return Plan(ask=probe or self.mode == LEARNED, probe=probe)
+
+    def trial_cap(self) -> int:
+        """Sweeps past which a trial of the learned start has lost: ceil(cap x scale())."""
+        return max(1, int(-(-self.settings.cap * (self.scale() or 1.0) // 1)))
+
+    def scale(self) -> float:
+        """How many sweeps the world's steps have been needing: Box2D's reference, or the
+        learned start's own recent steps where larger (Box2D's is measured at probes only
+        while the learned start serves, and a world that gets busier outgrows it)."""
+        return max(self.reference or 0.0, _median(self._learned))
+
+    def _affordable(self) -> bool:
+        """Whether the budget allows a scheduled probe now."""
+        if self.probes < self.settings.free_probes:
+            return True
+        expected = self.reference * (self.settings.cap if self.mode == BUILTIN else 1.0)
+        return self.spent + expected <= self.earned
+
+    # -- after a step ------------------------------------------------------
+    def served(self, start: str, cost: float, sweeps: int) -> None:
+        """A step with contacts that was not a probe: `start` (LEARNED or BUILTIN) was served
+        and cost `cost` (its sweeps, or its last residual without a tolerance) in `sweeps`."""
+        self.countdown -= 1
+        if start == BUILTIN:
+            self._learn_reference(sweeps)
+            self.earned += self.settings.budget * sweeps
+            return
+        self.earned += self.settings.budget * (self.reference or sweeps)
+        scale = self.scale()
+        self._learned.append(float(sweeps))
+        self.since_alarm += 1
+        if self.reference is None:
+            return
+        if sweeps > self.settings.panic * scale:
+            self._switch(BUILTIN)  # far worse than the world has been needing: no second such step
+            if self.since_alarm > self.settings.interval[1]:  # and a recheck, in case the world just got busier
+                self.since_alarm, self.pending = 0, True
+        elif _median(self._learned) > self.settings.alarm * self.reference and self.since_alarm > self.settings.interval[1]:
+            # The learned start's recent steps cost more than Box2D's last measured ones: maybe the
+            # world got busier, maybe the learned start went wrong. The next step is a probe.
+            self.since_alarm = 0
+            self.pending = True
+
+    def probed(self, *, learned: float, builtin: float, trial_sweeps: int, builtin_sweeps: int,
+               capped: bool = False) -> None:
+        """A probe: both starts' costs on the same state (`learned`, `builtin`), the trial's
+        sweeps and Box2D's start's sweeps on it (trial or solve). capped: the learned start's
+        trial stopped at trial_cap(), so its cost is only known to be at least `learned`; where
+        Box2D's start cost as much or more, the probe tells nothing and is not counted."""
+        self.probes += 1
+        self.spent += trial_sweeps
+        self.pending = False
+        self._learn_reference(builtin_sweeps)
+        self.earned += self.settings.budget * builtin_sweeps
+        if capped and builtin >= learned:
+            self.countdown = self.settings.interval[0]  # soon again, once the reference has caught up
+            return
+        self.pairs.append((float(learned), float(builtin)))
+        switched = self._decide()
+        longest = self.settings.interval[1]
+        self.interval = self.settings.interval[0] if switched else min(2 * self.interval, longest)
+        self.countdown = self.interval
+
+    def ratio(self) -> float | None:
+        """The learned start's cost over Box2D's, summed over the last paired probes."""
+        if not self.pairs:
+            return None
+        learned = sum(p[0] for p in self.pairs)
+        builtin = sum(p[1] for p in self.pairs)
+        return learned / builtin if builtin > 0 else (1.0 if learned == 0 else float("inf"))
+
+    def _decide(self) -> bool:
+        """Switch where the window says so; True when it did. A sum over the window weighs
+        probes by their sweeps, so one busy step can outvote several quiet ones: the last probe,
+        the best guess at the next steps, must agree (no loss to enter, no loss by more than
+        `severe` to stay)."""
+        ratio = self.ratio()
+        learned, builtin = self.pairs[-1]
+        last = learned / builtin if builtin > 0 else (1.0 if learned == 0 else float("inf"))
+        if (self.mode == BUILTIN and len(self.pairs) >= min(2, self.settings.window) and ratio <= self.settings.enter
+                and last <= 1.0):
+            self._switch(LEARNED)
+            return True
+        if self.mode == LEARNED and (ratio > self.settings.leave or last > self.settings.severe):
+            self._switch(BUILTIN)
+            return True
+        return False
+
+    def _switch(self, mode: str) -> None:
+        self.mode = mode
+        self.switches += 1
+        self.interval = self.settings.interval[0]
+        self.countdown = self.interval
+
+    def _learn_reference(self, sweeps: int) -> None:
+        # A median, not a mean: one step at the cap must not make a resting world look like a busy one.
+        self._recent.append(float(sweeps))
+        self.reference = _median(self._recent)
+
+
+def _median(values) -> float:
+    """The upper median of a few numbers (0 for none)."""
+    ordered = sorted(values)
+    return float(ordered[len(ordered) // 2]) if ordered else 0.0
