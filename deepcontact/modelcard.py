@@ -108,7 +108,7 @@ from deepcontact.step_gate import StepGate
 
 CARD_VERSION = 1
 COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
-ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face"})
+ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face", "description"})
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None}
@@ -158,6 +158,7 @@ class ModelCard:
     validation: dict = dataclasses.field(default_factory=dict)  # losses
     parity_max_abs_error: float | None = None  # TF vs ONNX Runtime on random input
     commands: tuple[str, ...] = ()  # the commands that made the model
+    description: str = ""  # what the model is, in one line: ListModels returns it, `deepcontact serve` logs it
     version: int = CARD_VERSION
 
     def to_dict(self) -> dict[str, Any]:
@@ -200,6 +201,8 @@ class ModelCard:
                 raise ModelCardError(f"model card step_gate: {exc}") from None
         if d.get("face") is not None:
             d["face"] = _face_settings(d["face"], d["kind"])
+        if not isinstance(d.get("description", ""), str) or "\n" in d.get("description", ""):
+            raise ModelCardError("model card description: one line of text")
         if d.get("combine", "replace") not in COMBINE:
             raise ModelCardError(f"model card combine {d['combine']!r}: use one of {', '.join(COMBINE)}")
         return cls(**d)
@@ -217,14 +220,14 @@ class ModelCard:
             unknown = set(data) - ALIAS_KEYS
             if unknown or not isinstance(data.get("name"), str) or not isinstance(data["alias_of"], str):
                 raise ModelCardError(f"{path}: an alias card holds a name and alias_of (strings) and "
-                                     f"optionally why, step_gate and face; got keys {sorted(data)}")
+                                     f"optionally why, description, step_gate and face; got keys {sorted(data)}")
             target_path = path.with_name(f"{data['alias_of']}.json")
             target = _read_card(target_path)
             if isinstance(target, dict) and "alias_of" in target:
                 raise ModelCardError(f"{path}: alias of {target_path.name}, itself an alias; "
                                      f"name the card it points at ({target['alias_of']!r})")
             if isinstance(target, dict):
-                target = {**target, **{k: data[k] for k in ("step_gate", "face") if k in data}}
+                target = {**target, **{k: data[k] for k in ("step_gate", "face", "description") if k in data}}
             try:
                 card = cls.from_dict(target)
             except ModelCardError as exc:

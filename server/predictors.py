@@ -69,6 +69,7 @@ class GridMismatch(ValueError):
 class Predictor:
     name: str
     kind: str
+    description: str = ""  # one line: what it is (a model's card says; ListModels returns it)
     fixed_grid: bool = False
     gridspec: GridSpec | None = None
     requires: tuple[str, ...] = ()
@@ -189,6 +190,7 @@ class ModelPredictor(Predictor):
         self.card = card
         self.name = card.name
         self.kind = card.kind
+        self.description = card.description
         self.fixed_grid = card.fixed_grid
         self.gridspec = card.gridspec
         self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
@@ -271,7 +273,7 @@ class GraphPredictor(Predictor):
 
     def __init__(self, card: ModelCard, onnx_path: Path, *, intra_op_threads: int = 1,
                  inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES):  # no grid: any domain
-        self.card, self.name, self.kind = card, card.name, card.kind
+        self.card, self.name, self.kind, self.description = card, card.name, card.kind, card.description
         self.gridspec = card.gridspec
         self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
         names = {i.name for i in self.session.get_inputs()}
@@ -474,6 +476,7 @@ class ConstantPredictor(Predictor):
     normal: float
     tangent: float
     kind: str = "provider"
+    description: str = "the same impulse at every point"
 
     def predict(self, bodies, points, world, step, previous=None):
         out = np.empty((len(points), 2), np.float32)
@@ -489,6 +492,7 @@ class RandomPredictor(Predictor):
     seed: int = 0
     name: str = "random"
     kind: str = "provider"
+    description: str = "the thesis's random warm start: normal U(0, 5), tangent U(-2, 2) N s"
 
     def predict(self, bodies, points, world, step, previous=None):
         rng = np.random.default_rng([self.seed, step])
@@ -503,6 +507,7 @@ class GridIdentityPredictor(Predictor):
 
     name = "grid-identity"
     kind = "provider"
+    description = "the request's own impulses through the grids and back: what the transfer loses (the thesis's Grid)"
 
     def __init__(self, gridspec: GridSpec, max_grid_nodes: int = MAX_GRID_NODES):
         self.gridspec = gridspec

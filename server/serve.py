@@ -248,6 +248,9 @@ def run(args: argparse.Namespace) -> int:
     if credentials is None and not tls.is_local_bind(args.bind):  # only with --insecure (_argument_problem)
         log.warning(f"serving plaintext on a non-loopback address, {server.address}: anyone who reaches it can "
                     "use the service (--insecure)", extra={"address": server.address, "insecure": True})
+    for model in server.models:  # what each served model is, a line each
+        log.info(f"model {model.name}: {model.description or '(no description on its card)'}",
+                 extra={"model": model.name, "kind": model.kind})
     log.info("serving", extra={"address": server.address, "pid": os.getpid(),
                                "models": sorted(server.service.predictors), "tls": credentials is not None,
                                "mutual_tls": args.tls_client_ca is not None,

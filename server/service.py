@@ -115,7 +115,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
     def ListModels(self, request, context):
         reply = pb.ListModelsReply()
         for p in self.predictors.values():
-            reply.models.add(name=p.name, kind=p.kind, fixed_grid=p.fixed_grid,
+            reply.models.add(name=p.name, kind=p.kind, fixed_grid=p.fixed_grid, description=p.description,
                              gridspec_json=p.gridspec.to_json(indent=None) if p.gridspec is not None else "")
         return reply
 
