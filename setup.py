@@ -1,11 +1,14 @@
-"""Build of deepcontact's two compiled modules; everything else is in pyproject.toml.
+"""Build of deepcontact's compiled modules; everything else is in pyproject.toml.
 
 deepcontact/_transfer.c is the inner loop of the particle/grid transfer
-(deepcontact.transfer), deepcontact/_kinematics.c the contact points' velocities
-and effective masses (deepcontact.kinematics). `pip install -e .` (run by `make
-setup`) builds them in place. -ffp-contract=off: no fused multiply-adds, so the
-kernel weights and the point features are the same numbers on every x86-64
-machine, whatever the compiler's defaults, and the features NumPy's to the bit.
+(deepcontact.transfer); deepcontact/_kinematics.c the contact points' velocities
+and effective masses (deepcontact.kinematics); deepcontact/_admission.c the
+admission into the friction cones, its rounds and their factorization
+(deepcontact.admission); deepcontact/_faces.c a face's linear system and its dual's
+gram (deepcontact.faces). `pip install -e .` (run by `make setup`) builds them in
+place. -ffp-contract=off: no fused multiply-adds, so the kernel weights and the
+point features are the same numbers on every x86-64 machine, whatever the
+compiler's defaults, and the features NumPy's to the bit.
 """
 
 from setuptools import Extension, setup
@@ -14,11 +17,7 @@ FLAGS = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-Wall"]
 
 setup(
     ext_modules=[
-        Extension(
-            "deepcontact._transfer",
-            ["deepcontact/_transfer.c"],
-            extra_compile_args=FLAGS,
-        ),
-        Extension("deepcontact._kinematics", ["deepcontact/_kinematics.c"], extra_compile_args=FLAGS),
+        Extension(f"deepcontact.{name}", [f"deepcontact/{name}.c"], extra_compile_args=FLAGS)
+        for name in ("_transfer", "_kinematics", "_admission", "_faces")
     ]
 )

@@ -38,8 +38,8 @@ class InProcess(Provider):
         self.predictor, self.world = predictor, world
         self.name = f"in-process:{predictor.name}"
         self._points: np.ndarray | None = None  # the last step with points: temporal channels' previous
-        #: per step with points, the predictor's stage times (s): for a graph model p2g is the
-        #: point features and g2p the combination, as in the server's timings
+        #: per step with points, the predictor's stage times (s), named as in the server's
+        #: timings (server.predictors.STAGES)
         self.stages: list[dict[str, float]] = []
 
     @classmethod
@@ -67,7 +67,7 @@ class InProcess(Provider):
         # Each point's friction as the wire carries it (float32), to a model that reads it.
         extra = {"friction": point_friction(engine.body_friction(), points).astype(np.float32)} \
             if "point_friction" in self.predictor.requires else {}
-        impulses, stages = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
+        answer = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
         self._points = points
-        self.stages.append(stages)
-        return as_warm_start(impulses)
+        self.stages.append(answer.stages)
+        return as_warm_start(answer.impulses)

@@ -5,7 +5,9 @@ the client's threads would hold the GIL inside the server's timings),
 records steps of a thesis world on a benchmark seed (bodies at collide time,
 contact points with their builtin warm start), streams them in lockstep through one
 bidirectional stream (simclient.client) and reports medians of the server's stage timings
-(decode, P2G, inference, G2P, total) and of the client's round trip. The
+(decode; then those the model runs: p2g, inference, g2p for a grid model; features, inference,
+g2p for a graph model; features, inference, solve, admit for the face route; total) and of
+the client's round trip. The
 headline is the server's time outside inference, total - inference (issue 6's
 target: 300 us at the median). `decode` starts when gRPC begins parsing the
 request (server.service._parse_step), so it includes parsing and gRPC's
@@ -26,6 +28,9 @@ from deepcontact import wire
 from deepcontact.io import write_json_atomic
 from deepcontact.modelcard import unknown_model
 from simclient.client import WarmStartClient
+
+#: The reply's stage timings (Timings NAME_us), in the order a step runs them.
+STAGES = ("decode", "p2g", "features", "inference", "g2p", "solve", "admit", "total")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -67,7 +72,7 @@ def time_steps(address: str, world, model: str, recorded, rounds: int) -> tuple[
     stage timings per step (us; "outside_inference" is total - inference) and the
     client's round trips (s).
     """
-    stages = {k: [] for k in ("decode", "p2g", "inference", "g2p", "total", "outside_inference")}
+    stages = {k: [] for k in (*STAGES, "outside_inference")}
     round_trip = []
     with WarmStartClient(address, world=world) as client:
         for r in range(rounds):
@@ -80,10 +85,9 @@ def time_steps(address: str, world, model: str, recorded, rounds: int) -> tuple[
                     continue
                 round_trip.append(rt)
                 t = reply.timings
-                for name, value in (("decode", t.decode_us), ("p2g", t.p2g_us), ("inference", t.inference_us),
-                                    ("g2p", t.g2p_us), ("total", t.total_us),
-                                    ("outside_inference", t.total_us - t.inference_us)):
-                    stages[name].append(value)
+                for name in STAGES:
+                    stages[name].append(getattr(t, f"{name}_us"))
+                stages["outside_inference"].append(t.total_us - t.inference_us)
     return stages, round_trip
 
 
@@ -135,8 +139,9 @@ def run(args: argparse.Namespace) -> int:
     med = result["server_us_median"]
     print(f"{args.model} on thesis seed {args.seed}: {len(recorded)} steps with contacts "
           f"(median {result['median_contact_points']:.0f} points), {args.rounds - 1} timed rounds")
-    print("  server stage medians (us): " + ", ".join(f"{k} {med[k]:.0f}" for k in
-                                                     ("decode", "p2g", "inference", "g2p", "total")))
+    # The stages this model runs: a stage it has not (a grid model's solve) reads 0 at every step.
+    ran = [k for k in STAGES if k in ("decode", "inference", "total") or any(stages[k])]
+    print("  server stage medians (us): " + ", ".join(f"{k} {med[k]:.0f}" for k in ran))
     print(f"  outside inference (total - inference): median {med['outside_inference']:.0f} us, "
           f"p90 {result['server_us_p90']['outside_inference']:.0f} us")
     print(f"  client round trip: median {result['round_trip_ms_median']:.3f} ms, p99 {result['round_trip_ms_p99']:.3f} ms")

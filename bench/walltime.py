@@ -153,8 +153,11 @@ def summarize_size(builtin: list[dict], learned: list[dict], in_process: list[di
             "break_even_iterations": own / per_iteration if per_iteration > 0 else None,
             "saved_iterations": float(b["velocity_iterations"].mean() - p["velocity_iterations"].mean())}
         stages = [st for r in in_process for st in r.get("stages", ())]
-        for stage, key in (("p2g", "p2g_ms"), ("inference", "inference_ms"), ("g2p", "g2p_ms")):
-            times = [st[stage] for st in stages if stage in st]
+        # Three columns for every kind: before inference (a grid model's p2g, a graph model's
+        # features), inference, after it (g2p; the face route's solve and admission).
+        for names, key in ((("p2g", "features"), "p2g_ms"), (("inference",), "inference_ms"),
+                           (("g2p", "solve", "admit"), "g2p_ms")):
+            times = [sum(st[n] for n in names if n in st) for st in stages if any(n in st for n in names)]
             row["in_process"][key] = 1e3 * float(np.median(times)) if times else None
     return row
 
@@ -260,8 +263,8 @@ def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
         lines += ["", f"The same model called in this process (in-process:{model}, bench.inprocess): no gRPC, "
                       "no encoding or decoding.", "",
                   "| world | builtin step | in-process step | predict | p2g (graph: features) | inference "
-                  "| g2p (graph: combination) | overhead | served inference | served overhead "
-                  "| break-even iterations | saved iterations |",
+                  "| g2p (graph: combination; face route: solve, admit) | overhead | served inference "
+                  "| served overhead | break-even iterations | saved iterations |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for name, p in local.items():
             r = rows[name]

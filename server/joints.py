@@ -10,7 +10,7 @@ velocities taken after the fixed impulses at the jointed points, so that the
 rest is the contact problem left once those are given.
 
     rows = wire.decode_joints(request)                 # (J, 2) body rows, 0 static
-    impulses, stages = predict_around_joints(predictor, bodies, points, rows, world, step, ...)
+    answer = predict_around_joints(predictor, bodies, points, rows, world, step, ...)  # a Prediction
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from deepcontact.kinematics import after_impulses
+from server.predictors import Prediction
 
 #: served_by of a step whose every point touches a jointed body: nothing was left to ask a model about.
 ALL_JOINTED = "builtin"
@@ -33,23 +34,24 @@ def jointed_points(points: np.ndarray, joints: np.ndarray, n_bodies: int) -> np.
 
 
 def predict_around_joints(predictor, bodies: np.ndarray, points: np.ndarray, joints: np.ndarray, world, step: int,
-                          previous=None, friction: np.ndarray | None = None, **extra):
-    """(impulses (P, 2) float32 N s, stages) as predictor.predict gives them, with Box2D's own
-    warm start at the points that touch a jointed body (joints: (J, 2) body rows, 0 static;
-    friction: (P,) when the predictor takes it). stages["served_by"] is ALL_JOINTED where no
-    point is free of joints."""
+                          previous=None, friction: np.ndarray | None = None, **extra) -> Prediction:
+    """The step's Prediction as predictor.predict gives it, with Box2D's own warm start at the
+    points that touch a jointed body (joints: (J, 2) body rows, 0 static; friction: (P,) when
+    the predictor takes it): impulses (P, 2) float32 N s at every point, the stages and
+    served_by of the predictor's answer about the free ones. served_by is ALL_JOINTED where
+    no point is free of joints (no predictor was asked)."""
     builtin = points["builtin"].astype(np.float32)
     fixed = jointed_points(points, joints, len(bodies))
     if not fixed.any():
         return predictor.predict(bodies, points, world, step, previous, **_with(friction, None, extra))
     if fixed.all():
-        return builtin.copy(), {"served_by": ALL_JOINTED}
+        return Prediction(builtin.copy(), served_by=ALL_JOINTED)
     free = ~fixed
     moved = after_impulses(bodies, points[fixed], builtin[fixed].astype(np.float64))
-    answer, stages = predictor.predict(moved, points[free], world, step, previous, **_with(friction, free, extra))
+    answer = predictor.predict(moved, points[free], world, step, previous, **_with(friction, free, extra))
     impulses = builtin.copy()
-    impulses[free] = answer
-    return impulses, stages
+    impulses[free] = answer.impulses
+    return Prediction(impulses, answer.stages, answer.served_by)
 
 
 def _with(friction, keep, extra: dict) -> dict:

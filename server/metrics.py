@@ -3,7 +3,8 @@
 Exposed over HTTP by `deepcontact serve --metrics-port PORT` at /metrics:
     deepcontact_steps_total{model}           steps answered
     deepcontact_errors_total{code}           requests rejected, by gRPC status
-    deepcontact_stage_seconds{stage}         decode, p2g, inference, g2p, total
+    deepcontact_stage_seconds{stage}         decode, each stage a predictor runs (server.predictors.STAGES:
+                                             p2g, features, inference, g2p, solve, admit), total
     deepcontact_idle_streams_ended_total     streams the server ended after --stream-idle-s without a message
     deepcontact_served_by_total{model,served_by}  steps a model answered with another card's answer
                                              (a face card's fallback: too large, labels missed, or late)
@@ -12,6 +13,8 @@ Exposed over HTTP by `deepcontact serve --metrics-port PORT` at /metrics:
 from __future__ import annotations
 
 from prometheus_client import Counter, Histogram, start_http_server
+
+from server.predictors import STAGES
 
 STEPS = Counter("deepcontact_steps_total", "Steps answered", ["model"])
 ERRORS = Counter("deepcontact_errors_total", "Requests rejected, by gRPC status code", ["code"])
@@ -22,7 +25,7 @@ STAGE = Histogram(
     "deepcontact_stage_seconds", "Server-side time per stage of a step", ["stage"],
     buckets=(25e-6, 50e-6, 100e-6, 200e-6, 400e-6, 800e-6, 1.6e-3, 3.2e-3, 6.4e-3, 12.8e-3, 25.6e-3, 51.2e-3, 0.1),
 )
-_STAGES = {name: STAGE.labels(stage=name) for name in ("decode", "p2g", "inference", "g2p", "total")}
+_STAGES = {name: STAGE.labels(stage=name) for name in ("decode", *STAGES, "total")}
 
 
 def observe_step(model: str, decode_s: float, stages: dict[str, float], total_s: float) -> None:

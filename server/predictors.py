@@ -1,10 +1,13 @@
 """What the server can answer a step with: ONNX models and simple providers.
 
 Every predictor maps a step's records to one (normal, tangent) impulse per
-contact point, in the request's order, and says what its stages cost:
+contact point, in the request's order, and says what its stages cost and who
+answered, in a Prediction:
 
-    impulses, stages = predictor.predict(bodies, points, world, step, previous)
-    # impulses (P, 2) float32, N s; stages {"p2g": s, "inference": s, "g2p": s}
+    answer = predictor.predict(bodies, points, world, step, previous)
+    answer.impulses    # (P, 2) float32, N s
+    answer.stages      # seconds by stage: {"p2g": s, "inference": s, "g2p": s} for a grid model
+    answer.served_by   # None, or what answered in the predictor's place (a face route's fallback)
 
 `world` is what a stream declares once (the grids' domain, the physics);
 `previous` the stream's last step's points (None on its first step and for
@@ -16,7 +19,11 @@ predictor that requires "point_friction" is also given the points' friction
 `ModelPredictor` runs P2G -> ONNX -> G2P with its card's GridSpec and the
 shared transfer code (deepcontact.transfer), exactly as training did; the
 contact points' kernel weights are computed once per step, in the input
-splat, and reused for the output transfer (a TransferPlan).
+splat, and reused for the output transfer (a TransferPlan). `GraphPredictor`
+runs a contact-graph network on the points (features -> ONNX -> its combine,
+"g2p"). A graph card with `face` is served by server.face_route.FaceRoutePredictor:
+its classifier a GraphPredictor, the step solved on its labels and admitted.
+`load_model` picks the class from the card and builds each whole.
 The providers need no world state: `zero`, `random` (thesis §8.2.2 ranges:
 normal U(0, 5), tangent U(-2, 2), seeded per step), `bad` (50, 50) and
 `grid-identity` (the request's own impulses splatted and read back: the
@@ -35,11 +42,9 @@ import numpy as np
 from deepcontact.channels import Step, channel_values, needs
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
-from deepcontact.kinematics import (BODY_DYNAMIC, Physics, contact_frame, contact_physics, points_at_rest,
-                                    solved_on_labels)
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
-from server.deadline import CostBySize
 from deepcontact.transfer import plan
 
 Domain = tuple[tuple[float, float], tuple[float, float]]
@@ -66,6 +71,28 @@ class GridMismatch(ValueError):
     size, or one with more nodes than the server's bound (MAX_GRID_NODES by default)."""
 
 
+#: Every stage a predictor may time, each a field NAME_us of the reply's Timings: a grid
+#: model's p2g, inference and g2p; a graph model's features, inference and g2p (its combine);
+#: the face route's features, inference, solve and admit.
+STAGES = ("p2g", "features", "inference", "g2p", "solve", "admit")
+
+
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+    """A predictor's answer to one step.
+
+    impulses: (P, 2) float32 N s, (normal, tangent) at each contact point in the request's order.
+    stages: seconds spent in each of STAGES that the predictor ran (a provider: none).
+    served_by: None where the predictor's own answer is served; else what answered in its place,
+        a fallback card's name or "builtin" (Box2D's warm start, the request's builtin impulses),
+        which the service puts on the reply (Impulses.served_by).
+    """
+
+    impulses: np.ndarray
+    stages: dict[str, float] = dataclasses.field(default_factory=dict)
+    served_by: str | None = None
+
+
 class Predictor:
     name: str
     kind: str
@@ -77,10 +104,9 @@ class Predictor:
     takes_deadline: bool = False  # predict(..., deadline=) may answer otherwise to meet it
 
     def predict(self, bodies: np.ndarray, points: np.ndarray, world: World, step: int,
-                previous: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
-        """(impulses (P, 2) float32 N s, stages: seconds by stage name, "p2g", "inference",
-        "g2p"). A predictor that served another card's answer adds "served_by", that card's
-        name (a str; the service puts it on the reply)."""
+                previous: np.ndarray | None = None) -> Prediction:
+        """The step's Prediction: impulses (P, 2) float32 N s, the stages' seconds, and
+        served_by where another answer than this predictor's own is served."""
         raise NotImplementedError
 
     def check_domain(self, domain: Domain) -> None:
@@ -257,7 +283,8 @@ class ModelPredictor(Predictor):
         impulses = combine(self.card.combine, impulses, points["builtin"], self.card.correction_scale,
                            self.card.correction_threshold, _rest(self.card.combine, bodies, points))
         t3 = time.perf_counter()
-        return impulses.astype(np.float32, copy=False), {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2}
+        return Prediction(impulses.astype(np.float32, copy=False),
+                          {"p2g": t1 - t0, "inference": t2 - t1, "g2p": t3 - t2})
 
 
 #: A graph model's ONNX inputs (training/graph_model.py, to_onnx), and those a network with probes adds.
@@ -269,10 +296,15 @@ class GraphPredictor(Predictor):
     """The contact-graph model (card kind "graph", training/graph_model.py): no
     grids; the card's input channels are read at each contact point, the
     network passes messages between the points through their bodies, and its
-    output is the correction at each point. Serves any domain."""
+    output is the correction at each point. Serves any domain. A card with
+    `face` is served by server.face_route.FaceRoutePredictor, which runs one
+    of these as its classifier."""
 
     def __init__(self, card: ModelCard, onnx_path: Path, *, intra_op_threads: int = 1,
                  inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES):  # no grid: any domain
+        if card.face is not None:
+            raise ModelCardError(f"{card.name}: a card with face is served by server.face_route.FaceRoutePredictor "
+                                 "(load_model builds it)")
         self.card, self.name, self.kind, self.description = card, card.name, card.kind, card.description
         self.gridspec = card.gridspec
         self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
@@ -291,29 +323,14 @@ class GraphPredictor(Predictor):
         physics_needs = ("point_bodies", "body_inertia") if self.physics else ()
         self.gate = StepGate.from_dict(card.step_gate) if card.step_gate is not None else None
         gate_needs = ("builtin", "point_separation") if self.gate is not None else ()
-        # The face route solves the step's contact problem: the bodies' inertia, the physics, the friction.
-        face_needs = ("body_inertia", "physics", "point_friction", "builtin") if card.face is not None else ()
         self.requires = tuple(sorted(set(needs(spec.inputs) + _combine_needs(card.combine) + ("point_bodies",)
-                                         + physics_needs + gate_needs + face_needs)))
+                                         + physics_needs + gate_needs)))
         self.new_point = self.inputs.index("new_point") if "new_point" in self.inputs else None
-        self.fallback: Predictor | None = None  # a face card's fallback (load_model attaches it)
-        self.face_cost = CostBySize()  # a face card's route, seconds by step size on this host
-        self.takes_deadline = card.face is not None
-        if card.face is not None:  # what the route's first solve would import, not on a served step
-            import scipy.linalg  # noqa: F401
-            import scipy.sparse.linalg  # noqa: F401
         self.infer = self.run_session
         first = (np.zeros((1, 8), np.float32), np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32))
         self.run_session(np.zeros((1, len(self.inputs)), np.float32), np.zeros((1, 2), np.int32),
                          np.zeros((1, 1), np.float32), *(first if self.physics else ()))
         # (the first run plans memory: not on a served step)
-
-    def check_domain(self, domain: Domain) -> None:
-        if self.fallback is not None:  # no grid here; a grid model served in its place may have one
-            self.fallback.check_domain(domain)
-
-    def warm_up(self, domain: Domain) -> float:
-        return self.fallback.warm_up(domain) if self.fallback is not None else 0.0
 
     def run_session(self, points: np.ndarray, ends: np.ndarray, dynamic: np.ndarray,
                     geometry: np.ndarray | None = None, masses: np.ndarray | None = None,
@@ -326,22 +343,18 @@ class GraphPredictor(Predictor):
             feed.update(geometry=geometry, masses=masses, inverse=inverse)
         return self.session.run([self.card.output_name], feed)[0]
 
-    def predict(self, bodies, points, world, step, previous=None, friction=None, deadline=None):
-        """As Predictor.predict; friction: (P,) each point's friction coefficient, which a
-        card with `face` needs (the request's point_friction); deadline: time.perf_counter()
-        s by which a face card's answer is due (None: none), see _face_fits."""
-        t0 = started = time.perf_counter()
+    def predict(self, bodies, points, world, step, previous=None, friction=None) -> Prediction:
+        """As Predictor.predict, with stages features (the point channels, normalized),
+        inference and g2p (the output's denormalization and combine, and the step gate's
+        verdict), each summed over the card's passes. friction: (P,) each point's friction
+        coefficient, which a network reading the friction channel needs (the request's
+        point_friction)."""
+        t0 = time.perf_counter()
         if len(points) == 0:
-            return np.zeros((0, 2), np.float32), {}
-        if (self.card.face is not None or "point_friction" in self.requires) and friction is None:
+            return Prediction(np.zeros((0, 2), np.float32))
+        if "point_friction" in self.requires and friction is None:
             raise ValueError(f"{self.name} needs each point's friction")
-        stages = {"p2g": 0.0, "inference": 0.0, "g2p": 0.0}
-        if self.card.face is not None and not self._face_fits(len(points), t0, deadline):
-            # Too large a step to solve, or to solve in time: no labels asked for (timed as g2p).
-            impulses = self._fallback(bodies, points, world, step, previous)
-            stages["g2p"] = time.perf_counter() - t0
-            stages["served_by"] = self.fallback.name if self.fallback is not None else "builtin"
-            return impulses.astype(np.float32, copy=False), stages
+        stages = {"features": 0.0, "inference": 0.0, "g2p": 0.0}
         ends = np.stack([points["body_a"], points["body_b"]], axis=1).astype(np.int32, copy=False)
         dynamic = (bodies["type"] == BODY_DYNAMIC).astype(np.float32)[:, None]
         # The operator does not depend on the warm start: one computation serves every pass.
@@ -363,73 +376,18 @@ class GraphPredictor(Predictor):
             impulses = combine(self.card.combine, out, warm["builtin"], self.card.correction_scale,
                                self.card.correction_threshold, _rest(self.card.combine, bodies, warm))
             t3 = time.perf_counter()
-            stages["p2g"] += t1 - t0
+            stages["features"] += t1 - t0
             stages["inference"] += t2 - t1
             stages["g2p"] += t3 - t2
             t0 = t3
             if self.card.passes > 1:
                 warm = points.copy()
                 warm["builtin"] = impulses
-        if self.card.face is not None:  # the answer read as labels, the step solved on them (timed as g2p)
-            impulses, served_by = self._solved_on_labels(bodies, points, world, step, previous, impulses, friction,
-                                                         deadline)
-            t1 = time.perf_counter()
-            stages["g2p"] += t1 - t0
-            self.face_cost.observe(len(points), t1 - started)
-            if served_by:
-                stages["served_by"] = served_by
-            t0 = t1
         if self.gate is not None:
             if not self.gate.serves_model(step_features(bodies, points, impulses)):
                 impulses = points["builtin"].copy()  # Box2D's own warm start: the gate expects the model to lose here
             stages["g2p"] += time.perf_counter() - t0
-        # The wire names the stages around inference p2g and g2p; here they are the
-        # point features and the output's denormalization and combination.
-        return impulses.astype(np.float32, copy=False), stages
-
-    def _face_fits(self, n_points: int, now: float, deadline: float | None) -> bool:
-        """Whether a face card serves its route on a step of n_points points begun at `now`:
-        not past its max_points, and, with a deadline (perf_counter() s), expected to end by
-        it (face_cost: the route's cost at each size, learned on this host). Where it does
-        not, the fallback answers, in a fraction of the time: the client gets the next best
-        answer in time rather than the best one too late (and then Box2D's own start)."""
-        most = self.card.face["max_points"]
-        if most is not None and n_points > most:
-            return False
-        return self.face_cost.fits(n_points, now, deadline)
-
-    def _solved_on_labels(self, bodies, points, world, step, previous, labels, friction,
-                          deadline=None) -> tuple[np.ndarray, str]:
-        """((P, 2) N s, served_by), a face card's warm start: the network's answer (labels,
-        (P, 2) N s) read as each point's label, the step solved on them and admitted
-        (kinematics.solved_on_labels); where the admitted solve misses its labels by more than
-        max_residual, the labels read again at each of retry_pressing's thresholds in turn, and
-        the fallback's answer where no reading meets it (served_by then names it, else "").
-        friction: (P,) each point's friction coefficient; deadline: perf_counter() s after
-        which no admission round begins (a route begun late answers with what it has rather
-        than miss), and no retry."""
-        face = self.card.face
-        frame = contact_frame(bodies, points)  # its factorizations are kept on it, for every reading
-        labels, mu = labels.astype(np.float64), np.asarray(friction, np.float64)
-        for k, pressing in enumerate([face["pressing"], *face["retry_pressing"]]):
-            if k and deadline is not None and time.perf_counter() >= deadline:
-                break
-            impulses, residual = solved_on_labels(bodies, points, labels, mu, world.physics, pressing, face["share"],
-                                                  face["rounds"], face["label_friction"], frame=frame,
-                                                  damping=face["damping"], solver=face["solver"], until=deadline,
-                                                  close=face["close"])
-            if face["max_residual"] is None or residual <= face["max_residual"]:
-                return impulses, ""
-        # Labels the limits would not let the solve meet: the fallback card's answer, else Box2D's start.
-        return (self._fallback(bodies, points, world, step, previous),
-                self.fallback.name if self.fallback is not None else "builtin")
-
-    def _fallback(self, bodies, points, world, step, previous) -> np.ndarray:
-        """(P, 2) N s served where a face card does not serve its solve: its fallback card's
-        answer, else Box2D's warm start (the request's builtin impulses)."""
-        if self.fallback is None:
-            return points["builtin"].copy()
-        return self.fallback.predict(bodies, points, world, step, previous)[0]
+        return Prediction(impulses.astype(np.float32, copy=False), stages)
 
 
 def _combine_needs(how: str) -> tuple[str, ...]:
@@ -481,7 +439,7 @@ class ConstantPredictor(Predictor):
     def predict(self, bodies, points, world, step, previous=None):
         out = np.empty((len(points), 2), np.float32)
         out[:, 0], out[:, 1] = self.normal, self.tangent
-        return out, {}
+        return Prediction(out)
 
 
 @dataclasses.dataclass
@@ -499,7 +457,7 @@ class RandomPredictor(Predictor):
         out = np.empty((len(points), 2), np.float32)
         out[:, 0] = rng.uniform(0.0, 5.0, len(points))
         out[:, 1] = rng.uniform(-2.0, 2.0, len(points))
-        return out, {}
+        return Prediction(out)
 
 
 class GridIdentityPredictor(Predictor):
@@ -525,7 +483,7 @@ class GridIdentityPredictor(Predictor):
         t1 = time.perf_counter()
         out, _ = points_plan.g2p(grid)
         t2 = time.perf_counter()
-        return out.astype(np.float32, copy=False), {"p2g": t1 - t0, "g2p": t2 - t1}
+        return Prediction(out.astype(np.float32, copy=False), {"p2g": t1 - t0, "g2p": t2 - t1})
 
 
 def providers(random_seed: int = 0, max_grid_nodes: int = MAX_GRID_NODES) -> list[Predictor]:
@@ -539,9 +497,9 @@ def providers(random_seed: int = 0, max_grid_nodes: int = MAX_GRID_NODES) -> lis
 
 
 def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: int = 1,
-                max_grid_nodes: int = MAX_GRID_NODES, skip_bad: bool = False) -> list[ModelPredictor | GraphPredictor]:
+                max_grid_nodes: int = MAX_GRID_NODES, skip_bad: bool = False) -> list[Predictor]:
     """One predictor per card (`*.json`) in folder, in the cards' order, each running the
-    ONNX file its card names (a GraphPredictor for kind "graph", else a ModelPredictor).
+    ONNX file its card names (as load_model builds them).
 
     Every card and ONNX file is checked (server.model_folder): a card that does not read,
     names a missing or broken ONNX file or one that does not match it, an alias of a bad
@@ -555,7 +513,7 @@ def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: in
     problems = model_folder.FolderProblems(folder)
     cards = model_folder.read_cards(folder, problems)
     model_folder.check_onnx_files(folder, cards, problems)
-    loaded: dict[Path, ModelPredictor | GraphPredictor] = {}
+    loaded: dict[Path, Predictor] = {}
     # Cards without a fallback first: a face card whose fallback is bad is then told so.
     for path, card in sorted(cards.items(), key=lambda item: (item[1].face is not None, item[0])):
         problem = model_folder.dependency_problem(path, card, problems)
@@ -574,8 +532,11 @@ def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: in
 
 
 def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: int = 1,
-               inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES) -> ModelPredictor | GraphPredictor:
-    """The predictor of one card (`card`: the card at `path`, when already read).
+               inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES) -> Predictor:
+    """The predictor of one card (`card`: the card at `path`, when already read): a
+    ModelPredictor for a grid model, a GraphPredictor for kind "graph", and for a graph card
+    with `face` a server.face_route.FaceRoutePredictor, built with its classifier (a
+    GraphPredictor of the card's network) and its fallback card's predictor.
     ModelCardError naming the card for anything that keeps it from being served, also
     an ONNX file ONNX Runtime cannot load (its own errors name neither card nor flag)."""
     from server.model_folder import plain_name
@@ -588,25 +549,41 @@ def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: i
     if not onnx_path.is_file():
         raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {path.parent}")
     cls = GraphPredictor if card.kind == "graph" else ModelPredictor
+    # A face card's network is its classifier: the card without the route (and without a gate,
+    # which judges the route's answer, not the labels).
+    network = card if card.face is None else dataclasses.replace(card, face=None, step_gate=None)
+    threads = {"intra_op_threads": intra_op_threads, "inter_op_threads": inter_op_threads}
     try:
-        predictor = cls(card, onnx_path, intra_op_threads=intra_op_threads, inter_op_threads=inter_op_threads,
-                        max_grid_nodes=max_grid_nodes)
+        predictor = cls(network, onnx_path, **threads, max_grid_nodes=max_grid_nodes)
     except Exception as exc:
         if not type(exc).__module__.startswith("onnxruntime"):  # ours say which file and what does not match
             raise
         # onnxruntime's own (InvalidProtobuf, InvalidGraph, Fail, ...) name neither the card nor the folder.
         raise ModelCardError(f"{path}: ONNX Runtime cannot serve {card.onnx_file} "
                              f"({type(exc).__name__}: {' '.join(str(exc).split())})") from None
-    fallback = card.face["fallback"] if card.face is not None else None
-    if fallback is not None:  # served where the face card's labels look wrong (deepcontact.modelcard)
-        if not plain_name(f"{fallback}.json"):
-            raise ModelCardError(f"{path}: its face falls back to {fallback!r}, not a card's name in {path.parent}")
-        fallback_path = path.with_name(f"{fallback}.json")
-        fallback_card = ModelCard.load(fallback_path)
-        if fallback_card.face is not None:
-            raise ModelCardError(f"{path}: its face falls back to {fallback!r}, which has a face of its own; "
-                                 f"name a card without one")
-        predictor.fallback = load_model(fallback_path, fallback_card, intra_op_threads=intra_op_threads,
-                                        inter_op_threads=inter_op_threads, max_grid_nodes=max_grid_nodes)
-        predictor.requires = tuple(sorted(set(predictor.requires) | set(predictor.fallback.requires)))
-    return predictor
+    if card.face is None:
+        return predictor
+    from server.face_route import FaceRoutePredictor
+
+    fallback = _face_fallback(path, card, **threads, max_grid_nodes=max_grid_nodes)
+    return FaceRoutePredictor(card, predictor, fallback)
+
+
+def _face_fallback(path: Path, card: ModelCard, **load) -> Predictor | None:
+    """The predictor of the card a face card at `path` falls back to (served where its labels
+    look wrong, past max_points, or late: deepcontact.modelcard), None where it names none
+    (Box2D's warm start). ModelCardError for a name that is not a card beside it, or a card
+    with a face of its own."""
+    from server.model_folder import plain_name
+
+    fallback = card.face["fallback"]
+    if fallback is None:
+        return None
+    if not plain_name(f"{fallback}.json"):
+        raise ModelCardError(f"{path}: its face falls back to {fallback!r}, not a card's name in {path.parent}")
+    fallback_path = path.with_name(f"{fallback}.json")
+    fallback_card = ModelCard.load(fallback_path)
+    if fallback_card.face is not None:
+        raise ModelCardError(f"{path}: its face falls back to {fallback!r}, which has a face of its own; "
+                             f"name a card without one")
+    return load_model(fallback_path, fallback_card, **load)

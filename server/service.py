@@ -28,7 +28,7 @@ from server.batching import QueueFull
 from server.idle import IdleStreams
 from server.joints import predict_around_joints
 from deepcontact.channels import NEEDS
-from server.predictors import MAX_GRID_NODES, GridMismatch, Predictor, World
+from server.predictors import MAX_GRID_NODES, GridMismatch, Prediction, Predictor, World
 from server.rejects import reject
 
 log = logging.getLogger("deepcontact.server")
@@ -216,12 +216,12 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         t1 = time.perf_counter()
         try:
             if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
-                impulses, stages = np.zeros((0, 2), np.float32), {}
+                answer = Prediction(np.zeros((0, 2), np.float32))
             elif joints is not None:
-                impulses, stages = predict_around_joints(predictor, bodies, points, joints, world, request.step,
-                                                         previous, **extra)
+                answer = predict_around_joints(predictor, bodies, points, joints, world, request.step, previous,
+                                               **extra)
             else:
-                impulses, stages = predictor.predict(bodies, points, world, request.step, previous, **extra)
+                answer = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:
             raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc)) from None
         except Exception as exc:  # a bug, not the client's fault: say so, keep serving
@@ -229,17 +229,20 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             raise _Reject(grpc.StatusCode.INTERNAL, f"{predictor.name} failed: {exc}") from None
         if self.fault is not None and self.fault.applies(request.step):
             time.sleep(self.fault.seconds)
-        served_by = stages.pop("served_by", "")
-        reply = wire.encode_impulses(request.step, predictor.name, impulses)
-        if served_by:
-            reply.served_by = served_by
-            metrics.SERVED_BY.labels(model=predictor.name, served_by=served_by).inc()
-        # Filled in place: building a Timings and copying it in costs more.
-        timings = reply.timings
+        reply = wire.encode_impulses(request.step, predictor.name, answer.impulses)
+        if answer.served_by:
+            reply.served_by = answer.served_by
+            metrics.SERVED_BY.labels(model=predictor.name, served_by=answer.served_by).inc()
+        # Filled in place: building a Timings and copying it in costs more. Each stage a
+        # predictor did not run stays 0 (a grid model has no solve, the face route no p2g).
+        stages, timings = answer.stages, reply.timings
         timings.decode_us = _us(t1 - t0)
         timings.p2g_us = _us(stages.get("p2g", 0.0))
+        timings.features_us = _us(stages.get("features", 0.0))
         timings.inference_us = _us(stages.get("inference", 0.0))
         timings.g2p_us = _us(stages.get("g2p", 0.0))
+        timings.solve_us = _us(stages.get("solve", 0.0))
+        timings.admit_us = _us(stages.get("admit", 0.0))
         total = time.perf_counter() - t0
         timings.total_us = _us(total)
         metrics.observe_step(predictor.name, t1 - t0, stages, total)

@@ -232,8 +232,9 @@ class Stepper:
                            reconnect=client.reconnects > streams)
         tm = reply.timings
         return _Served(warm=warm, latency_ms=1e3 * (t2 - t1), codec_s=(t1 - t0) + (t3 - t2),
-                       server_us={"decode": tm.decode_us, "p2g": tm.p2g_us, "inference": tm.inference_us,
-                                  "g2p": tm.g2p_us, "total": tm.total_us},
+                       server_us={"decode": tm.decode_us, "p2g": tm.p2g_us, "features": tm.features_us,
+                                  "inference": tm.inference_us, "g2p": tm.g2p_us, "solve": tm.solve_us,
+                                  "admit": tm.admit_us, "total": tm.total_us},
                        reconnect=client.reconnects > streams, served_by=reply.served_by or None)
 
     def _refused(self, n_points: int, reason: str) -> None:
@@ -245,7 +246,7 @@ class Stepper:
         self.refused_at = n_points if self.refused_at is None else min(self.refused_at, n_points)
 
     def _pick(self, k: int, bodies, points) -> _Served:
-        """A composite's warm start for step k (simclient.composites): every candidate asked and
+        """A composite's warm start for step k (simclient.provider.Composite): every candidate asked and
         priced by trial solves, the cheapest (or the first, their mean, builtin) served. A server
         candidate that fell back is priced as builtin, and the step counts as a fallback."""
         if len(points) == 0:

@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 
 
 @pytest.fixture(scope="module")

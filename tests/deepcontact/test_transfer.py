@@ -330,7 +330,7 @@ def test_kernel_shape_is_proportional_to_the_kernel():
 def test_transfer_table_command(tmp_path, capsys):
     import json
 
-    from deepcontact.cli import main
+    from commands import main
 
     out = tmp_path / "table.json"
     assert main(["transfer-table", "--worlds", "1", "--steps", "20", "--json", str(out)]) == 0
@@ -345,7 +345,7 @@ def test_transfer_table_command(tmp_path, capsys):
 def test_bench_transfer_command(tmp_path):
     import json
 
-    from deepcontact.cli import main
+    from commands import main
 
     out = tmp_path / "bench.json"
     assert main(["bench", "transfer", "--repeats", "5", "--settle-steps", "20", "--json", str(out)]) == 0

@@ -65,8 +65,9 @@ def test_a_model_step_is_the_transfer_done_by_hand(normalized_model, thesis_step
     _, steps = thesis_steps
     for bodies, points in steps:
         bodies, points = sent(bodies, with_a_point_outside(points))
-        impulses, stages = model.predict(bodies, points, WORLD, 0)
-        assert set(stages) == {"p2g", "inference", "g2p"}
+        answer = model.predict(bodies, points, WORLD, 0)
+        impulses = answer.impulses
+        assert set(answer.stages) == {"p2g", "inference", "g2p"} and answer.served_by is None
         # Training's way: P2G, normalize, the model, denormalize, G2P (+ builtin: residual).
         spec = model._specs.get(DOMAIN)
         x = spec.normalize(world_to_grids(bodies, points, spec, outside="drop"), "inputs")[None]
@@ -83,7 +84,7 @@ def test_grid_identity_is_p2g_then_g2p(thesis_steps):
     bodies, points = sent(*steps[0])
     points = with_a_point_outside(points)
     predictor = GridIdentityPredictor(GridSpec.thesis())
-    got, _ = predictor.predict(bodies, points, WORLD, 0)
+    got = predictor.predict(bodies, points, WORLD, 0).impulses
     spec = GridSpec.thesis()
     grid, _ = p2g(points["point"], points["impulse"], spec, outside="drop")
     expected, _ = g2p(grid, points["point"], spec, outside="drop")
@@ -234,14 +235,15 @@ def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_
     bodies, points = steps[0]
     points = points.copy()
     points["builtin"] = points["impulse"] * 0.9  # a warm start the model corrects
-    own, _ = plain.predict(bodies, points, world, 0)
-    served, stages = gated.predict(bodies, points, world, 0)
+    own = plain.predict(bodies, points, world, 0).impulses
+    answer = gated.predict(bodies, points, world, 0)
+    served = answer.impulses
     if intercept > 0:
         np.testing.assert_array_equal(served, own)
     else:
         np.testing.assert_array_equal(served, points["builtin"])
         assert not np.array_equal(own, points["builtin"])
-    assert stages["g2p"] > 0
+    assert set(answer.stages) == {"features", "inference", "g2p"} and answer.stages["g2p"] > 0
 
 
 def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong_or_the_step_is_large(tmp_path, thesis_steps):
@@ -268,9 +270,9 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     def served(name, **face):
         (tmp_path / f"{name}.json").write_text(json.dumps({"name": name, "alias_of": classifier,
                                                            "face": {"pressing": 0.75, "rounds": 200, **face}}))
-        return load_model(tmp_path / f"{name}.json").predict(bodies, points, world, 0, friction=mu)[0]
+        return load_model(tmp_path / f"{name}.json").predict(bodies, points, world, 0, friction=mu).impulses
 
-    own = load_model(tmp_path / f"{classifier}.json").predict(bodies, points, world, 0)[0]
+    own = load_model(tmp_path / f"{classifier}.json").predict(bodies, points, world, 0).impulses
     np.testing.assert_array_equal(served("always", max_residual=1e-12, fallback=classifier), own)
     np.testing.assert_array_equal(served("never", max_residual=1e9, fallback=classifier), served("plain"))
     assert not np.array_equal(served("plain"), own)
@@ -280,7 +282,7 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     np.testing.assert_array_equal(served("small", max_points=len(points), fallback=classifier), served("plain"))
     # retry_pressing: where the first reading misses max_residual, the labels are read again at
     # each threshold in turn; the first reading that meets it is served, the fallback where none does.
-    from deepcontact.kinematics import solved_on_labels
+    from deepcontact.faces import solved_on_labels
 
     labels = own.astype(np.float64)
     residual = {p: solved_on_labels(bodies, points, labels, mu, world.physics, p, 1.0, 200)[1] for p in (0.75, 0.9, 1.1)}
@@ -310,7 +312,7 @@ def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_
     import shutil
     from pathlib import Path
 
-    from deepcontact.kinematics import solved_on_labels
+    from deepcontact.faces import solved_on_labels
     from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
     from server.predictors import load_model
     from server.serve import Server
@@ -329,7 +331,7 @@ def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_
                                                 max_bodies=10**4, max_points=10**5)
     lower, upper, _ = wire.decode_world(world_msg)
     world = World((lower, upper), wire.decode_physics(world_msg))
-    labels, _ = classifier.predict(sent_bodies, sent_points, world, 0)
+    labels = classifier.predict(sent_bodies, sent_points, world, 0).impulses
     settings = face["face"]
     expected, _ = solved_on_labels(sent_bodies, sent_points, labels.astype(np.float64), mu.astype(np.float64),
                                    world.physics, settings["pressing"], settings.get("share", 1.0), settings["rounds"],
@@ -343,7 +345,9 @@ def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_
             served = np.stack(wire.decode_impulses(reply), axis=1)
             np.testing.assert_allclose(served, expected, atol=1e-6)
             assert (served[:, 0] >= 0).all() and (np.abs(served[:, 1]) <= 0.5 * served[:, 0] + 1e-5).all()
-            assert reply.timings.g2p_us > 0  # the solve and the admission are timed as the stage after inference
+            t = reply.timings  # the face route's stages, each under its own name
+            assert t.features_us > 0 and t.inference_us > 0 and t.solve_us > 0 and t.admit_us > 0
+            assert t.p2g_us == t.g2p_us == 0 and t.total_us >= t.features_us + t.inference_us + t.solve_us + t.admit_us
             with pytest.raises(grpc.RpcError) as refused:  # an older client, without the friction
                 stub.Predict(wire.encode_step(0, "face", bodies, points, world=world_msg, builtin=points["builtin"]))
             assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT
@@ -383,7 +387,7 @@ def test_a_face_card_serves_its_fallback_where_its_route_would_miss_the_clients_
     world = World((lower, upper), wire.decode_physics(world_msg))
     sent_bodies, sent_points = wire.decode_step(wire.encode_step(0, "timed", bodies, points, builtin=points["builtin"]),
                                                 max_bodies=10**4, max_points=10**5)
-    own = load_model(tmp_path / f"{classifier}.json").predict(sent_bodies, sent_points, world, 0)[0]
+    own = load_model(tmp_path / f"{classifier}.json").predict(sent_bodies, sent_points, world, 0).impulses
     srv = Server(models=tmp_path, bind="127.0.0.1:0", deadline_margin_s=0.0).start()
     try:
         timed = next(m for m in srv.models if m.name == "timed")
@@ -400,7 +404,7 @@ def test_a_face_card_serves_its_fallback_where_its_route_would_miss_the_clients_
             route, by = ask(0)  # no budget: the route, whatever it costs
             assert by == "" and not np.array_equal(route, own)
             for _ in range(4):  # the route as seen on a host far slower than the budget
-                timed.face_cost.observe(len(points), 10.0)
+                timed.cost.observe(len(points), 10.0)
             late, by = ask(1_000_000)
             assert by == classifier
             np.testing.assert_array_equal(late, own)
@@ -408,3 +412,111 @@ def test_a_face_card_serves_its_fallback_where_its_route_would_miss_the_clients_
             assert ask(30_000_000)[1] == ""  # a budget with room for it
     finally:
         srv.stop()
+
+
+def shipped_classifier(folder):
+    """The shipped face route's classifier (the alias target of models/face.json), its card and
+    ONNX file copied into folder: its name."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    shipped = Path(__file__).parents[2] / "models"
+    classifier = json.loads((shipped / "face.json").read_text())["alias_of"]
+    for name in (f"{classifier}.json", f"{classifier}.onnx"):
+        shutil.copy(shipped / name, folder)
+    return classifier
+
+
+def face_card(folder, name, classifier, **face):
+    """A face card over the classifier in folder, with these face settings: its path."""
+    import json
+
+    path = folder / f"{name}.json"
+    path.write_text(json.dumps({"name": name, "alias_of": classifier,
+                                "face": {"pressing": 0.75, "rounds": 200, **face}}))
+    return path
+
+
+def thesis_world(world_msg):
+    lower, upper, _ = wire.decode_world(world_msg)
+    return World((lower, upper), wire.decode_physics(world_msg))
+
+
+def test_a_face_card_loads_as_a_face_route_built_whole_with_its_classifier_and_its_fallback(tmp_path):
+    from server.face_route import ROUTE_NEEDS, FaceRoutePredictor
+    from server.predictors import GraphPredictor, load_model
+
+    classifier = shipped_classifier(tmp_path)
+    route = load_model(face_card(tmp_path, "route", classifier, fallback=classifier, max_points=300))
+    assert isinstance(route, FaceRoutePredictor) and route.takes_deadline
+    assert route.name == "route" and route.card.face["max_points"] == 300 and route.settings is route.card.face
+    # The classifier is the card's network without the route; the fallback the card it names, loaded with it.
+    assert isinstance(route.classifier, GraphPredictor) and route.classifier.card.face is None
+    assert isinstance(route.fallback, GraphPredictor) and route.fallback.name == classifier
+    assert set(route.requires) == set(route.classifier.requires) | set(ROUTE_NEEDS) | set(route.fallback.requires)
+    alone = load_model(face_card(tmp_path, "alone", classifier))
+    assert isinstance(alone, FaceRoutePredictor) and alone.fallback is None
+    plain = load_model(tmp_path / f"{classifier}.json")
+    assert type(plain) is GraphPredictor and not plain.takes_deadline and "point_friction" not in plain.requires
+    with pytest.raises(ModelCardError, match="FaceRoutePredictor"):  # a graph model does not serve a face by halves
+        GraphPredictor(route.card, tmp_path / route.card.onnx_file)
+
+
+def test_served_by_is_a_field_of_the_answer_and_the_fallbacks_stages_are_its_own(tmp_path, thesis_steps):
+    from server.predictors import Prediction, load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = thesis_world(world_msg)
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5)
+    own = load_model(tmp_path / f"{classifier}.json").predict(bodies, points, world, 0)
+    assert isinstance(own, Prediction) and own.served_by is None
+    route = load_model(face_card(tmp_path, "route", classifier, fallback=classifier)).predict(bodies, points, world, 0,
+                                                                                              friction=mu)
+    assert route.served_by is None and not np.array_equal(route.impulses, own.impulses)
+    # Past max_points: the fallback card answers, with its own stages, and says so.
+    large = load_model(face_card(tmp_path, "large", classifier, max_points=len(points) - 1, fallback=classifier))
+    answer = large.predict(bodies, points, world, 0, friction=mu)
+    assert answer.served_by == classifier and set(answer.stages) == {"features", "inference", "g2p"}
+    assert all(isinstance(s, float) for s in answer.stages.values())
+    np.testing.assert_array_equal(answer.impulses, own.impulses)
+    builtin = load_model(face_card(tmp_path, "builtin", classifier, max_points=len(points) - 1))
+    answer = builtin.predict(bodies, points, world, 0, friction=mu)
+    assert answer.served_by == "builtin" and answer.stages == {} and answer.impulses.dtype == np.float32
+    np.testing.assert_array_equal(answer.impulses, points["builtin"])
+
+
+def test_a_face_routes_step_reports_its_features_inference_solve_and_admission(tmp_path, thesis_steps):
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = thesis_world(world_msg)
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5)
+    answer = load_model(face_card(tmp_path, "route", classifier)).predict(bodies, points, world, 0, friction=mu)
+    assert set(answer.stages) == {"features", "inference", "solve", "admit"}
+    assert all(s > 0 for s in answer.stages.values()) and answer.served_by is None
+    # Labels taken for wrong (every residual above 0): the route's stages, and the fallback's added in.
+    rejected = load_model(face_card(tmp_path, "rejected", classifier, max_residual=1e-12, fallback=classifier))
+    answer = rejected.predict(bodies, points, world, 0, friction=mu)
+    assert answer.served_by == classifier
+    assert set(answer.stages) == {"features", "inference", "solve", "admit", "g2p"}
+
+
+def test_a_step_declined_whole_for_its_joints_is_served_box2ds_start_by_builtin(thesis_steps):
+    from server.joints import ALL_JOINTED, predict_around_joints
+    from server.predictors import ConstantPredictor, Prediction
+
+    world_msg, steps = thesis_steps
+    bodies, points = steps[0]
+    chain = np.stack([np.arange(1, len(bodies) - 1), np.arange(2, len(bodies))], 1)  # every body on a joint
+    answer = predict_around_joints(ConstantPredictor("bad", 50.0, 50.0), bodies, points, chain,
+                                   thesis_world(world_msg), 0)
+    assert isinstance(answer, Prediction) and answer.served_by == ALL_JOINTED == "builtin" and answer.stages == {}
+    np.testing.assert_array_equal(answer.impulses, points["builtin"])
+    free = predict_around_joints(ConstantPredictor("bad", 50.0, 50.0), bodies, points, chain[:1],
+                                 thesis_world(world_msg), 0)
+    assert free.served_by is None and (free.impulses == 50.0).any()

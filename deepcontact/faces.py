@@ -1,0 +1,368 @@
+"""A step's contact problem solved on a face of its limits: the face route's solve.
+
+At the step's solution every contact point lies on one face of its limits: it lets go
+(OPEN, no impulse), sticks (STICKS: no relative velocity), or slides with its friction at
+the cone's edge (SLIDES_PLUS, SLIDES_MINUS). Given those labels, the active set, the
+solution's impulses solve a linear system: the normal impulses of the points that press and
+the tangent ones of those that stick, with no relative normal velocity where a point presses
+and no tangent velocity where it sticks (solve_on_face). The face route a server serves
+(server.face_route) reads a classifier's answer as such labels, solves the step on them and
+admits the result into the cones (deepcontact.admission):
+
+    face = contact_face(impulses, mu)                                   # (P,) int8 labels
+    solved = solve_on_face(bodies, points, face, mu, physics)           # (P, 2) N s
+    served, residual = solved_on_labels(bodies, points, labels, mu, physics, pressing, share, rounds)
+
+Conventions are deepcontact.kinematics's. A face's system is summed over the pairs of points
+that share a dynamic body, and its dual solve's gram from the system's nonzeros, compiled
+(deepcontact/_faces.c, built by `make setup`); tests/deepcontact/test_faces.py checks both
+against NumPy's dense products.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from deepcontact.admission import nearest_admissible
+from deepcontact.kinematics import ContactFrame, Physics, contact_frame, contact_velocities, velocities_before_and_after
+
+try:
+    from deepcontact import _faces as _compiled
+except ImportError as exc:  # pragma: no cover - a checkout that was never set up
+    raise ImportError(
+        "deepcontact's compiled faces (deepcontact/_faces.c) are not built: "
+        "run `make setup` (or `pip install -e .`)"
+    ) from exc
+
+
+#: contact_face's labels: a point that lets go (no impulse), sticks (both velocities 0),
+#: or slides with its friction at the cone's edge, pushing along +t or -t.
+OPEN, STICKS, SLIDES_PLUS, SLIDES_MINUS = 0, 1, 2, 3
+#: A label written as an impulse (N s): a classifier's answer along the normal where a point
+#: presses, and +-this along the tangent where it slides (deepcontact.channels' face targets).
+FACE_IMPULSE = 1.0
+
+
+def contact_face(impulses: np.ndarray, mu: np.ndarray, pressing: float = 1e-6, share: float = 0.99) -> np.ndarray:
+    """Which face of the contact problem's limits each point's impulses lie on, (P,) int8.
+
+    impulses: (P, 2) (normal, tangent) N s; mu: (P,) friction coefficients. A point
+    whose normal impulse is `pressing` N s or less is OPEN; one whose friction is at
+    `share` of its limit (mu times the normal impulse) or more SLIDES_PLUS or
+    SLIDES_MINUS by the tangent impulse's sign; the rest STICKS. The labels of a
+    step's solution are its active set: given them, the solution's impulses solve a
+    linear system (solve_on_face).
+    """
+    c = np.asarray(impulses, np.float64)
+    on = c[:, 0] > pressing
+    slides = on & (np.abs(c[:, 1]) >= share * np.asarray(mu, np.float64) * c[:, 0])
+    face = np.where(on, STICKS, OPEN).astype(np.int8)
+    face[slides] = np.where(c[slides, 1] > 0, SLIDES_PLUS, SLIDES_MINUS)
+    return face
+
+
+#: face_errors' kinds of wrong label, after the count of all of them.
+FACE_ERRORS = ("open where it presses", "presses where it is open", "sticks where it slides", "slides where it sticks",
+               "slides the other way")
+
+
+def face_errors(face: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(6,) int: how many of a step's (P,) contact_face labels differ from the reference's (P,),
+    in all and then by each of FACE_ERRORS."""
+    slides, slides_ref = face > STICKS, reference > STICKS
+    kinds = [face != reference, (face == OPEN) & (reference != OPEN), (face != OPEN) & (reference == OPEN),
+             (face == STICKS) & slides_ref, slides & (reference == STICKS), slides & slides_ref & (face != reference)]
+    return np.array([int(k.sum()) for k in kinds])
+
+
+def repair_face(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu: np.ndarray,
+                physics: Physics = Physics(), slack: float = 1e-4) -> np.ndarray:
+    """Labels for the next solve, read off a face's admitted solve, (P,) int8: one step of a
+    primal-dual active-set method (a step of Newton's on the problem's limits).
+
+    impulses: (P, 2) N s, a face's solve made admissible (solve_on_face, then
+    nearest_admissible with the face's open points held), so inside every cone; mu: (P,)
+    friction coefficients; bodies, points, physics as in contact_velocities. The labels
+    are contact_face's of the impulses (a point the admission took to no normal impulse
+    lets go, one it took to the cone's edge slides), then corrected by the motion the
+    impulses give: a point that lets go but closes faster than `slack` m/s presses
+    (STICKS), and one that slides but moves with its friction, not against it, by more
+    than `slack`, STICKS. Where the face was the solution's own, its labels come back
+    (up to the readings' thresholds); where a few were wrong, a step or two of this
+    usually finds them, each a solve on the new labels.
+    """
+    face = contact_face(impulses, mu)
+    after = contact_velocities(bodies, points, np.asarray(impulses, np.float64), physics)  # (P, 2) m/s
+    # Friction pushes against the slip: +t (SLIDES_PLUS) only while the point moves along -t.
+    wrong_way = ((face == SLIDES_PLUS) & (after[:, 1] > slack)) | ((face == SLIDES_MINUS) & (after[:, 1] < -slack))
+    face[((face == OPEN) & (after[:, 0] < -slack)) | wrong_way] = STICKS
+    return face
+
+
+def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: np.ndarray,
+                  physics: Physics = Physics(), frame: ContactFrame | None = None,
+                  damping: float = 0.0, solver: str = "gelsy") -> np.ndarray:
+    """The step's contact problem solved as if its solution lay on `face`, (P, 2) N s.
+
+    face: (P,) contact_face labels; mu: (P,) friction coefficients; bodies, points,
+    physics as in contact_velocities (restitution 0, as the scenes build). The
+    unknowns are the normal impulses of the points that press and the tangent ones
+    of those that stick; a sliding point's tangent impulse is +-mu times its normal
+    one, an open point's impulses are 0. The equations ask for no relative normal
+    velocity where a point presses and no tangent velocity where it sticks, after
+    gravity and the impulses (J M^-1 J^T, dense). Where the face is the solution's
+    own, the bodies' motion comes out exact; the impulses are the least-norm ones
+    (the self-stress, which moves no body, is not fixed by the face: admit them,
+    nearest_admissible, to let the limits choose it). Nothing is kept in the cones
+    here. The system is square but singular in a pile held at more points than it
+    has freedoms, and inconsistent where the face is wrong: least squares either way
+    (the minimum-norm solution: with `solver` "gelsy" by a complete orthogonal factorization,
+    LAPACK's gelsy; with "dual" by minimum_norm_solve, about 2.5 times as fast where the system
+    is consistent and a little damped in its weakest directions, gelsy where it is not; the
+    system is summed over the point pairs, face_system).
+    With `damping` > 0 it is damped least squares instead, (S^T S + l I) x = S^T b with
+    l = damping max|S|^2, by Cholesky: the same impulses where the system is consistent and
+    well posed, bounded ones where a wrong face makes it inconsistent and near singular (the
+    minimum-norm solution there can reach thousands of N s), in about half the time.
+    """
+    f = contact_frame(bodies, points) if frame is None else frame
+    face = np.asarray(face)
+    n_points = len(points)
+    pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
+    if len(pressing) == 0:
+        return np.zeros((n_points, 2))
+    velocity = contact_velocities(bodies, points, physics=physics).ravel()  # (2P,) m/s before any impulse
+    system, rows, slide = face_system(f, face, mu)
+    x = _least_squares(system, -velocity[rows], damping, solver)
+    out = np.zeros((n_points, 2))
+    out[pressing, 0] = x[:len(pressing)]
+    out[pressing, 1] = slide * x[:len(pressing)]
+    out[sticking, 1] = x[len(pressing):]
+    return out
+
+
+def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """solve_on_face's linear system on a face's unknowns: (system (m, m) m/s per N s, rows (m,),
+    slide (k,)).
+
+    face: (P,) contact_face labels; mu: (P,) friction coefficients. The k pressing points'
+    normal impulses come first, then the sticking points' tangent ones; a sliding point's
+    column is its normal column plus its tangent one times slide (+-mu). rows are the
+    equations' indices into the (2P,) relative velocities (normal 2 i, tangent 2 i + 1), in the
+    unknowns' order. The same numbers as kinematics.contact_operator's rows and columns combined so, summed
+    over the pairs of points that share a dynamic body (a few thousand) without the (2P, 2P)
+    operator (at 160 points that one and its fancy indexing took about 2 ms, and the pairs in
+    NumPy about 1 ms), compiled (deepcontact/_faces.c).
+    """
+    face = np.asarray(face)
+    n_points = len(face)
+    pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
+    k = len(pressing)
+    m = k + len(sticking)
+    slide_of = np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0)) * np.asarray(mu, np.float64)
+    # Each point's equation row and unknown column, by direction (normal, tangent); -1 where it has none.
+    index = np.full((n_points, 2), -1)
+    index[pressing, 0] = np.arange(k)
+    index[sticking, 1] = k + np.arange(len(sticking))
+    system = np.zeros((m, m))
+    f, i64 = frame, np.int64
+    _compiled.face_system_sum(f.a.astype(i64), f.b.astype(i64), np.ascontiguousarray(f.dynamic, np.uint8),
+                              *(np.ascontiguousarray(x, np.float64) for x in (f.inv_mass, f.inv_inertia, f.n, f.t,
+                                                                              f.ra, f.rb)),
+                              index.astype(i64).ravel(), np.ascontiguousarray(slide_of), m, system)
+    rows = np.concatenate([2 * pressing, 2 * sticking + 1])
+    return system, rows, slide_of[pressing]
+
+
+#: solve_on_face's ways to the minimum-norm least-squares solution.
+SOLVERS = ("gelsy", "dual")
+
+
+def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float, solver: str = "gelsy") -> np.ndarray:
+    """solve_on_face's solve of system (m, m) x = rhs (m,): minimum-norm least squares
+    (damping 0, by `solver`) or damped, as solve_on_face says."""
+    import scipy.linalg
+
+    if damping > 0:
+        normal = system.T @ system
+        normal.flat[::len(normal) + 1] += damping * float(np.abs(system).max()) ** 2
+        try:
+            return scipy.linalg.cho_solve(scipy.linalg.cho_factor(normal, check_finite=False), system.T @ rhs,
+                                          check_finite=False)
+        except np.linalg.LinAlgError:  # a damping below the product's rounding: the exact route
+            pass
+    if solver not in SOLVERS:
+        raise ValueError(f"solver: one of {SOLVERS}, got {solver!r}")
+    x = minimum_norm_solve(system, rhs) if solver == "dual" else None
+    if x is None:  # gelsy asked for, or a system far from consistent
+        x = scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
+    return x
+
+
+#: minimum_norm_solve's ridge on S S^T, relative to its mean diagonal: far below the singular
+#: values that a face's system resolves, far above what S S^T's rounding leaves in its null
+#: space. A face's system has a clean gap between the two: on the thesis world's largest steps
+#: (seed 903, the default's labels) its singular values are above about 1e-6 of the largest or
+#: below 1e-12, the right-hand side nowhere in the latter (`deepcontact bench face-solve`).
+DUAL_RIDGE = 1e-15
+#: minimum_norm_solve's rounds of iterative refinement on S S^T y = b, each from the ridged
+#: factor: squaring S squares its condition (1e12 where a singular value is 1e-6 of the
+#: largest), so one solve is good to about 1e-4 in S's weakest directions; each round takes
+#: that error down about as far again, for two matrix-vector products and two triangular
+#: solves (a few per cent of the factorization).
+DUAL_REFINEMENTS = 2
+#: minimum_norm_solve's test of its answer: |S^T (S x - b)| at most this times |S^T b|.
+DUAL_OPTIMALITY = 1e-6
+
+
+def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+    """The minimum-norm solution of a consistent, possibly singular, system S (m, m) x = b (m,),
+    through its dual: x = S^T y with S S^T y = b, solved by Cholesky of S S^T + r I (r =
+    DUAL_RIDGE times the mean of its diagonal; gesv's LU where rounding leaves a pivot below
+    zero) and DUAL_REFINEMENTS rounds of iterative refinement. Whatever y picks up in S S^T's
+    null space S^T sends to 0, so a tiny ridge serves. A face's system is singular in every
+    pile (more points than freedoms) and consistent where the face is the solution's.
+
+    It is the pseudo-inverse's solution with singular values below about 3e-8 of the largest
+    taken as zero: on the thesis world's faces it agrees with numpy's pinv at rcond 1e-10
+    better than LAPACK's gelsy does, which keeps directions down to machine precision and on
+    about 2 % of the large steps adds an answer along one that is rounding (`deepcontact bench
+    face-solve` prints both distances). S S^T is summed from S's nonzeros in C
+    (_faces.sparse_gram; S is about 3 % full); the whole is three to four times cheaper
+    than gelsy at 300 unknowns. None where the answer is not a least-squares solution to
+    DUAL_OPTIMALITY (a wrong face's inconsistent system, whose residual the ridge would blow
+    up through y): the caller solves it otherwise.
+    """
+    from scipy.linalg import lapack
+
+    m = len(rhs)
+    if m == 0:
+        return np.zeros(0)
+    system = np.ascontiguousarray(system, np.float64)
+    gram = np.empty((m, m))
+    _compiled.sparse_gram(system, m, gram)
+    scale = float(np.trace(gram)) / m
+    if not scale > 0:
+        return np.zeros(m)  # S = 0: every x solves it, 0 the least
+    gram.flat[::m + 1] += DUAL_RIDGE * scale
+    # Symmetric and, with the ridge, positive definite: Cholesky, half an LU's work. Where rounding
+    # leaves a null-space pivot below zero anyway, the LU that pivots past it.
+    factor, info = lapack.dpotrf(gram, lower=True, clean=False, overwrite_a=False)
+    if info == 0:
+        def solve(b):
+            return lapack.dpotrs(factor, b, lower=True)
+    else:
+        lu, piv, info = lapack.dgetrf(gram)
+
+        def solve(b):
+            return lapack.dgetrs(lu, piv, b)
+    if info != 0:
+        return None
+    y, info = solve(rhs)
+    for _ in range(DUAL_REFINEMENTS):
+        if info != 0:
+            return None
+        # Refined against S S^T itself, not the ridged matrix: the ridge only preconditions.
+        correction, info = solve(rhs - system @ (system.T @ y))
+        y += correction
+    if info != 0:
+        return None
+    x = system.T @ y
+    gradient = system.T @ (system @ x - rhs)
+    if not np.linalg.norm(gradient) <= DUAL_OPTIMALITY * np.linalg.norm(system.T @ rhs):
+        return None
+    return x
+
+
+
+def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
+                     physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
+                     rounds: int = 1000, label_friction: float | None = None,
+                     frame: ContactFrame | None = None, damping: float = 0.0,
+                     solver: str = "gelsy", until: float | None = None,
+                     close: float | None = None) -> tuple[np.ndarray, float]:
+    """The warm start of the face route, (P, 2) N s: a classifier's answer read as labels,
+    the step solved on them, the result admitted.
+
+    labels: (P, 2) N s, a classifier's answer (train-graph --targets face: about 1 N s along
+    the normal where a point presses, +-1 N s along the tangent where it slides), read by
+    contact_face as pressing above `pressing` N s and sliding at `share` of its limit (at
+    `label_friction` times the normal answer when given, whatever the point's friction); mu:
+    (P,) friction coefficients; bodies, points, physics as in contact_velocities. The step
+    is solved on those labels (solve_on_face, with its `damping` and `solver`) and moved by the smallest self-stress that
+    every cone admits, the labels' open points held at 0 (admission.nearest_admissible, at most
+    `rounds` rounds, and none begun after `until`, perf_counter() s). The simulation client's
+    solved: composite and the server's face cards (deepcontact.modelcard) both serve this.
+
+    close: None, or a speed (m/s): the points labelled open that the solve leaves closing
+    faster than that (relative normal velocity below -close) are labelled pressing instead
+    (sticking, or sliding where their tangent label says so) and the step solved again before
+    the admission. A point said to let go that the solve then drives into its neighbour was
+    pressing in the recorded solve at 4 of 5 such points of the validation steps, where the
+    opposite test (a pressing label that the solve gives a pull) is right at 1 in 14; served, it
+    costs iterations all the same, since a wrong open label drives its truly open neighbours
+    shut as well and they are relabelled with it (docs/results.md, "The solve refined, the
+    classifier trained on"). Off in the shipped cards.
+
+    Returns (impulses (P, 2) N s, residual): face_residual of the impulses served, how far
+    they leave the labels' equations unmet once every cone is kept (0: labels the limits
+    let the solve meet; larger: labels whose solve the admission had to move, a face that
+    is not this step's). It is read_and_solve, then admit_solved, on one frame.
+    """
+    frame = contact_frame(bodies, points) if frame is None else frame
+    face, solved = read_and_solve(bodies, points, labels, mu, physics, pressing, share, label_friction, frame,
+                                  damping, solver, close)
+    return admit_solved(bodies, points, face, solved, mu, physics, rounds, frame, until)
+
+
+def read_and_solve(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
+                   physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
+                   label_friction: float | None = None, frame: ContactFrame | None = None,
+                   damping: float = 0.0, solver: str = "gelsy",
+                   close: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """solved_on_labels's first half: (face (P,) int8, impulses (P, 2) N s), the labels read as
+    a face (contact_face) and the step solved on it (solve_on_face; again on the relabelled face
+    where `close` relabels), not yet admitted. Arguments as in solved_on_labels. A server times
+    it apart from the admission (the face route's "solve" stage)."""
+    frame = contact_frame(bodies, points) if frame is None else frame
+    read_at = mu if label_friction is None else np.full(len(points), float(label_friction))
+    face = contact_face(labels, read_at, pressing=pressing, share=share)
+    solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver)
+    if close is not None:
+        closing = (face == OPEN) & (contact_velocities(bodies, points, solved, physics)[:, 0] < -close)
+        if closing.any():
+            relabelled = np.array(labels, np.float64, copy=True)
+            # read pressing, and its tangent answer read against a pressing label's normal one
+            relabelled[closing, 0] = max(FACE_IMPULSE, np.nextafter(pressing, np.inf))
+            face = contact_face(relabelled, read_at, pressing=pressing, share=share)
+            solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver)
+    return face, solved
+
+
+def admit_solved(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, solved: np.ndarray, mu: np.ndarray,
+                 physics: Physics = Physics(), rounds: int = 1000, frame: ContactFrame | None = None,
+                 until: float | None = None) -> tuple[np.ndarray, float]:
+    """solved_on_labels's second half: (impulses (P, 2) N s, residual), a step solved on a face
+    (P,) (read_and_solve's `solved`, (P, 2) N s) moved by the smallest self-stress that every cone
+    admits, the face's open points held at 0 (admission.nearest_admissible, at most `rounds`
+    rounds, none begun after `until`, perf_counter() s), and face_residual of the result.
+    Arguments as in solved_on_labels. A server times it apart from the solve (the face route's
+    "admit" stage)."""
+    admitted = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame,
+                                  until=until)
+    return admitted, face_residual(bodies, points, face, admitted, physics)
+
+
+def face_residual(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, impulses: np.ndarray,
+                  physics: Physics = Physics()) -> float:
+    """How far impulses (P, 2) N s leave a face's equations unmet: the norm of the relative
+    velocity where the face (P,) labels ask for none (the normal where a point presses, the
+    tangent where it sticks) and of the closing velocity where it says a point lets go, after
+    the impulses, over the norm of the relative velocity at those points before any impulse.
+    0 for a face the impulses meet exactly. bodies, points, physics as in contact_velocities."""
+    before, after = velocities_before_and_after(bodies, points, impulses, physics)
+    rows = np.concatenate([2 * np.flatnonzero(face != OPEN), 2 * np.flatnonzero(face == STICKS) + 1])
+    left = np.concatenate([after.ravel()[rows], np.minimum(after[face == OPEN, 0], 0.0)])
+    scale = float(np.linalg.norm(before))
+    return float(np.linalg.norm(left)) / scale if scale > 0 else 0.0
+

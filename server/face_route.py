@@ -1,0 +1,165 @@
+"""The face route: a step solved on a classifier's labels and admitted into the friction cones.
+
+A graph card with `face` (deepcontact.modelcard) is served by a FaceRoutePredictor, built
+whole by server.predictors.load_model from three parts:
+
+    classifier  a GraphPredictor trained on the recorded solve's labels (`train-graph
+                --targets face`): about 1 N s along the normal where a point presses, +-1 N s
+                along the tangent where it slides
+    fallback    the predictor of the card its face names (`fallback`), served where the route
+                is not; None: Box2D's warm start, the request's builtin impulses
+    settings    the card's `face` dict: how the labels are read, solved and admitted, and when
+                the route is not taken (max_points, max_residual, retry_pressing)
+
+Per step, where the route fits (not past max_points, and expected to end by the request's
+deadline, learned per step size on this host: server.deadline.CostBySize), the classifier's
+answer is read as labels, the step solved on them (deepcontact.faces.read_and_solve) and the
+result admitted (deepcontact.faces.admit_solved, admission.nearest_admissible's rounds, none
+begun after the deadline); where the admitted solve misses its labels by more than
+max_residual, the labels are read again at each of retry_pressing's thresholds (none begun
+after the deadline), and the fallback answers where no reading meets it. Its Prediction's
+stages:
+
+    features   the classifier's point channels
+    inference  the classifier's network
+    solve      its output read as labels (denormalized, combined) and the step solved on them
+    admit      the admission into the cones and the labels' residual (and a step gate's verdict)
+
+Where the fallback answers, its own stages are added in and `served_by` names it ("builtin"
+for Box2D's warm start).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from deepcontact.faces import admit_solved, read_and_solve
+from deepcontact.kinematics import contact_frame
+from deepcontact.modelcard import ModelCard, ModelCardError
+from deepcontact.step_gate import StepGate, step_features
+from server.deadline import CostBySize
+from server.predictors import Domain, GraphPredictor, Prediction, Predictor
+
+#: What the route reads beyond its classifier's inputs: it solves the step's contact problem,
+#: so the bodies' inertia, the step's physics, each point's friction, and Box2D's warm start
+#: (the answer where no fallback card is named).
+ROUTE_NEEDS = ("body_inertia", "physics", "point_friction", "builtin")
+#: served_by where Box2D's warm start is served in the route's place (no fallback card).
+BUILTIN = "builtin"
+
+
+class FaceRoutePredictor(Predictor):
+    """A face card's warm start (module docstring): card, the face card itself (its name,
+    description, `face` settings and optional `step_gate`); classifier, the GraphPredictor of
+    its network, built from the card without face and gate; fallback, the predictor of the
+    card its face names, or None for Box2D's warm start."""
+
+    takes_deadline = True
+
+    def __init__(self, card: ModelCard, classifier: GraphPredictor, fallback: Predictor | None = None):
+        if card.face is None:
+            raise ModelCardError(f"{card.name}: the face route serves a card with face")
+        self.card, self.name, self.kind, self.description = card, card.name, card.kind, card.description
+        self.gridspec = card.gridspec
+        self.settings = card.face
+        self.classifier = classifier
+        self.fallback = fallback
+        # A gate on the card decides between the route's answer and Box2D's, as on a graph card.
+        self.gate = StepGate.from_dict(card.step_gate) if card.step_gate is not None else None
+        gate_needs = ("builtin", "point_separation") if self.gate is not None else ()
+        self.requires = tuple(sorted(set(classifier.requires) | set(ROUTE_NEEDS) | set(gate_needs)
+                                     | set(fallback.requires if fallback is not None else ())))
+        self.cost = CostBySize()  # the route's seconds by step size, on this host
+        # What the route's first solve would import, not on a served step.
+        import scipy.linalg  # noqa: F401
+        import scipy.sparse.linalg  # noqa: F401
+
+    def check_domain(self, domain: Domain) -> None:
+        if self.fallback is not None:  # no grid here; a grid model served in its place may have one
+            self.fallback.check_domain(domain)
+
+    def warm_up(self, domain: Domain) -> float:
+        return self.fallback.warm_up(domain) if self.fallback is not None else 0.0
+
+    def predict(self, bodies, points, world, step, previous=None, friction=None, deadline=None) -> Prediction:
+        """As Predictor.predict; friction: (P,) each point's friction coefficient (the request's
+        point_friction, required); deadline: time.perf_counter() s by which the answer is due
+        (None: none), see fits."""
+        started = time.perf_counter()
+        if len(points) == 0:
+            return Prediction(np.zeros((0, 2), np.float32))
+        if friction is None:
+            raise ValueError(f"{self.name} needs each point's friction")
+        if not self.fits(len(points), started, deadline):
+            # Too large a step to solve, or to solve in time: no labels asked for.
+            return self._fallback(bodies, points, world, step, previous, friction)
+        labels = self.classifier.predict(bodies, points, world, step, previous, friction=friction)
+        stages = {"features": labels.stages["features"], "inference": labels.stages["inference"],
+                  "solve": labels.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
+        impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages)
+        served_by = None
+        if impulses is None:  # labels the limits would not let the solve meet
+            fallback = self._fallback(bodies, points, world, step, previous, friction)
+            impulses, served_by = fallback.impulses, fallback.served_by
+            for name, seconds in fallback.stages.items():
+                stages[name] = stages.get(name, 0.0) + seconds
+        self.cost.observe(len(points), time.perf_counter() - started)
+        if self.gate is not None:
+            t0 = time.perf_counter()
+            if not self.gate.serves_model(step_features(bodies, points, impulses)):
+                impulses = points["builtin"].copy()  # Box2D's own warm start: the gate expects the route to lose here
+            stages["admit"] += time.perf_counter() - t0
+        return Prediction(np.asarray(impulses).astype(np.float32, copy=False), stages, served_by)
+
+    def fits(self, n_points: int, now: float, deadline: float | None) -> bool:
+        """Whether the route serves a step of n_points points begun at `now`: not past the
+        card's max_points, and, with a deadline (perf_counter() s), expected to end by it
+        (cost: the route's cost at each size, learned on this host). Where it does not, the
+        fallback answers, in a fraction of the time: the client gets the next best answer in
+        time rather than the best one too late (and then Box2D's own start)."""
+        most = self.settings["max_points"]
+        if most is not None and n_points > most:
+            return False
+        return self.cost.fits(n_points, now, deadline)
+
+    def _solved_on_labels(self, bodies, points, world, labels, friction, deadline,
+                          stages: dict[str, float]) -> np.ndarray | None:
+        """(P, 2) N s, the route's answer: the classifier's answer (labels, (P, 2) N s) read as
+        each point's label, the step solved on them and admitted (deepcontact.faces, as
+        solved_on_labels); where the admitted solve misses its labels by more than
+        max_residual, the labels read again at each of retry_pressing's thresholds in turn.
+        None where no reading meets it. friction: (P,) each point's friction coefficient;
+        deadline: perf_counter() s after which no admission round begins (a route begun late
+        answers with what it has rather than miss), and no retry. Adds each reading's seconds
+        to stages["solve"] and stages["admit"]."""
+        face = self.settings
+        t0 = time.perf_counter()
+        frame = contact_frame(bodies, points)  # its factorizations are kept on it, for every reading
+        labels, mu = labels.astype(np.float64), np.asarray(friction, np.float64)
+        for k, pressing in enumerate([face["pressing"], *face["retry_pressing"]]):
+            if k and deadline is not None and time.perf_counter() >= deadline:
+                break
+            read, solved = read_and_solve(bodies, points, labels, mu, world.physics, pressing, face["share"],
+                                          face["label_friction"], frame, face["damping"], face["solver"],
+                                          face["close"])
+            t1 = time.perf_counter()
+            impulses, residual = admit_solved(bodies, points, read, solved, mu, world.physics, face["rounds"], frame,
+                                              deadline)
+            t2 = time.perf_counter()
+            stages["solve"] += t1 - t0
+            stages["admit"] += t2 - t1
+            t0 = t2
+            if face["max_residual"] is None or residual <= face["max_residual"]:
+                return impulses
+        return None
+
+    def _fallback(self, bodies, points, world, step, previous, friction) -> Prediction:
+        """The answer where the route is not served: the fallback card's, else Box2D's warm start
+        (the request's builtin impulses), with served_by naming it."""
+        if self.fallback is None:
+            return Prediction(points["builtin"].astype(np.float32), served_by=BUILTIN)
+        extra = {"friction": friction} if "point_friction" in self.fallback.requires else {}
+        answer = self.fallback.predict(bodies, points, world, step, previous, **extra)
+        return Prediction(answer.impulses, answer.stages, self.fallback.name)

@@ -1,0 +1,159 @@
+"""The admission into the friction cones (deepcontact.admission): the nearest impulses that
+move the bodies alike and keep every limit, its compiled rounds against NumPy's, its
+factorization and its deadline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deepcontact.kinematics import Physics
+from simclient.scene import SceneSpec, settled_world
+from tests.deepcontact.piles import sliding_pile
+
+
+def test_cones_keep_what_is_inside_and_take_the_rest_to_the_nearest_edge_or_zero():
+    from deepcontact.admission import project_to_cones
+
+    impulses = np.array([[1.0, 0.3], [1.0, 1.0], [-1.0, 0.2], [0.0, -2.0], [2.0, 0.0]])
+    mu = np.array([0.5, 0.5, 0.5, 0.5, 0.0])
+    # Inside; beyond the edge (1, 0.5): (1 + 0.5) / 1.25 along it; in the polar cone: 0;
+    # tangent only: onto the lower edge; no friction: the normal only.
+    np.testing.assert_allclose(project_to_cones(impulses, mu),
+                               [[1.0, 0.3], [1.2, 0.6], [0.0, 0.0], [0.8, -0.4], [2.0, 0.0]])
+
+
+def test_the_nearest_admissible_impulses_move_the_bodies_alike_and_keep_every_limit():
+    # Box2D's warm start plus the part of this step's correction that moves the bodies
+    # leaves friction outside its cone at some points. A self-stress alone (the bodies'
+    # motion kept) takes every point back inside; with the points that let go held at 0
+    # it finds the solution's own impulses, give or take what moves nothing.
+    from deepcontact.admission import nearest_admissible
+    from deepcontact.kinematics import body_space_part, contact_jacobian
+
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    builtin = points["builtin"].astype(np.float64)
+    exact = engine.oracle(start=(points["builtin"][:, 0].copy(), points["builtin"][:, 1].copy())).astype(np.float64)
+    mu = np.full(len(points), 0.5)  # the thesis world's friction at every pair
+    motion = builtin + body_space_part(bodies, points, exact - builtin)
+
+    def outside(x):
+        return np.maximum(np.abs(x[:, 1]) - mu * x[:, 0], 0.0).sum() + np.maximum(-x[:, 0], 0.0).sum()
+
+    assert outside(motion) > 0.1
+    admitted = nearest_admissible(bodies, points, motion, mu)
+    jt = contact_jacobian(bodies, points)
+    assert outside(admitted) < 1e-9
+    assert np.abs(jt @ (admitted - motion).ravel()).max() < 1e-4
+    np.testing.assert_allclose(nearest_admissible(bodies, points, exact, mu), exact, atol=1e-4)  # admissible already
+
+    released = exact[:, 0] <= 1e-6
+    with_release = nearest_admissible(bodies, points, motion, mu, open_points=released)
+    assert not with_release[released].any()
+    start = lambda x: tuple(np.ascontiguousarray(x[:, k], np.float32) for k in (0, 1))  # noqa: E731
+    assert engine.trial(*start(with_release)) <= 3 < engine.trial(*start(admitted)) < engine.trial(*start(motion))
+    assert nearest_admissible(bodies, points[:0], exact[:0], mu[:0]).shape == (0, 2)
+
+
+def admission_in_numpy(bodies, points, impulses, mu, open_points, iterations, tolerance=1e-5, rho=100.0):
+    """nearest_admissible's rounds in NumPy, the reference the compiled rounds follow."""
+    from scipy import sparse
+    from scipy.sparse.linalg import factorized
+
+    from deepcontact.admission import project_to_cones
+    from deepcontact.kinematics import contact_jacobian
+
+    jt = sparse.csr_matrix(contact_jacobian(bodies, points))
+    gram = (jt @ jt.T).tocsc()
+    ridge = 1e-9 * gram.diagonal().max()
+    solve = factorized((gram + ridge * sparse.identity(gram.shape[0], format="csc")).tocsc())
+    flat = np.asarray(impulses, np.float64).ravel()
+    keep = (~open_points).astype(np.float64)
+    cones = lambda x: (project_to_cones(x.reshape(-1, 2), mu) * keep[:, None]).ravel()  # noqa: E731
+    z, scaled = cones(flat), np.zeros_like(flat)
+    for _ in range(iterations):
+        x = (flat + rho * (z - scaled)) / (1.0 + rho)
+        x = x - jt.T @ solve(jt @ (x - flat))  # onto J^T x = J^T c
+        previous, z = z, cones(x + scaled)
+        scaled += x - z
+        if max(np.max(np.abs(x - z)), np.max(np.abs(z - previous))) < tolerance:
+            break
+    return z.reshape(-1, 2)
+
+
+@pytest.mark.parametrize("rounds", [1, 50, 1000])
+def test_the_compiled_admission_runs_numpys_rounds(rounds):
+    from deepcontact.admission import nearest_admissible
+    from deepcontact.faces import OPEN, contact_face, solve_on_face
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+    solved = solve_on_face(bodies, points, face, mu, Physics.thesis())
+    compiled = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds)
+    reference = admission_in_numpy(bodies, points, solved, mu, face == OPEN, rounds)
+    np.testing.assert_allclose(compiled, reference, atol=1e-9)
+
+
+def test_the_admissions_factors_multiply_back_to_its_gram_in_their_order():
+    # Pr G Pc = L U, as admission_rounds reads SuperLU's factors: here a Cholesky factor in
+    # the envelope of a reverse Cuthill-McKee order, L unit lower and U = D L^T.
+    from scipy import sparse
+
+    from deepcontact import _admission
+    from deepcontact.admission import admission_factors
+    from deepcontact.kinematics import contact_frame, contact_jacobian_sparse
+
+    bodies, points, _, _ = sliding_pile()
+    frame = contact_frame(bodies, points)
+    jt_arrays, rows, (lp, li, ld, up, ui, ud), (perm_r, perm_c) = admission_factors(frame)
+    jt = contact_jacobian_sparse(frame)
+    gram = (jt @ jt.T).toarray()
+    gram += 1e-9 * gram.diagonal().max() * np.eye(rows)
+    lower = sparse.csc_matrix((ld, li, lp), shape=(rows, rows)).toarray()
+    upper = sparse.csc_matrix((ud, ui, up), shape=(rows, rows)).toarray()
+    np.testing.assert_array_equal(np.diag(lower), 1.0)
+    assert not np.triu(lower, 1).any() and not np.tril(upper, -1).any()
+    np.testing.assert_allclose(lower @ upper, gram[np.argsort(perm_r)][:, np.argsort(perm_c)],
+                               atol=1e-10 * np.abs(gram).max())
+    args = [*jt_arrays, rows, 2 * len(points)]
+    out = [np.empty(rows + 1, np.int32), np.empty(rows * rows, np.int32), np.empty(rows * rows),
+           np.empty(rows + 1, np.int32), np.empty(rows * rows, np.int32), np.empty(rows * rows), np.empty(rows, np.int32)]
+    with pytest.raises(ValueError, match="not a permutation"):
+        _admission.envelope_cholesky(*args, np.zeros(rows, np.int32), 1e-9, *out)
+    with pytest.raises(ValueError, match="wrong size"):
+        _admission.envelope_cholesky(*args, np.arange(rows - 1, dtype=np.int32), 1e-9, *out)
+
+
+def test_impulses_already_admissible_come_back_as_they_are():
+    from deepcontact.admission import nearest_admissible, project_to_cones
+
+    bodies, points, exact, mu = sliding_pile()
+    inside = project_to_cones(exact, mu)
+    np.testing.assert_array_equal(nearest_admissible(bodies, points, inside, mu), inside)
+    held = np.zeros(len(points), bool)
+    held[0] = True
+    if inside[0].any():  # a point held open but pressing: not admissible as it is, so moved
+        assert not nearest_admissible(bodies, points, inside, mu, open_points=held)[0].any()
+
+
+def test_the_admission_stops_its_rounds_at_its_deadline():
+    # until: no round begins after it (the clock read every eight rounds): a deadline already
+    # past leaves the first eight rounds' answer, which is inside every cone all the same.
+    import time
+
+    from deepcontact.admission import nearest_admissible, project_to_cones
+
+    bodies, points, exact, mu = sliding_pile()
+    start = exact * 1.3 + 0.05  # off the cones somewhere: the rounds have work to do
+    unbounded = nearest_admissible(bodies, points, start, mu, iterations=5000, tolerance=1e-12)
+    late = nearest_admissible(bodies, points, start, mu, iterations=5000, tolerance=1e-12,
+                              until=time.perf_counter() - 1.0)
+    eight = nearest_admissible(bodies, points, start, mu, iterations=8, tolerance=1e-12)
+    np.testing.assert_array_equal(late, eight)
+    assert not np.array_equal(late, unbounded)
+    np.testing.assert_array_equal(project_to_cones(late, mu), late)
+    far = nearest_admissible(bodies, points, start, mu, iterations=5000, tolerance=1e-12,
+                             until=time.perf_counter() + 3600.0)
+    np.testing.assert_array_equal(far, unbounded)
