@@ -1,24 +1,57 @@
-# deepcontact in a container: the same two-step set-up as on a workstation
-# (`make setup` builds .venv and the patched Box2D wheel), then the CLI.
-FROM python:3.11-slim-bookworm
+# deepcontact's images, by role (docs/deployment.md):
+#   docker build --target server -t deepcontact-server .   # serves models/: no TensorFlow, no Box2D, no compilers
+#   docker build --target client -t deepcontact-client .   # simulates against a server: the patched Box2D, no TensorFlow
+# The build stage compiles what they need (deepcontact's C kernels, the patched pybox2d wheel);
+# the runtime stages install the wheels, pinned by requirements.lock, and nothing else.
+ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
+FROM ${PYTHON_IMAGE} AS build
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends build-essential patch make \
+    && apt-get install -y --no-install-recommends build-essential patch \
     && rm -rf /var/lib/apt/lists/*
-
-WORKDIR /app
-# Dependencies and the Box2D build first, so code edits do not rebuild them.
-COPY requirements.lock pyproject.toml setup.py README.md Makefile ./
+# A virtual environment of its own: Debian's Python refuses pip into the system (PEP 668).
+RUN python3.11 -m venv /opt/build
+ENV PATH=/opt/build/bin:$PATH
+WORKDIR /src
+COPY requirements.lock pyproject.toml setup.py README.md ./
+RUN pip install --no-cache-dir --constraint requirements.lock setuptools wheel swig numpy
 COPY box2d/ box2d/
+# The patched Box2D first: it changes only with box2d/, so code edits do not rebuild it.
+RUN PYTHON=/opt/build/bin/python bash box2d/build.sh /wheels/box2d
 COPY deepcontact/ deepcontact/
 COPY simclient/ simclient/
 COPY server/ server/
 COPY training/ training/
 COPY bench/ bench/
+COPY commands/ commands/
+COPY lab/ lab/
 COPY proto/ proto/
-RUN make setup PYTHON=python3.11
-COPY models/ models/
+RUN pip wheel --no-cache-dir --no-deps --no-build-isolation -w /wheels/deepcontact .
 
-ENV PATH=/app/.venv/bin:$PATH PYTHONUNBUFFERED=1
+FROM ${PYTHON_IMAGE} AS runtime
+RUN python3.11 -m venv /opt/deepcontact
+ENV PATH=/opt/deepcontact/bin:$PATH PYTHONUNBUFFERED=1
+WORKDIR /app
+
+FROM runtime AS server
+COPY requirements.lock /tmp/requirements.lock
+COPY --from=build /wheels/deepcontact/ /tmp/wheels/
+RUN pip install --no-cache-dir --constraint /tmp/requirements.lock /tmp/wheels/*.whl \
+    && rm -rf /tmp/wheels /tmp/requirements.lock
+COPY models/ models/
+EXPOSE 50051
+HEALTHCHECK --interval=5s --timeout=5s --retries=12 CMD ["deepcontact", "health", "--server", "127.0.0.1:50051"]
+ENTRYPOINT ["deepcontact"]
+# Inside a container network: plaintext there only (docs/server.md, Exposure).
+CMD ["serve", "--models", "models/", "--bind", "0.0.0.0:50051", "--insecure"]
+
+FROM runtime AS client
+COPY requirements.lock /tmp/requirements.lock
+COPY --from=build /wheels/ /tmp/wheels/
+# [bench]: the figures and latency histograms of bench iterations and bench load.
+RUN pip install --no-cache-dir --constraint /tmp/requirements.lock \
+        "$(ls /tmp/wheels/deepcontact/*.whl)[bench]" /tmp/wheels/box2d/*.whl \
+    && rm -rf /tmp/wheels /tmp/requirements.lock
+COPY examples/ examples/
 ENTRYPOINT ["deepcontact"]
 CMD ["--help"]

@@ -6,12 +6,13 @@ against the real argument parser, the way the container's entrypoint would run i
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
 import yaml
 
-from deepcontact.cli import build_parser
+from commands import build_parser
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
@@ -43,9 +44,18 @@ def test_clients_reach_the_server_through_dns_round_robin():
         assert command[command.index("--server") + 1] == "dns:///server:50051"
 
 
-def test_the_dockerfile_sets_up_with_the_makefile():
+def test_the_dockerfile_builds_a_server_and_a_client_each_with_only_what_it_uses():
     dockerfile = (ROOT / "Dockerfile").read_text()
-    assert "make setup" in dockerfile and 'ENTRYPOINT ["deepcontact"]' in dockerfile
+    stages = dict(re.findall(r"^FROM (\S+) AS (\S+)$", dockerfile, re.M)[i][::-1] for i in range(4))
+    assert stages == {"build": "${PYTHON_IMAGE}", "runtime": "${PYTHON_IMAGE}", "server": "runtime",
+                      "client": "runtime"}
+    server = dockerfile.split("FROM runtime AS server")[1].split("FROM ")[0]
+    client = dockerfile.split("FROM runtime AS client")[1]
+    assert "build-essential" not in server + client and "box2d" not in server  # no compilers; no engine to serve
+    assert "[train]" not in server + client and "tensorflow" not in (server + client).lower()
+    assert "/tmp/wheels/box2d/" in client and 'ENTRYPOINT ["deepcontact"]' in server + client
+    for service in ("server", "simclient", "loadtest"):
+        assert COMPOSE["services"][service]["build"]["target"] == ("server" if service == "server" else "client")
 
 
 def ray_start(service: str) -> dict:
