@@ -34,17 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
-from deepcontact import dispatch, tls
 from bench.figures import save_figure
 from bench.stats import STATS, Ratio, ratio_interval
+from deepcontact import dispatch, tls
+from deepcontact.arguments import add_models_argument
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
-from simclient import worlds
+from simclient import warmstarts, worlds
 from simclient.guard import Guard
 from simclient.simulate import DEFAULT_DEADLINE_MS, run_simulation, tls_files
 from simclient.stepping import StepRecord, summarize
-from simclient.composites import Pick
-from simclient.warmstarts import make_provider
+from simclient.warmstarts import composite_parts, make_provider
 
 DEFAULT_WARM_STARTS = ("none,builtin,copy,copy2,copy0,extrapolate,"
                        "server:random,server:bad,server:grid-identity,server:pressure")
@@ -55,27 +55,12 @@ TIMING_FIELDS = ("p50_latency_ms", "p99_latency_ms", "median_client_us", "total_
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     worlds.add_world_arguments(parser)
     parser.add_argument("--seeds", default="901-910", help="benchmark seeds (default 901-910)")
-    parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS,
-                        help=f"comma-separated (default {DEFAULT_WARM_STARTS}); shadow:W1+W2+... serves W1 and "
-                             "prices builtin and W2... on its very states (the engine's trial solves), pick:W1+W2+... "
-                             "keeps the cheapest each step, price:W1+W2+... serves builtin and prices W1, W2... on its "
-                             "states (the same in every run: checkpoints and models compared apart), split:W serves W and prices "
-                             "the part of its correction that moves the bodies and the self-stress apart, boost:W prices W with its "
-                             "self-stress part scaled, admit:W prices W moved inside the friction cones by a self-stress, motion:W prices W's "
-                             "motion scaled and admitted, graft:W1+W2 "
-                             "prices W1 with W2's moving bodies' motion, feedback:W prices W less shares of its previous step's error, "
-                             "shrink:W+E serves builtin and prices W's error against E (e.g. oracle:near) scaled and its two parts halved, "
-                             "gate:W+E serves builtin and prices W gated against builtin at each point, judged by E, "
-                             "face:W+E serves builtin and prices the step solved on E's active set, on it with some of W's labels, "
-                             "and on W's, solved:W serves the step solved on classifier W's labels (the face route, closed loop; solved@P:W reads them pressing above P N s), solved-forms:W prices other forms of it too; "
-                             "all print a same-state table and one of the steps that end at the solver's cap (with each start's sweeps to Builtin's accuracy there); "
-                             "server:* stands for every model the server serves, e.g. price:server:* "
-                             "(all names: simclient/warmstarts.py, oracles.py and composites.py)")
+    parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS, help=warm_starts_help())
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
                              "over replicas, unix:PATH dials a Unix socket); server: warm starts with --ray ADDRESS need it, as the cluster's "
                              "workers cannot reach the one started here, on a Unix socket of this machine")
-    parser.add_argument("--models", type=Path, default=Path("models"), help="models for the server started here (default models/)")
+    add_models_argument(parser, "models for the server started here")
     tls.add_client_arguments(parser)
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
                         help=f"per-step deadline for server replies (default {DEFAULT_DEADLINE_MS:g})")
@@ -86,6 +71,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     dispatch.add_arguments(parser, workers_default="1, this process")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def warm_starts_help() -> str:
+    """--warm-starts' help: the names registered when the parser is built (simclient.warmstarts)."""
+    text = (f"comma-separated (default {DEFAULT_WARM_STARTS}); each one of {warmstarts.usage()}; "
+            "server:* stands for every model the server serves")
+    if any(r.composite for r in warmstarts.registered()):
+        text += (" (in a composite too, e.g. price:server:*); a composite prints a same-state table of its trial "
+                 "solves and one of the steps that end at the solver's cap (each start's sweeps to Builtin's "
+                 "accuracy there)")
+    return text
+
+
+def _prog(args: argparse.Namespace) -> str:
+    """How this command's messages name it: `deepcontact bench iterations` or the group that runs it."""
+    return " ".join(("deepcontact", *getattr(args, "_words", ("bench", "iterations"))))
 
 
 def _read_arguments(args: argparse.Namespace):
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         spec, seeds, names, providers = _read_arguments(args)
     except ValueError as exc:
-        print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+        print(f"{_prog(args)}: {exc}", file=sys.stderr)
         return 2
     remote = [p for p in providers.values() if p.uses_server]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -132,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
             # only this machine's tasks dial it: a Unix socket (no port to find, nothing other hosts can reach)
             server_proc = ServerProcess(args.models, log=args.out / "server.log", local_socket=True).start()
         except (RuntimeError, TimeoutError) as exc:
-            print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+            print(f"{_prog(args)}: {exc}", file=sys.stderr)
             return 2
         target = server_proc.address
     try:
@@ -143,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 names = expand_served(names, target, tls.client_credentials(*tls_files(args)))
             except (ValueError, ConnectionError) as exc:
-                print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+                print(f"{_prog(args)}: {exc}", file=sys.stderr)
                 return 2
             remote = [p for p in (make_provider(n) for n in names) if p.uses_server]
         for provider in remote:
@@ -157,17 +158,17 @@ def run(args: argparse.Namespace) -> int:
                 finally:
                     client.close()
             except Refused as exc:
-                print(f"deepcontact bench iterations: the server refuses {provider.name} for this world: {exc}",
+                print(f"{_prog(args)}: the server refuses {provider.name} for this world: {exc}",
                       file=sys.stderr)
                 return 2
             except (ValueError, ConnectionError) as exc:
-                print(f"deepcontact bench iterations: {exc}", file=sys.stderr)
+                print(f"{_prog(args)}: {exc}", file=sys.stderr)
                 return 2
         runs = simulate_all(spec, names, seeds, target=target, deadline_ms=args.deadline_ms,
                             workers=args.workers, ray=args.ray, quiet=args.quiet, guard=not args.no_guard,
                             tls=tls_files(args))
     except dispatch.DispatchError as exc:
-        print(f"deepcontact bench iterations: {exc}; no results written", file=sys.stderr)
+        print(f"{_prog(args)}: {exc}; no results written", file=sys.stderr)
         return 1
     finally:
         if server_proc is not None:
@@ -186,7 +187,8 @@ STAR = "server:*"
 def expand_served(names: list[str], target: str, credentials=None) -> list[str]:
     """`server:*` as every model the server at `target` serves (not its built-in providers such
     as zero or grid-identity), in natural order (NAME-e2 before NAME-e10): a top-level entry
-    becomes one entry per model, one inside pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face:/solved: one candidate per model.
+    becomes one entry per model, one inside a composite (HEAD:W1+W2+..., e.g. price:server:*) one
+    candidate per model.
     Raises ConnectionError when the server is away, ValueError when it serves no model."""
     import re
 
@@ -208,7 +210,7 @@ def expand_served(names: list[str], target: str, credentials=None) -> list[str]:
         if name == STAR:
             out += every
         elif STAR in _candidates(name):
-            head = name.partition(":")[0]
+            head = composite_parts(name)[0]
             out.append(f"{head}:" + "+".join(c for part in _candidates(name) for c in (every if part == STAR else [part])))
         else:
             out.append(name)
@@ -216,9 +218,9 @@ def expand_served(names: list[str], target: str, credentials=None) -> list[str]:
 
 
 def _candidates(name: str) -> list[str]:
-    """The warm starts a warm-start name stands for: a pick:/shadow:/.../graft:'s candidates, else itself."""
-    head, _, rest = name.partition(":")
-    return rest.split("+") if head in Pick.MODES else [name]
+    """The warm starts a warm-start name stands for: a composite's candidates (HEAD:W1+W2+...), else itself."""
+    parts = composite_parts(name)
+    return [name] if parts is None else parts[1]
 
 
 def guard_note(summaries: dict[str, dict], runs: dict[str, list[dict]]) -> str:
@@ -282,10 +284,14 @@ def simulate_all(spec, names: list[str], seeds: list[int], *, target: str | None
 
     Returns {warm start: [run_simulation result per seed, in seed order]}.
     target: the server for `server:` warm starts; guard: each `server:` warm start under a
-    guard (simclient.guard); tls: (ca, cert, key) PEM files to dial the server with. Raises DispatchError.
+    guard (simclient.guard); tls: (ca, cert, key) PEM files to dial the server with. Each task
+    carries the modules that registered warm starts here (warmstarts.extensions, e.g. lab's), so
+    that a worker started afresh knows the same names. Raises DispatchError.
     """
     pairs = [(name, seed) for name in names for seed in seeds]
-    tasks = [dispatch.Task(f"{name} seed {seed}", (worlds.spec_to_dict(spec), name, seed, target, deadline_ms, guard, tuple(tls)))
+    extensions = warmstarts.extensions()
+    tasks = [dispatch.Task(f"{name} seed {seed}", (worlds.spec_to_dict(spec), name, seed, target, deadline_ms, guard,
+                                                   tuple(tls), extensions))
              for name, seed in pairs]
     runs: dict[str, list[dict]] = {name: [] for name in names}
     with dispatch.Dispatcher(workers=workers, ray=ray) as dispatcher:
@@ -296,13 +302,15 @@ def simulate_all(spec, names: list[str], seeds: list[int], *, target: str | None
 
 
 def simulate_one(spec_dict: dict, name: str, seed: int, target: str | None, deadline_ms: float,
-                 guard: bool = False, tls=(None, None, None)) -> str:
+                 guard: bool = False, tls=(None, None, None), extensions=()) -> str:
     """One task: warm start `name` on (scene, seed); the run_simulation result as JSON text.
 
-    A `server:` warm start opens its own client to `target` for this simulation.
+    A `server:` warm start opens its own client to `target` for this simulation; `extensions`
+    are imported first (the modules that registered warm starts where the task was made).
     """
     from simclient.simulate import connect
 
+    warmstarts.load_extensions(extensions)
     provider = make_provider(name)  # a fresh provider per world: some keep state across steps
     client = None
     if provider.uses_server:
@@ -351,8 +359,8 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
 
 def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = None,
                  cap: int | None = None) -> dict | None:
-    """What the trial solves of a `pick:`, `shadow:`, `mean:` or `price:` warm start saw, or None
-    for another warm start.
+    """What the trial solves of a composite warm start (e.g. `pick:`, `shadow:`, `price:`) saw, or
+    None for another warm start.
 
     Every candidate (builtin, then the others) was solved from the same state at
     every step with contacts (the picked trajectory's): per candidate, its mean
@@ -369,19 +377,23 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
     With `cap` (the solver's most velocity iterations a step), also `at_cap`
     (cap_summary): how much of it is in steps that end at the cap.
     """
-    if not Pick.names_one(name) or not any(r.get("trials") for r in results):
+    if not any(r.get("trials") for r in results):
         return None
-    candidates = make_provider(name).labels
+    provider = make_provider(name)
+    if not provider.picks:
+        return None
+    candidates = provider.labels
     width = len(candidates)
     per_seed = [np.array([t for t in r.get("trials", []) if len(t) == width], float).reshape(-1, width)
                 for r in results]  # (steps, candidates) iterations per seed
     reach = [np.array([t for t in r.get("reach", []) if len(t) == width], float).reshape(-1, width)
-             for r in results]  # the same steps: sweeps to Builtin's accuracy (composites.sweeps_to_builtin)
+             for r in results]  # the same steps: sweeps to Builtin's accuracy (the composite's `reach`)
     if any(len(q) != len(s) for q, s in zip(reach, per_seed)):
         reach = None  # results written before the trials traced their residuals
     a = np.concatenate(per_seed)
     best = a.argmin(axis=1)
-    return {"candidates": candidates, "steps": len(a), "mean_iterations": a.mean(axis=0).tolist(),
+    return {"candidates": candidates, "serves": provider.serves, "steps": len(a),
+            "mean_iterations": a.mean(axis=0).tolist(),
             "over_builtin": [ratio_interval([s[:, i] for s in per_seed], [s[:, 0] for s in per_seed]).to_dict()
                              for i in range(width)],
             "over_first": ([ratio_interval([s[:, i] for s in per_seed], [s[:, 1] for s in per_seed]).to_dict()
@@ -392,11 +404,11 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
             "trajectory": (ratio_interval([s[:, 0] for s in per_seed], [_iterations(b) for b in builtin]).to_dict()
                            if builtin is not None and len(builtin) == len(per_seed) else None),
             "at_cap": cap_summary(per_seed, cap, reach) if cap else None,
-            "notes": _mean_notes(make_provider(name).note_labels, results)}
+            "notes": _mean_notes(provider.note_labels, results)}
 
 
 def _mean_notes(labels: list[str], results: list[dict]) -> dict[str, float] | None:
-    """Each of a composite's per-step notes (Pick.note_labels) averaged over every seed's steps, or None."""
+    """Each of a composite's per-step notes (Composite.note_labels) averaged over every seed's steps, or None."""
     rows = [t for r in results for t in r.get("notes", []) if len(t) == len(labels)]
     if not labels or not rows:
         return None
@@ -413,7 +425,7 @@ def cap_summary(per_seed: list[np.ndarray], cap: int, reach: list[np.ndarray] | 
     steps it ends under the cap, and its iterations over Builtin's on the steps
     Builtin ends under the cap and on those it ends at it (intervals over seeds).
     With `reach` (the same shape: each trial's sweeps to Builtin's accuracy,
-    composites.sweeps_to_builtin), also `reach_at`: those sweeps over Builtin's
+    the composite's `reach`), also `reach_at`: those sweeps over Builtin's
     own on the steps Builtin ends at the cap, and `reach_all`: the same over all
     steps, its iterations counted where Builtin converges: what a start is worth
     once the capped steps are counted by accuracy rather than by the cap."""
@@ -438,14 +450,10 @@ def cap_summary(per_seed: list[np.ndarray], cap: int, reach: list[np.ndarray] | 
 
 
 def pick_table(picks: dict) -> str:
-    """The trial solves of each `pick:`, `shadow:`, `mean:` and `price:` warm start as markdown ('' without one)."""
+    """The trial solves of each composite warm start (`pick:`, `shadow:`, `price:`, ...) as markdown ('' without one)."""
     lines = []
     for name, p in picks.items():
-        whose = {"shadow:": "the first candidate's", "split:": "the first candidate's", "boost:": "the first candidate's",
-                 "admit:": "the first candidate's", "motion:": "the first candidate's",
-                 "graft:": "the first candidate's",
-                 "feedback:": "the first candidate's", "mean:": "the mean's", "solved:": "the solved start's", "solved-forms:": "the solved start's",
-                 "price:": "Builtin's", "shrink:": "Builtin's", "gate:": "Builtin's", "face:": "Builtin's"}.get(name[:name.index(":") + 1].split("@")[0].rstrip(":") + ":", "the picked")
+        whose = p.get("serves", "the picked")  # whose trajectory the steps are (Composite.serves)
         lines += ["", f"`{name}`: every candidate solved from the same state at each of {p['steps']} steps "
                       f"({whose} trajectory):", "",
                   "| candidate | mean iterations | / builtin | / first model | picked | better than builtin | worse |",
@@ -553,10 +561,10 @@ def legend_label(name: str, width: int = 60) -> str:
     (shadow:W1+W2+..., price:...) by its mode, its first warm start and how many more, since its
     line is one trajectory and the full name (hundreds of characters) would cover the plot;
     any other name past `width` characters cut with an ellipsis. Tables keep the full names."""
-    mode, _, rest = name.partition(":")
-    if mode in Pick.MODES and "+" in rest:
-        first, *more = rest.split("+")
-        name = f"{mode}:{first} (+{len(more)} more)"
+    parts = composite_parts(name)
+    if parts is not None and len(parts[1]) > 1:
+        head, (first, *more) = parts
+        name = f"{head}:{first} (+{len(more)} more)"
     return name if len(name) <= width else name[:width - 1] + "\u2026"
 
 

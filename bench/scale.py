@@ -38,6 +38,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from deepcontact.arguments import add_models_argument
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
 
@@ -61,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iteration-seeds", default="901-908", help="bench iterations' seeds (default 901-908)")
     parser.add_argument("--warm-starts", default="builtin,server:pressure",
                         help="bench iterations' warm starts (default builtin,server:pressure)")
-    parser.add_argument("--models", type=Path, default=Path("models"), help="models for the server (default models/)")
+    add_models_argument(parser, "models for the server")
     parser.add_argument("--steps", type=int, help="steps per simulation (default: the thesis world's 250)")
     parser.add_argument("--repeats", type=int, default=3, help="runs of every configuration (default 3)")
     parser.add_argument("--commands", default="generate,iterations", help="which to measure (default generate,iterations)")
@@ -140,7 +141,7 @@ def _measure(command: str, configs: list[str], args, tmp: Path) -> dict:
                 out = run_dir / "train.h5" if command == "generate" else run_dir
                 argv = [*base, "--out", str(out), *config_flags(config)]
                 t0 = time.perf_counter()
-                done = subprocess.run([sys.executable, "-m", "deepcontact", *argv], capture_output=True, text=True)
+                done = subprocess.run([sys.executable, "-m", "commands", *argv], capture_output=True, text=True)
                 rows[config]["seconds"].append(time.perf_counter() - t0)
                 # The machine may be shared: its load during the run says how many cores were ours.
                 rows[config]["load"].append(os.getloadavg()[0])

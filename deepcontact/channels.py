@@ -27,8 +27,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepcontact.kinematics import (BODY_DYNAMIC, FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, Physics, contact_face,
-                                    contact_quantities)
+from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face
+from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_quantities
 from deepcontact.records import CONTACT_DTYPE
 
 __all__ = ["CHANNELS", "DEFAULT_INPUTS", "DEFAULT_TARGETS", "NEEDS", "SOURCES", "Channel", "Source", "Step",
@@ -200,12 +200,12 @@ def _oracle_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.nda
 
 #: face_correction_*: the friction the recorded files' faces are read at where a step has no
 #: friction of its own (Step.friction; the thesis world's, at every pair); a label is written as
-#: an impulse of kinematics.FACE_IMPULSE.
+#: an impulse of faces.FACE_IMPULSE.
 FACE_FRICTION = 0.5
 
 
 def _face_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
-    """The recorded solve's face (deepcontact.kinematics.contact_face at the step's friction, else
+    """The recorded solve's face (deepcontact.faces.contact_face at the step's friction, else
     FACE_FRICTION) written as
     impulses, a pressing point FACE_IMPULSE along its normal and a sliding one +-FACE_IMPULSE along
     its tangent, minus the builtin warm start: served as a residual, a model's answer is its labels."""

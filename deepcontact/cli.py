@@ -1,9 +1,17 @@
-"""The `deepcontact` command.
+"""The machinery of a command table: a parser built from one, loaded lazily, and a one-line end.
 
-Each subcommand lives in the module that does the work and exposes
-`add_arguments(parser)` and `run(args) -> int`; the modules are imported only
-when their subcommand runs, so `deepcontact --help` stays fast (no TensorFlow).
-A command ends with its summary or a one-line error, never a traceback.
+    TABLE = [Command(("simulate",), "simclient.simulate", "one simulation with one warm start"),
+             Command(("bench", "iterations"), "bench.iterations", "every warm start on the same worlds"),
+             Group(("lab",), "lab.commands", "research instruments")]
+    parser = build_parser(TABLE, prog="deepcontact", description="...", groups={("bench",): "benchmarks"})
+    sys.exit(main(parser, argv))
+
+A Command's module does the work and exposes `add_arguments(parser)` and `run(args) -> int`;
+it is imported only when its subcommand is parsed, so `--help` stays fast (no TensorFlow). A
+Group's module holds a table of its own (`COMMANDS`, and `GROUPS` for its inner groups' help),
+imported only when the group is parsed: a table on this floor names no module above it, the
+entry package that passes one in does (commands/). A command ends with its summary or a
+one-line error, never a traceback (DEEPCONTACT_DEBUG=1 shows it).
 """
 
 from __future__ import annotations
@@ -12,85 +20,89 @@ import argparse
 import importlib
 import os
 import sys
-
-# (path of words, module, one-line help)
-COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
-    (("demo",), "bench.demo", "run the main job: server, simulations, results table"),
-    (("generate",), "training.generate", "record simulations into an HDF5 training file"),
-    (("train",), "training.train", "fit a grid CNN (Pressure, U-Net or Peak) on recorded simulations (resumable)"),
-    (("train-graph",), "training.train_graph", "fit the contact-graph model (message passing on the contact points) and export it"),
-    (("export",), "training.export", "export a finished training run to ONNX with its model card"),
-    (("evaluate",), "training.evaluate", "score exported models on recorded data with ONNX Runtime"),
-    (("serve",), "server.serve", "serve warm starts over gRPC (models/ and the providers)"),
-    (("health",), "deepcontact.health", "exit 0 if a warm-start server reports SERVING"),
-    (("simulate",), "simclient.simulate", "one simulation with one warm start; iterations and latency to JSON"),
-    (("transfer-table",), "training.transfer_table", "reproduce thesis Table 1 (particle-grid-particle round-trip error)"),
-    (("bench", "admission"), "bench.admission", "what admitting a motion (nearest_admissible) costs a step, beside Box2D's solve"),
-    (("bench", "corrections"), "bench.corrections", "a served model's corrections against the solver's, by size: where it errs"),
-    (("bench", "face-solve"), "bench.face_solve", "the face route's solve by step size: its system, the dual solve against gelsy, the admission"),
-    (("bench", "faces"), "bench.faces", "a served model's answer read as an active set (open, sticks, slides): how many labels a step are wrong"),
-    (("bench", "engine"), "bench.engine", "time export, warm-start injection and the instrumented solve"),
-    (("bench", "generate"), "bench.generate", "what recording simulations costs over running them"),
-    (("bench", "graph-size"), "bench.graph_size", "a contact-graph model's inference against the step's points and bodies"),
-    (("bench", "inference"), "bench.inference", "ONNX Runtime levers on a grid model's inference: session options, int8, cropped grids"),
-    (("bench", "iterations"), "bench.iterations", "every warm start on the same held-out worlds: table and figures"),
-    (("bench", "load"), "bench.load", "latency and throughput with many simulations streaming at once"),
-    (("bench", "scale"), "bench.scale", "simulations per second per added worker or Ray CPU; same answers on each"),
-    (("bench", "soak"), "bench.soak", "a long load on one server: nothing lost, memory flat (RSS over time)"),
-    (("bench", "order"), "bench.order", "does the order of the solver's sweep choose its answer? a Gauss-Seidel replica in several orders"),
-    (("bench", "server"), "bench.server", "per-stage server cost of the shipped model on thesis steps (target: 300 us outside inference)"),
-    (("bench", "step-gate"), "bench.step_gate", "a per-step gate between a model's warm start and Box2D's, fitted on some seeds (of one world or several), priced on others beside a race of the two starts' first sweeps"),
-    (("bench", "surrogate"), "bench.surrogate", "does the training loss's score of a step follow the iterations a model saves there?"),
-    (("bench", "transfer"), "bench.transfer", "time P2G and G2P on a settled thesis world"),
-    (("bench", "walltime"), "bench.walltime", "whole step time with builtin, a served model and the same model in process, and the break-even, per world size"),
-]
+from typing import NamedTuple
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="deepcontact",
-        description=("Warm-start Box2D's contact solver with a neural network served over gRPC: "
-                     "a message-passing network on the contact points (the default) or the thesis's "
-                     "CNN on grids."),
-    )
-    from deepcontact import __version__
+class Command(NamedTuple):
+    """A subcommand: the words that name it, the module that runs it, its one-line help."""
 
-    parser.add_argument("--version", action="version", version=f"deepcontact {__version__}")
-    groups: dict[tuple[str, ...], argparse._SubParsersAction] = {
-        (): parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    }
-    group_help = {("bench",): "benchmarks (admission, corrections, engine, face-solve, faces, generate, graph-size, inference, iterations, load, order, scale, server, soak, step-gate, surrogate, transfer, walltime)"}
-    for words, module, help_text in COMMANDS:
-        for depth in range(1, len(words)):
-            prefix = words[:depth]
-            if prefix not in groups:
-                sub = groups[prefix[:-1]].add_parser(prefix[-1], help=group_help.get(prefix, ""))
-                groups[prefix] = sub.add_subparsers(dest=f"command_{depth}", metavar="COMMAND", required=True)
-        sub = groups[words[:-1]].add_parser(words[-1], help=help_text, description=help_text)
-        sub.set_defaults(_module=module, _words=words)
-        _LazyArguments.attach(sub, module)
+    words: tuple[str, ...]
+    module: str  # exposes add_arguments(parser) and run(args) -> int
+    help: str
+
+
+class Group(NamedTuple):
+    """A group of subcommands whose table is another module's, loaded when the group is parsed."""
+
+    words: tuple[str, ...]
+    module: str  # holds COMMANDS (a table) and optionally GROUPS ({words: help} of its inner groups)
+    help: str
+
+
+def build_parser(table, *, prog: str, description: str, version: str | None = None,
+                 groups: dict[tuple[str, ...], str] | None = None) -> argparse.ArgumentParser:
+    """A parser for every entry of `table` (Command and Group). groups: the help of the groups
+    the commands' words make (e.g. ("bench",)); each group's help ends with its commands' names."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    if version is not None:
+        parser.add_argument("--version", action="version", version=version)
+    add_table(parser, table, groups=groups)
     return parser
 
 
-class _LazyArguments:
-    """Adds a subcommand's own arguments only when that subcommand is parsed."""
+def add_table(parser: argparse.ArgumentParser, table, *, groups: dict[tuple[str, ...], str] | None = None,
+              words: tuple[str, ...] = ()) -> None:
+    """The entries of `table` as subcommands of `parser`, which stands for the command `words`."""
+    groups = groups or {}
+    depth = len(words)
+    levels: dict[tuple[str, ...], argparse._SubParsersAction] = {
+        (): parser.add_subparsers(dest=f"command_{depth}" if depth else "command", metavar="COMMAND", required=True)}
+    for entry in table:
+        for k in range(1, len(entry.words)):
+            prefix = entry.words[:k]
+            if prefix not in levels:
+                names = sorted({e.words[k] for e in table if e.words[:k] == prefix})
+                text = f"{groups.get(prefix, '')} ({', '.join(names)})".strip()
+                sub = levels[prefix[:-1]].add_parser(prefix[-1], help=text, description=text)
+                levels[prefix] = sub.add_subparsers(dest=f"command_{depth + k}", metavar="COMMAND", required=True)
+        sub = levels[entry.words[:-1]].add_parser(entry.words[-1], help=entry.help, description=entry.help)
+        if isinstance(entry, Group):
+            _lazy(sub, lambda sub=sub, entry=entry: _add_group(sub, entry, words + entry.words))
+        else:
+            sub.set_defaults(_module=entry.module, _words=words + entry.words)
+            _lazy(sub, lambda sub=sub, entry=entry: importlib.import_module(entry.module).add_arguments(sub))
 
-    @staticmethod
-    def attach(sub: argparse.ArgumentParser, module: str) -> None:
-        original = sub.parse_known_args
 
-        def parse_known_args(args=None, namespace=None):
-            if not getattr(sub, "_deepcontact_loaded", False):
-                importlib.import_module(module).add_arguments(sub)
-                sub._deepcontact_loaded = True
-            return original(args, namespace)
-
-        sub.parse_known_args = parse_known_args
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def _add_group(parser: argparse.ArgumentParser, group: Group, words: tuple[str, ...]) -> None:
     try:
+        module = importlib.import_module(group.module)
+    except ModuleNotFoundError as exc:
+        if exc.name is None or not group.module.startswith(exc.name):
+            raise  # the table is there and imports something missing: a bug, said as one
+        parser.error(f"not installed here ({exc})")  # e.g. an image of the product alone
+    add_table(parser, module.COMMANDS, groups=getattr(module, "GROUPS", None), words=words)
+
+
+def _lazy(sub: argparse.ArgumentParser, load) -> None:
+    """Run load() (add the subcommand's arguments, or a group's table) the first time `sub` parses."""
+    original = sub.parse_known_args
+
+    def parse_known_args(args=None, namespace=None):
+        if not getattr(sub, "_deepcontact_loaded", False):
+            load()
+            sub._deepcontact_loaded = True
+        return original(args, namespace)
+
+    sub.parse_known_args = parse_known_args
+
+
+def main(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
+    """Parse `argv` and run the chosen command: its exit status, 130 on ^C, and 1 with one line
+    on stderr for an exception it did not expect (DEEPCONTACT_DEBUG=1: the traceback instead)."""
+    words: tuple[str, ...] = ()
+    try:
+        args = parser.parse_args(argv)  # loads the chosen command's module (its arguments)
+        words = args._words
         return int(importlib.import_module(args._module).run(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -100,6 +112,6 @@ def main(argv: list[str] | None = None) -> int:
         # for what they did not expect (a bug). DEEPCONTACT_DEBUG=1 shows where.
         if os.environ.get("DEEPCONTACT_DEBUG"):
             raise
-        print(f"deepcontact {' '.join(args._words)}: unexpected error: {type(exc).__name__}: {exc} "
+        print(f"{' '.join((parser.prog, *words))}: unexpected error: {type(exc).__name__}: {exc} "
               "(DEEPCONTACT_DEBUG=1 shows the traceback)", file=sys.stderr)
         return 1

@@ -103,7 +103,7 @@ from typing import Any
 
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
-from deepcontact.kinematics import SOLVERS
+from deepcontact.faces import SOLVERS
 from deepcontact.step_gate import StepGate
 
 CARD_VERSION = 1

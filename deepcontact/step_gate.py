@@ -3,7 +3,7 @@
 A model's warm start loses to Box2D's own at about a quarter of the steps. The gate is a
 logistic regression on features of the step that a server holds once its model has run (the
 request and the model's answer, nothing the solve tells), fitted on simulated steps each
-weighted by what the choice is worth there (`bench.step_gate`, `deepcontact bench step-gate`).
+weighted by what the choice is worth there (`lab.step_gate`, `deepcontact lab step-gate`).
 Where it predicts a loss, the server serves Box2D's warm start instead: the request's builtin
 impulses, unchanged.
 
@@ -70,7 +70,7 @@ class StepGate:
 
     mean, scale: (F,) the fit steps' feature means and spreads; coefficients: (F + 1,), the
     intercept first. names: the F features' names, FEATURES for a gate a server can compute;
-    a screen may fit one on more (bench.step_gate's --hidden), which no card can carry.
+    a screen may fit one on more (lab.step_gate's --hidden), which no card can carry.
     """
 
     mean: tuple[float, ...]

@@ -1,6 +1,6 @@
-"""`deepcontact bench admission`: what admitting a motion costs a step, beside Box2D's solve.
+"""`deepcontact lab admission`: what admitting a motion costs a step, beside Box2D's solve.
 
-    deepcontact bench admission --seeds 850-852 --json bench/results/r2-admission/timings.json
+    deepcontact lab admission --seeds 850-852 --json bench/results/r2-admission/timings.json
 
 The admitted warm starts (`oracle:near-admissible*`, `admit:W`; docs/results.md, "The limits
 choose the self-stress") run in NumPy on the client. Before any of them could be served, their
@@ -49,17 +49,18 @@ def _timed(fn):
 
 
 def run(args: argparse.Namespace) -> int:
-    from deepcontact.kinematics import bodies_moving, body_space_part, body_space_part_of, nearest_admissible
+    from deepcontact.admission import nearest_admissible
+    from deepcontact.kinematics import bodies_moving, body_space_part, body_space_part_of
     from simclient.scene import SceneSpec, settled_world
     from simclient.seeds import parse_seeds
     from simclient.provider import body_friction, point_friction
 
     if args.settle < 0 or args.steps < 1:
-        raise SystemExit("bench admission: --settle must be >= 0 and --steps >= 1")
+        raise SystemExit("lab admission: --settle must be >= 0 and --steps >= 1")
     try:
         seeds = parse_seeds(args.seeds)
     except ValueError as e:
-        raise SystemExit(f"bench admission: {e}") from None
+        raise SystemExit(f"lab admission: {e}") from None
     rows = []
     for seed in seeds:
         engine = settled_world(SceneSpec.thesis(), seed, args.settle)
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             engine.solve()
         print(f"seed {seed}: {args.steps} steps timed", flush=True)
     if not rows:
-        raise SystemExit("bench admission: no timed step had contact points")
+        raise SystemExit("lab admission: no timed step had contact points")
 
     ms = {p: np.array([r[p] for r in rows]) * 1e3 for p in PARTS}
     summary = {p: {"median_ms": float(np.median(ms[p])), "p90_ms": float(np.percentile(ms[p], 90)),

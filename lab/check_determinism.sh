@@ -2,7 +2,7 @@
 # Does a training run give the same weights twice on this machine, under load, and with
 # TensorFlow's CPU kernels held to other instructions? (docs/models.md, "The shipped models")
 #
-#   bash training/check_determinism.sh          # 14 min on 2 cores shared with a training run (measured); less alone
+#   bash lab/check_determinism.sh          # 14 min on 2 cores shared with a training run (measured); less alone
 #
 # One short train-graph run (6 thesis-world simulations, the default's loss, 2 epochs), six ways:
 #   again       the same command a second time

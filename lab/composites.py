@@ -1,6 +1,8 @@
 """Warm starts over warm starts: each step the engine solves the step from Box2D's warm start
 and from each candidate's (trial solves, the world unchanged), and one of them is served.
-simclient.simulate asks every candidate, then calls Pick.pick().
+The stepping loop (simclient.stepping) asks every candidate, then calls Pick.pick(); Pick is a
+simclient.provider.Composite. Each mode below is registered with simclient.warmstarts as a
+composite prefix (MODE:W1+W2+..., and solved@P:W) when `lab` is imported.
 
     provider = make_provider("price:server:default+oracle:near")   # simclient.warmstarts.make_provider
 
@@ -93,16 +95,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from simclient.oracles import SEPARATING_SPEED
-from simclient.provider import Provider, as_warm_start, body_friction, persisting_rows, point_friction
+from lab.oracles import SEPARATING_SPEED
+from simclient.provider import Composite, Provider, as_warm_start, body_friction, persisting_rows, point_friction
+from simclient.warmstarts import composite_parts, make_provider, register_prefix
 
-class Pick(Provider):
+
+class Pick(Composite):
     """An oracle over warm starts: each step, the engine solves the step from
     Box2D's warm start and from each candidate's (trial solves, the world
     unchanged) and keeps the one that takes the fewest iterations (builtin on
-    a tie). simclient.simulate asks every candidate, then calls pick()."""
-
-    picks = True
+    a tie). The stepping loop asks every candidate, then calls pick()."""
 
     MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "motion", "graft", "feedback", "shrink",
              "gate", "face", "solved", "solved-forms")
@@ -126,7 +128,6 @@ class Pick(Provider):
     SOLVED_PRESSING = (0.25, 0.75)
     #: solved-forms:W: the admission's rounds in its cut form (nearest_admissible's iterations).
     SOLVED_ROUNDS = 50
-    PREFIXES = tuple(f"{m}:" for m in MODES)
 
     @classmethod
     def names_one(cls, name: str) -> bool:
@@ -142,7 +143,7 @@ class Pick(Provider):
             if not mode.startswith("solved") or not pressing >= 0:
                 raise ValueError(f"a pressing threshold goes with solved: only, and is >= 0 N s, got {pressing!r}")
             self.FACE_LABELS = (pressing, self.FACE_LABELS[1])
-        self.candidates = candidates
+        super().__init__(candidates)
         # pick: serve the cheapest; shadow: serve the first, price the others beside it;
         # mean: serve the candidates' mean, price it and each of them on the same state;
         # price: serve builtin, price the candidates on its states (the same states for every
@@ -169,19 +170,12 @@ class Pick(Provider):
             if hasattr(c, "reseed"):  # jitter@S
                 c.reseed(i)  # two jitters in one pick draw different noise
         self.name = f"{mode}{'' if pressing is None else f'@{pressing:g}'}:" + "+".join(c.name for c in candidates)
-        self.uses_server = any(c.uses_server for c in candidates)
-        self.sends_oracle = False
-        self.trials: list[list[int]] = []  # per step with contacts: builtin's, then each candidate's iterations
-        self.reach: list[list[int]] = []  # the same steps: each one's sweeps to Builtin's accuracy (sweeps_to_builtin)
-        self.notes: list[list[float]] = []  # the same steps: what note_labels names, for the modes that keep any
+        # trials: per step with contacts, builtin's, then each candidate's iterations; reach: the same
+        # steps, each one's sweeps to Builtin's accuracy (sweeps_to_builtin); notes: what note_labels names
         # feedback: the candidate's answer this step, (keys (P,), impulses (P, 2) N s), until observe() scores it,
         # then its error at the previous step's points, sorted by key
         self._answer: tuple[np.ndarray, np.ndarray] | None = None
         self._error_keys, self._error = np.zeros(0, np.uint64), np.zeros((0, 2))
-
-    @property
-    def models(self) -> tuple[str, ...]:
-        return tuple(m for c in self.candidates if c.uses_server for m in c.models)
 
     @property
     def labels(self) -> list[str]:
@@ -222,24 +216,29 @@ class Pick(Provider):
         """What each entry of a notes row counts (face: the step's points and where faces differ)."""
         if self.mode != "face":
             return []
-        from deepcontact.kinematics import FACE_ERRORS
+        from deepcontact.faces import FACE_ERRORS
 
         guess, reference = (c.name for c in self.candidates)
         return ["points"] + [f"points where {who}'s face {what} (against {reference}'s)" for who in (guess, "builtin")
                              for what in ("differs", *FACE_ERRORS)]
 
     @property
-    def model(self) -> str:
-        return self.models[0] if self.models else ""
+    def serves(self) -> str:
+        """Whose start the steps were served (the trajectory the trials are on), as a table says it."""
+        if self.mode in ("price", "shrink", "gate", "face"):
+            return "Builtin's"
+        if self.mode == "mean":
+            return "the mean's"
+        if self.mode.startswith("solved"):
+            return "the solved start's"
+        return "the picked" if self.mode == "pick" else "the first candidate's"
 
     def prepare(self, engine) -> None:
         self._friction = body_friction(engine)
-        for c in self.candidates:
-            c.prepare(engine)
+        super().prepare(engine)
 
     def observe(self, points_after_solve):
-        for c in self.candidates:
-            c.observe(points_after_solve)
+        super().observe(points_after_solve)
         if self.mode == "feedback":
             self._remember_error(points_after_solve)
 
@@ -305,8 +304,9 @@ class Pick(Provider):
     def _admitted(self, engine, points, candidates) -> list:
         """admit: the candidate made admissible, whole, by its motion, by its motion with the
         points it pulls apart held open, and by its moving bodies' motion; the last not admitted."""
+        from deepcontact.admission import nearest_admissible
         from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of,
-                                            contact_velocities, nearest_admissible)
+                                            contact_velocities)
 
         bodies, mu = engine.bodies(), point_friction(self._friction, points)
         start, served = _stacked(candidates[0]), _stacked(candidates[1])
@@ -320,7 +320,8 @@ class Pick(Provider):
     def _scaled_motion(self, engine, points, candidates) -> list:
         """motion: Box2D's warm start plus the candidate's motion times each of MOTION_SCALES,
         admitted; then its moving bodies' motion the same way."""
-        from deepcontact.kinematics import bodies_moving, body_space_part, body_space_part_of, nearest_admissible
+        from deepcontact.admission import nearest_admissible
+        from deepcontact.kinematics import bodies_moving, body_space_part, body_space_part_of
 
         bodies, mu = engine.bodies(), point_friction(self._friction, points)
         start = _stacked(candidates[0])
@@ -332,7 +333,8 @@ class Pick(Provider):
 
     def _grafted(self, engine, points, candidates) -> list:
         """graft: the first candidate with the second's motion at the moving bodies, admitted and not."""
-        from deepcontact.kinematics import bodies_moving, body_space_part_of, nearest_admissible
+        from deepcontact.admission import nearest_admissible
+        from deepcontact.kinematics import bodies_moving, body_space_part_of
 
         bodies = engine.bodies()
         base, donor = _stacked(candidates[1]), _stacked(candidates[2])
@@ -398,8 +400,9 @@ class Pick(Provider):
         (FACE_LABELS), admitted with the face's open points held at 0; solved-forms: then the
         same motion given Box2D's warm start's self-stress before the admission, the admission
         cut at SOLVED_ROUNDS rounds, and the labels read at each of SOLVED_PRESSING."""
-        from deepcontact.kinematics import (OPEN, Physics, body_space_part, contact_face, contact_frame,
-                                            nearest_admissible, solve_on_face, solved_on_labels)
+        from deepcontact.admission import nearest_admissible
+        from deepcontact.faces import OPEN, contact_face, solve_on_face, solved_on_labels
+        from deepcontact.kinematics import Physics, body_space_part, contact_frame
 
         bodies, mu = engine.bodies(), point_friction(self._friction, points)
         frame = contact_frame(bodies, points)
@@ -431,8 +434,9 @@ class Pick(Provider):
         with the face's open points held at 0; then Box2D's face and W's read as labels, each
         repaired (repair_face) once and again, each solve admitted. With E = oracle:near: how right must a learned
         active set be for the exact motion it implies to pay?"""
-        from deepcontact.kinematics import (OPEN, Physics, contact_face, contact_frame, face_errors, nearest_admissible,
-                                            repair_face, solve_on_face)
+        from deepcontact.admission import nearest_admissible
+        from deepcontact.faces import OPEN, contact_face, face_errors, repair_face, solve_on_face
+        from deepcontact.kinematics import Physics, contact_frame
 
         bodies, mu = engine.bodies(), point_friction(self._friction, points)
         frame = contact_frame(bodies, points)
@@ -492,3 +496,57 @@ def _stacked(warm) -> np.ndarray:
 def _pushing(impulses: np.ndarray):
     """(P, 2) N s as a warm start with no normal impulse below 0 (a contact only pushes)."""
     return as_warm_start(np.column_stack([np.maximum(impulses[:, 0], 0.0), impulses[:, 1]]))
+
+
+#: One line per mode, as help lists them (the module docstring says each in full).
+MODE_HELP = {
+    "pick": "keeps, each step, the cheapest of builtin and W1, W2, ... by trial solves",
+    "shadow": "serves W1 and prices builtin and the others on its states",
+    "mean": "serves the mean of W1, W2, ... and prices it beside each",
+    "price": "serves builtin and prices W1, W2, ... on its states (the same in every run)",
+    "split": "serves W and prices the two parts of its correction (body-space, self-stress)",
+    "boost": "serves W and prices it with its self-stress part scaled",
+    "admit": "serves W and prices forms of it admitted into the friction cones",
+    "motion": "serves W and prices its motion scaled and admitted",
+    "graft": "serves W1 and prices it with W2's moving bodies' motion",
+    "feedback": "serves W and prices it less shares of its previous step's error",
+    "shrink": "serves builtin and prices W's error against E scaled, and its two parts halved",
+    "gate": "serves builtin and prices W gated per point against builtin, judged by E",
+    "face": "serves builtin and prices the step solved on E's active set, with W's labels, and on W's",
+    "solved": "serves the step solved on classifier W's labels, admitted (the face route, closed loop)",
+    "solved-forms": "serves as solved:W does and prices other forms of it",
+}
+#: How each mode's name is written in help.
+MODE_USAGE = {"pick": "W1+W2+...", "shadow": "W1+W2+...", "mean": "W1+W2+...", "price": "W1+W2+...",
+              "graft": "W1+W2", "shrink": "W+E", "gate": "W+E", "face": "W+E"}
+
+
+def make_composite(name: str) -> Pick:
+    """MODE:W1+W2+... (or solved@P:W, solved-forms@P:W) as a Pick; ValueError saying what is wrong."""
+    for mode in ("solved", "solved-forms"):  # solved@P:W: W's labels read pressing above P N s
+        if name.startswith(f"{mode}@"):
+            threshold, colon, rest = name[len(mode) + 1:].partition(":")
+            try:
+                pressing = float(threshold)
+            except ValueError:
+                pressing = None
+            if not colon or pressing is None:
+                raise ValueError(f"{mode}@P: needs a pressing threshold in N s, e.g. {mode}@0.75:server:NAME, "
+                                 f"got {name!r}")
+            return Pick(make_composite(f"{mode}:{rest}").candidates, mode=mode, pressing=pressing)
+    mode, _, rest = name.partition(":")
+    names = [n for n in rest.split("+") if n]
+    if not names or any(composite_parts(n) is not None for n in names):
+        raise ValueError(f"{mode}: takes warm starts joined by +, e.g. {mode}:server:default+server:pressure, "
+                         f"got {name!r}")
+    if any(n in ("none", "builtin") for n in names):
+        raise ValueError(f"{mode}: always tries builtin; for zeros use server:zero, got {name!r}")
+    return Pick([make_provider(n) for n in names], mode=mode)
+
+
+for _mode in Pick.MODES:
+    register_prefix(f"{_mode}:", make_composite, MODE_HELP[_mode], usage=f"{_mode}:{MODE_USAGE.get(_mode, 'W')}",
+                    composite=True)
+for _mode in ("solved", "solved-forms"):
+    register_prefix(f"{_mode}@", make_composite, f"{_mode}:W with W's labels read pressing above P N s",
+                    usage=f"{_mode}@P:W", composite=True)

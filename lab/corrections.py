@@ -1,6 +1,6 @@
-"""`deepcontact bench corrections`: how a served model's corrections compare with the solver's, by size.
+"""`deepcontact lab corrections`: how a served model's corrections compare with the solver's, by size.
 
-    deepcontact bench corrections --model graph-mse --data data/thesis-val-801-820.h5
+    deepcontact lab corrections --model graph-mse --data data/thesis-val-801-820.h5
 
 Replays recorded steps (`deepcontact generate`) through a model as the server
 serves it (its card's combine and threshold included) and compares the served
@@ -57,6 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_models_argument
 from deepcontact.io import write_json_atomic
 from deepcontact.kinematics import BODY_DYNAMIC, REST_SPEED, body_space_part, points_at_rest
 
@@ -76,7 +77,7 @@ BANDS = (0.01, 0.1, 0.3, 1.0)
 def add_replay_arguments(parser: argparse.ArgumentParser, model_help: str) -> None:
     """The arguments of a command that replays recorded steps through a model: --models,
     --model (its help is `model_help`), --data, --max-steps."""
-    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    add_models_argument(parser)
     parser.add_argument("--model", default="default", help=model_help)
     parser.add_argument("--data", type=Path, required=True, help="recorded steps (HDF5 from `deepcontact generate`)")
     parser.add_argument("--max-steps", type=int, default=500, metavar="N",
@@ -107,7 +108,9 @@ class RecordedSolve:
     own final impulses), as a model would that fitted `train-graph`'s default target exactly."""
 
     def predict(self, bodies, points, world, step, previous, friction=None):
-        return points["impulse"].astype(np.float32), None
+        from server.predictors import Prediction
+
+        return Prediction(points["impulse"].astype(np.float32))
 
 
 def served_on_step(predictor, step) -> np.ndarray:
@@ -119,7 +122,7 @@ def served_on_step(predictor, step) -> np.ndarray:
     c = step.contacts
     world = World(((0.0, 0.0), tuple(np.maximum(c["point"].max(axis=0) + 1.0, 1.0))), step.physics)
     extra = {"friction": step.friction} if "point_friction" in getattr(predictor, "requires", ()) else {}
-    return np.asarray(predictor.predict(step.bodies, c, world, 0, step.previous, **extra)[0], np.float32)
+    return np.asarray(predictor.predict(step.bodies, c, world, 0, step.previous, **extra).impulses, np.float32)
 
 
 def band_table(served: np.ndarray, solver: np.ndarray, new: np.ndarray) -> list[dict]:
@@ -227,17 +230,17 @@ def run(args: argparse.Namespace) -> int:
     from training.grids import GridDataError
 
     if args.max_steps < 1:
-        print("deepcontact bench corrections: --max-steps must be >= 1", file=sys.stderr)
+        print("deepcontact lab corrections: --max-steps must be >= 1", file=sys.stderr)
         return 2
     names = [n for n in args.model.split(",") if n]
     if not names:
-        print("deepcontact bench corrections: --model names no model", file=sys.stderr)
+        print("deepcontact lab corrections: --model names no model", file=sys.stderr)
         return 2
     if args.agree is not None and args.part != "whole":
-        print("deepcontact bench corrections: --agree compares whole corrections; leave out --part", file=sys.stderr)
+        print("deepcontact lab corrections: --agree compares whole corrections; leave out --part", file=sys.stderr)
         return 2
     if args.agree is not None and (len(names) < 2 or not args.agree > 0):
-        print("deepcontact bench corrections: --agree K needs K > 0 and at least two models (--model A,B)",
+        print("deepcontact lab corrections: --agree K needs K > 0 and at least two models (--model A,B)",
               file=sys.stderr)
         return 2
     try:
@@ -246,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
         served, solver, new, where = replay(predictors, args.data, args.max_steps, args.reference, args.agree,
                                             args.part)
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
-        print(f"deepcontact bench corrections: {exc}", file=sys.stderr)
+        print(f"deepcontact lab corrections: {exc}", file=sys.stderr)
         return 2
     total = len(served)
     if args.where != "all":

@@ -1,4 +1,4 @@
-"""`deepcontact bench face-solve`: what the face route's solve costs a step, by the step's size,
+"""`deepcontact lab face-solve`: what the face route's solve costs a step, by the step's size,
 and how near its two ways of solving agree.
 
 Records a thesis world on a benchmark seed (bench.server.record_steps), passes each step
@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_models_argument, add_seed_argument
 from deepcontact.io import write_json_atomic
 
 SIZES = ((1, 100), (100, 150), (150, 200), (200, 10**6))
@@ -39,9 +40,9 @@ PINV_RCOND = 1e-10
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    add_models_argument(parser)
     parser.add_argument("--model", default="default", help="a face card (default: default)")
-    parser.add_argument("--seed", type=int, default=903, help="thesis-world seed (default 903)")
+    add_seed_argument(parser, "thesis-world seed (default 903)", default=903)
     parser.add_argument("--steps", type=int, default=250, help="steps recorded (default 250)")
     parser.add_argument("--json", metavar="FILE", help="write the results here as JSON")
 
@@ -54,8 +55,10 @@ def run(args: argparse.Namespace) -> int:
     import scipy.linalg
 
     from bench.server import record_steps
-    from deepcontact import kinematics as K
     from deepcontact import wire
+    from deepcontact.admission import nearest_admissible, project_to_cones
+    from deepcontact.faces import OPEN, contact_face, face_system, minimum_norm_solve, solve_on_face, solved_on_labels
+    from deepcontact.kinematics import contact_frame, contact_operator, contact_velocities
     from deepcontact.modelcard import ModelCard, ModelCardError
     from server.predictors import World, load_model
     from simclient.scene import SceneSpec
@@ -64,12 +67,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         card = ModelCard.load(path)
         if card.face is None:
-            print(f"deepcontact bench face-solve: {path} has no face: name a face card", file=sys.stderr)
+            print(f"deepcontact lab face-solve: {path} has no face: name a face card", file=sys.stderr)
             return 2
         # The classifier whose answer the route reads: the card's alias target, or the card itself.
         classifier = load_model(args.models / f"{ModelCard.alias_target(path) or args.model}.json")
     except (OSError, ModelCardError) as exc:
-        print(f"deepcontact bench face-solve: {exc}", file=sys.stderr)
+        print(f"deepcontact lab face-solve: {exc}", file=sys.stderr)
         return 2
     face_of = card.face
     thesis = SceneSpec.thesis()
@@ -83,31 +86,31 @@ def run(args: argparse.Namespace) -> int:
         bodies, points = wire.decode_step(sent, max_bodies=10**4, max_points=10**6)
         mu = wire.decode_friction(sent).astype(np.float64)
         extra = {"friction": mu.astype(np.float32)} if "point_friction" in classifier.requires else {}
-        labels = classifier.predict(bodies, points, world, k, **extra)[0].astype(np.float64)
-        face = K.contact_face(labels, mu, pressing=face_of["pressing"], share=face_of["share"])
-        if not (face != K.OPEN).any():
+        labels = classifier.predict(bodies, points, world, k, **extra).impulses.astype(np.float64)
+        face = contact_face(labels, mu, pressing=face_of["pressing"], share=face_of["share"])
+        if not (face != OPEN).any():
             continue
-        frame = K.contact_frame(bodies, points)
+        frame = contact_frame(bodies, points)
         t0 = time.perf_counter()
-        system, eq, slide = K.face_system(frame, face, mu)
+        system, eq, slide = face_system(frame, face, mu)
         t1 = time.perf_counter()
-        operator = K.contact_operator(frame)
+        operator = contact_operator(frame)
         pressing, sticking = eq[eq % 2 == 0], eq[eq % 2 == 1] - 1
         np.concatenate([operator[np.ix_(eq, pressing)] + operator[np.ix_(eq, pressing + 1)] * slide,
                         operator[np.ix_(eq, sticking + 1)]], axis=1)
         t1b = time.perf_counter()
-        rhs = -K.contact_velocities(bodies, points, physics=world.physics).ravel()[eq]
+        rhs = -contact_velocities(bodies, points, physics=world.physics).ravel()[eq]
         t2 = time.perf_counter()
-        dual = K.minimum_norm_solve(system, rhs)
+        dual = minimum_norm_solve(system, rhs)
         t3 = time.perf_counter()
         gelsy = scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
         t4 = time.perf_counter()
         pinv = np.linalg.pinv(system, rcond=PINV_RCOND) @ rhs
         size = max(float(np.linalg.norm(pinv)), 1e-300)
-        solved = K.solve_on_face(bodies, points, face, mu, world.physics, frame)
+        solved = solve_on_face(bodies, points, face, mu, world.physics, frame)
         t5 = time.perf_counter()
-        K.nearest_admissible(bodies, points, solved, mu, open_points=face == K.OPEN, iterations=face_of["rounds"],
-                             frame=frame)
+        nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=face_of["rounds"],
+                           frame=frame)
         t6a = time.perf_counter()
         route = (bodies, points, labels, mu, world.physics, face_of["pressing"], face_of["share"], face_of["rounds"],
                  face_of["label_friction"])
@@ -120,11 +123,11 @@ def run(args: argparse.Namespace) -> int:
             if paired_heap:
                 keep_freed_memory(kept=kept)
             t6 = time.perf_counter()
-            K.solved_on_labels(*route, **route_kw)
+            solved_on_labels(*route, **route_kw)
             took[kept] = 1e3 * (time.perf_counter() - t6)
         route_ms, glibc_ms = took[True], took.get(False)
         differs = None if dual is None else float(np.linalg.norm(dual - gelsy) / max(np.linalg.norm(gelsy), 1e-300))
-        admissible = bool(np.array_equal(K.project_to_cones(solved, mu) * (face != K.OPEN)[:, None], solved))
+        admissible = bool(np.array_equal(project_to_cones(solved, mu) * (face != OPEN)[:, None], solved))
         rows.append({"points": len(points), "unknowns": len(rhs), "system_ms": 1e3 * (t1 - t0),
                      "gelsy_from_pinv": float(np.linalg.norm(gelsy - pinv)) / size,
                      "dual_from_pinv": None if dual is None else float(np.linalg.norm(dual - pinv)) / size,
@@ -132,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
                      "dual_ms": 1e3 * (t3 - t2), "gelsy_ms": 1e3 * (t4 - t3), "admit_ms": 1e3 * (t6a - t5),
                      "route_ms": route_ms, "route_glibc_heap_ms": glibc_ms, "differs": differs})
     if not rows:
-        print(f"deepcontact bench face-solve: no step of seed {args.seed} has a pressing label", file=sys.stderr)
+        print(f"deepcontact lab face-solve: no step of seed {args.seed} has a pressing label", file=sys.stderr)
         return 2
     by_size = []
     print(f"{args.model} on thesis seed {args.seed}: {len(rows)} steps; medians in ms")

@@ -1,11 +1,11 @@
-"""`deepcontact bench faces`: how right a served model's answer is as an active set.
+"""`deepcontact lab faces`: how right a served model's answer is as an active set.
 
-    deepcontact bench faces --model default --data data/thesis-val-801-820.h5
+    deepcontact lab faces --model default --data data/thesis-val-801-820.h5
 
 A step's solution lies on a face of the contact problem's limits: each point lets go,
 sticks, or slides one way or the other (deepcontact.kinematics.contact_face). Solved on its
 answer's own face a step needs 0.185x of Builtin's iterations, and with 3 or 10 of the
-default's labels in it 0.687x and 0.933x (`face:` in `bench iterations`; docs/results.md,
+default's labels in it 0.687x and 0.933x (`face:` in `lab iterations`; docs/results.md,
 "The active set alone"): a face pays only if it is wrong at very few of a step's points.
 This replays recorded steps (`deepcontact generate`) through a model as the server serves it,
 reads its answer, Box2D's warm start and the recorded solve's end as faces, and counts
@@ -33,14 +33,14 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact.io import write_json_atomic
-from deepcontact.kinematics import FACE_ERRORS, contact_face, face_errors
+from deepcontact.faces import FACE_ERRORS, contact_face, face_errors
 
 #: How many wrong labels a step may have in the per-step shares printed (docs/results.md:
 #: 3 and 10 of the default's labels in the answer's face need 0.687x and 0.933x of Builtin).
 WRONG_AT_MOST = (3, 10)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from bench.corrections import add_replay_arguments
+    from lab.corrections import add_replay_arguments
 
     add_replay_arguments(parser, "model to replay (default: default); 'recorded' serves the recorded solve's own end "
                                  "(no label wrong: a check of the reading)")
@@ -75,7 +75,7 @@ def replay(predictor, path: Path, max_steps: int):
     (training.grids' record: bodies, contacts, physics) for up to max_steps recorded steps
     with contacts: the model's answer as served, Box2D's warm start and where the recorded
     solve ended."""
-    from bench.corrections import served_on_step
+    from lab.corrections import served_on_step
     from training.grids import iter_steps, open_dataset, select_steps
 
     with open_dataset(path) as ds:
@@ -97,7 +97,7 @@ def _floats(text: str, name: str) -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bench.corrections import RecordedSolve
+    from lab.corrections import RecordedSolve
     from deepcontact.modelcard import ModelCardError
     from server.predictors import GridMismatch, load_model
     from training.grids import GridDataError
@@ -111,10 +111,10 @@ def run(args: argparse.Namespace) -> int:
         predictor = RecordedSolve() if args.model == "recorded" else load_model(args.models / f"{args.model}.json")
         steps = list(replay(predictor, args.data, args.max_steps))
     except (ModelCardError, GridDataError, GridMismatch, OSError, ValueError) as exc:
-        print(f"deepcontact bench faces: {exc}", file=sys.stderr)
+        print(f"deepcontact lab faces: {exc}", file=sys.stderr)
         return 2
     if not steps:
-        print(f"deepcontact bench faces: {args.data} has no steps with contacts", file=sys.stderr)
+        print(f"deepcontact lab faces: {args.data} has no steps with contacts", file=sys.stderr)
         return 2
     points = np.array([len(s[0]) for s in steps])
     mus = [np.full(n, args.friction) for n in points]
@@ -155,7 +155,9 @@ def solve_times(steps: list, mus: list, pressing: float, share: float, rounds: i
     labels, and of nearest_admissible in full and cut at `rounds` rounds; steps as replay yields."""
     import time
 
-    from deepcontact.kinematics import OPEN, contact_frame, nearest_admissible, solve_on_face
+    from deepcontact.admission import nearest_admissible
+    from deepcontact.faces import OPEN, solve_on_face
+    from deepcontact.kinematics import contact_frame
 
     times = {"solve": [], "admit": [], "admit_cut": []}
     for (served, _, _, step), mu in zip(steps, mus):  # a loop over steps, each timed alone

@@ -12,7 +12,7 @@ the solver does, when a sweep changes no impulse by more than the threshold. It 
 Box2D's solver (Box2D updates friction before the normal impulse, in its islands' order):
 on 512 validation steps it stops within 3 % of the recorded answers' size of them and prices
 the default's warm start as the engine's trial solves do (docs/results.md, "Is the answer the
-solver's choice?"). Used by `deepcontact bench order` and training.probe_screen.
+solver's choice?"). Used by `deepcontact lab order` and lab.probe_screen.
 """
 
 from __future__ import annotations

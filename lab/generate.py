@@ -1,4 +1,4 @@
-"""`deepcontact bench generate`: what recording costs over simulating, and what writing costs.
+"""`deepcontact lab generate`: what recording costs over simulating, and what writing costs.
 
 Runs the same simulations twice in this one process, interleaved seed by
 seed: once plain (`Engine.step`), once recorded (collide, export bodies,
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     compressions = [c.strip() for c in args.compressions.split(",") if c.strip()]
     unknown = sorted(set(compressions) - set(COMPRESSIONS))
     if unknown or not compressions:
-        print(f"deepcontact bench generate: unknown compression {', '.join(unknown) or '(none given)'} "
+        print(f"deepcontact lab generate: unknown compression {', '.join(unknown) or '(none given)'} "
               f"(one of {', '.join(COMPRESSIONS)})", file=sys.stderr)
         return 2
     plain, recorded = [], []

@@ -1,6 +1,6 @@
-"""`deepcontact bench graph-size`: a contact-graph model's inference against the step's size.
+"""`deepcontact lab graph-size`: a contact-graph model's inference against the step's size.
 
-    deepcontact bench graph-size --model default,graph-projected-max-1-799-long-e2 \
+    deepcontact lab graph-size --model default,graph-projected-max-1-799-long-e2 \
         --sizes 140x100,400x400,400x1600 --json bench/results/graph-size/sizes.json
 
 A contact-graph network exported since 2026-11-26 sums each round's messages per body with
@@ -23,18 +23,19 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_models_argument, add_seed_argument
 from deepcontact.io import write_json_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="default,graph-projected-max-1-799-long-e2",
                         help="comma-separated contact-graph models (card names; default %(default)s)")
-    parser.add_argument("--models", default="models", help="model folder (default %(default)s)")
+    add_models_argument(parser)
     parser.add_argument("--sizes", default="140x100,400x400,400x1600",
                         help="comma-separated POINTSxBODIES (default %(default)s: the thesis world's median "
                              "step, and 400 points among 400 and 1,600 bodies)")
     parser.add_argument("--repeats", type=int, default=30, help="timed runs per model and size (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic inputs (default %(default)s)")
+    add_seed_argument(parser, "seed of the synthetic inputs (default 0)", default=0)
     parser.add_argument("--json", metavar="FILE", help="write the rows here as JSON")
 
 
@@ -76,19 +77,19 @@ def run(args: argparse.Namespace) -> int:
     try:
         sizes = parse_sizes(args.sizes)
     except ValueError as e:
-        raise SystemExit(f"bench graph-size: {e}") from None
+        raise SystemExit(f"lab graph-size: {e}") from None
     if args.repeats < 1:
-        raise SystemExit("bench graph-size: --repeats must be at least 1")
+        raise SystemExit("lab graph-size: --repeats must be at least 1")
     folder = Path(args.models)
     rows = []
     for name in (n.strip() for n in args.model.split(",") if n.strip()):
         path = folder / f"{name}.json"
         if not path.is_file():
-            raise SystemExit(f"bench graph-size: no card {path}")
+            raise SystemExit(f"lab graph-size: no card {path}")
         target = ModelCard.alias_target(path)
         predictor = load_model(folder / f"{target}.json" if target else path)
         if not isinstance(predictor, GraphPredictor):
-            raise SystemExit(f"bench graph-size: {name} is a {predictor.kind} model, not a contact-graph one")
+            raise SystemExit(f"lab graph-size: {name} is a {predictor.kind} model, not a contact-graph one")
         rounds = predictor.card.architecture.get("config", {}).get("rounds")
         passes = predictor.card.passes
         rng = np.random.default_rng(args.seed)

@@ -1,10 +1,10 @@
 """A contact-graph network trained elsewhere, as a served model: its ONNX file and card.
 
-    python -m training.import_graph_weights runs/jax/jax-w128-r8.weights.npz \\
+    python -m lab.import_graph_weights runs/jax/jax-w128-r8.weights.npz \\
         --probe runs/jax/probe.json --out-dir models
         # models/jax-w128-r8.onnx and models/jax-w128-r8.json
 
-training.train_graph_jax trains the contact-graph network on a machine with an
+lab.train_graph_jax trains the contact-graph network on a machine with an
 accelerator and no TensorFlow, and leaves the weights (training.graph_model's
 layout) and a probe.json holding the training files' normalization and the
 run's history. This rebuilds the network in TensorFlow from them, exports it
@@ -62,7 +62,7 @@ def import_weights(weights_path: Path, probe_path: Path, out_dir: Path, name: st
         architecture={"config": config_to_dict(config), "parameters": {"total": params, "trainable": params},
                       "onnx_opset": 17, "onnx_bytes": len(onnx_bytes), "onnx_incidence": "scatter",
                       "tensorflow": net.tf.__version__},
-        training={"trained_with": "training.train_graph_jax", "jax": probe["jax"], "device": probe["device"],
+        training={"trained_with": "lab.train_graph_jax", "jax": probe["jax"], "device": probe["device"],
                   "train": probe["train"], "val": probe["val"], "train_steps": probe["train_steps"],
                   "train_points": probe["train_points"], "settings": {
                       "loss": probe["loss"], "width": run["width"], "rounds": run["rounds"],
@@ -93,8 +93,8 @@ def _parity(net, onnx_bytes: bytes, config) -> float:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training.import_graph_weights", description=__doc__.split("\n\n")[0])
-    p.add_argument("weights", type=Path, nargs="+", help="NAME.weights.npz written by training.train_graph_jax")
+    p = argparse.ArgumentParser(prog="python -m lab.import_graph_weights", description=__doc__.split("\n\n")[0])
+    p.add_argument("weights", type=Path, nargs="+", help="NAME.weights.npz written by lab.train_graph_jax")
     p.add_argument("--probe", type=Path, required=True, help="that run's probe.json")
     p.add_argument("--out-dir", type=Path, default=Path("models"), help="where to write (default models/)")
     p.add_argument("--name", help="the model's name (one weights file only; default: the file's, e.g. jax-w128-r8)")
@@ -106,7 +106,7 @@ def main(argv=None) -> int:
     if missing:
         print(f"import_graph_weights: no such file: {', '.join(missing)}", file=sys.stderr)
         return 2
-    command = "python -m training.import_graph_weights " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    command = "python -m lab.import_graph_weights " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     for w in args.weights:
         try:
             card = import_weights(w, args.probe, args.out_dir, name=args.name, command=command)

@@ -1,6 +1,6 @@
-"""`deepcontact bench inference`: what ONNX Runtime levers do to a grid model's inference.
+"""`deepcontact lab inference`: what ONNX Runtime levers do to a grid model's inference.
 
-    deepcontact bench inference --model pressure
+    deepcontact lab inference --model pressure
 
 Records a thesis world on a benchmark seed, turns its steps into the model's
 normalized input grids exactly as the server does, and times one inference per
@@ -33,15 +33,16 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_models_argument, add_seed_argument
 from deepcontact.io import write_json_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    add_models_argument(parser)
     # Not "default": the shipped default is a contact-graph model, which has no grid to crop.
     parser.add_argument("--model", default="pressure",
                         help="grid model to time (default: %(default)s, the thesis's model)")
-    parser.add_argument("--seed", type=int, default=900, help="thesis-world seed (default 900)")
+    add_seed_argument(parser, "thesis-world seed (default 900)", default=900)
     parser.add_argument("--steps", type=int, default=250, help="steps recorded (default 250)")
     parser.add_argument("--repeats", type=int, default=3, help="times each step is timed per variant (default 3)")
     parser.add_argument("--rows", default="32,24", help="grid heights for the cropped variants (default %(default)s)")
@@ -164,11 +165,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         card, card_path, rows = _checked(args)
     except _Refused as exc:
-        print(f"deepcontact bench inference: {exc}", file=sys.stderr)
+        print(f"deepcontact lab inference: {exc}", file=sys.stderr)
         return 2
     grids = input_grids(card, record_steps(args.seed, args.steps))
     if len(grids) < 8:
-        print(f"deepcontact bench inference: only {len(grids)} steps with contacts; give more --steps", file=sys.stderr)
+        print(f"deepcontact lab inference: only {len(grids)} steps with contacts; give more --steps", file=sys.stderr)
         return 2
     calibration, timed = grids[::2][:64], grids[1::2]  # calibrate and time on different steps
     sessions = _variant_sessions(card.onnx_path(card_path), card.input_name, calibration)

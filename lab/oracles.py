@@ -1,5 +1,6 @@
 """Oracle experiments: warm starts built from the step's own solution, to find where a warm
-start's value lies (docs/results.md). Not servable: each solves the step first.
+start's value lies (docs/results.md). Not servable: each solves the step first. Registered
+with simclient.warmstarts as oracle:VARIANT when `lab` is imported.
 
     provider = make_provider("oracle:near-admissible")   # simclient.warmstarts.make_provider
 
@@ -70,12 +71,14 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from deepcontact.admission import nearest_admissible
 from deepcontact.gridspec import GridSpec
 from deepcontact.kinematics import (Physics, bodies_moving, body_space_part, body_space_part_of, contact_velocities,
-                                    nearest_admissible, points_at_rest)
+                                    points_at_rest)
 from deepcontact.transfer import plan
 from simclient.provider import (SWITCH_IMPULSE, Provider, ReadsFriction, as_warm_start, at_friction_cone,
                                 persisting_rows, point_friction)
+from simclient.warmstarts import register_prefix
 
 ORACLES = ("persisting", "new", "normal", "tangent", "heavy", "half", "grid@RES", "small@T", "big@T", "noisy@S",
            "relnoisy@R", "previous", "some@F", "settled", "moving", "body-space", "self-stress", "near",
@@ -123,8 +126,8 @@ class OracleMix(ReadsFriction):
             raise ValueError(f"unknown oracle variant {variant!r}: use one of {', '.join(ORACLES)}")
         self.mix = self.kind.removeprefix("near-")
         if self.mix not in _MIXES:
-            raise ValueError(f"oracle:{variant} is not a mix of this step's solution (simclient.warmstarts.make_provider "
-                             "serves it with PreviousOracle)")
+            raise ValueError(f"oracle:{variant} is not a mix of this step's solution (make_oracle serves it "
+                             "with PreviousOracle)")
         self._rng = np.random.default_rng(0)  # a fresh provider per world: the same noise every run
 
     def warm_start(self, engine, bodies, points, step):
@@ -306,3 +309,14 @@ class PreviousOracle(Provider):
         keys, exact = self._now if self._now is not None else (np.zeros(0, np.uint64), np.zeros((0, 2)))
         order = np.argsort(keys)
         self._keys, self._exact = keys[order], exact[order]
+
+
+def make_oracle(name: str) -> Provider:
+    """oracle:VARIANT (the module docstring); ValueError for an unknown variant or a bad parameter."""
+    if name in ("oracle:previous", "oracle:near-previous"):
+        return PreviousOracle(near=name == "oracle:near-previous")
+    return OracleMix(name.split(":", 1)[1])
+
+
+register_prefix("oracle:", make_oracle, "the step's own solution mixed with Box2D's warm start: "
+                f"{', '.join(ORACLES)} (lab/oracles.py)", usage="oracle:VARIANT")

@@ -1,6 +1,6 @@
-"""`deepcontact bench order`: does the order of the solver's sweep choose its answer?
+"""`deepcontact lab order`: does the order of the solver's sweep choose its answer?
 
-    deepcontact bench order --data data/thesis-val-801-820.h5 --model default
+    deepcontact lab order --data data/thesis-val-801-820.h5 --model default
 
 A pile is held at more points than its bodies have freedoms, so a step has many solutions,
 which differ by a self-stress (impulses that move no body; docs/results.md, "Load the
@@ -10,7 +10,7 @@ them in as well as on where it starts. A network is told where the solve starts 
 warm start) and not the order. If the order chose much of the answer, the part of the
 correction it chooses would be out of any such network's reach.
 
-This command runs a projected Gauss-Seidel replica of the solver (training.gauss_seidel: per
+This command runs a projected Gauss-Seidel replica of the solver (lab.gauss_seidel: per
 point, the normal and tangent impulse updated together, the normal kept >= 0 and the tangent
 inside mu times it) on recorded steps of Builtin's trajectory, from Box2D's
 warm start, in --orders different orders: each a colouring of the points
@@ -40,8 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_models_argument
 from deepcontact.io import write_json_atomic
-from training.gauss_seidel import Steps, gauss_seidel
+from lab.gauss_seidel import Steps, gauss_seidel
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also solve (in the first order) from Box2D's warm start with Gaussian noise of this many N s "
                              "at each point (normal kept >= 0): how much of a change to the start the answer keeps "
                              "(default %(default)s; 0: not run)")
-    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    add_models_argument(parser)
     parser.add_argument("--model", default="default", help="a contact-graph model whose error is printed for scale; "
                                                            "'' for none (default: default)")
     parser.add_argument("--json", metavar="FILE", help="write the figures here")
@@ -69,13 +70,13 @@ def run(args: argparse.Namespace) -> int:
     from training.grids import GridDataError
 
     if args.orders < 2 or args.steps < 1 or args.max_sweeps < 1 or not args.threshold > 0 or args.mu < 0:
-        print("deepcontact bench order: needs --orders 2 or more, --steps and --max-sweeps 1 or more, "
+        print("deepcontact lab order: needs --orders 2 or more, --steps and --max-sweeps 1 or more, "
               "--threshold above 0 and --mu 0 or more", file=sys.stderr)
         return 2
     try:
         report = measure(args)
     except (GridDataError, OSError, ValueError) as exc:
-        print(f"deepcontact bench order: {exc}", file=sys.stderr)
+        print(f"deepcontact lab order: {exc}", file=sys.stderr)
         return 2
     print(format_report(report))
     if args.json:

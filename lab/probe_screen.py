@@ -1,7 +1,7 @@
 """A screen: does a contact-graph network fit better when each round is given the contact
 problem's own operator (training.graph_model, `probes`)?
 
-    python -m training.probe_screen --train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 \\
+    python -m lab.probe_screen --train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 \\
         --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5 \\
         --max-steps-per-file 20000 --epochs 4 --probes 0,8 --json runs/probe-screen.json
 
@@ -10,7 +10,7 @@ same steps in the same order, the same schedule, the squared error of the correc
 every point, train-graph's normalization) and differs only in its probes (0: the plain
 network, the control). Printed per network: its weights and each epoch's training and
 validation loss, so the fits are compared at equal training, and what its answers are worth
-to the solver's replica (training.gauss_seidel) on --price-steps steps of the first --val
+to the solver's replica (lab.gauss_seidel) on --price-steps steps of the first --val
 file: the mean sweeps from them over those from Box2D's warm start, the same steps for every
 network. With `--body-state` every network screened also keeps a state per body across its
 rounds (training.graph_model, `body_state`): the same question for that change, whose control
@@ -31,12 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_seed_argument
 from deepcontact.io import write_json_atomic
 from training.train_graph import DEFAULTS, Scaling, _train, cached_graph_set, normalization
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m training.probe_screen", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m lab.probe_screen", description=__doc__.split("\n\n")[0])
     parser.add_argument("--train", type=Path, action="append", required=True, help="training data; repeatable")
     parser.add_argument("--val", type=Path, action="append", required=True, help="validation data; repeatable")
     parser.add_argument("--max-steps-per-file", type=int, metavar="N", help="use at most N steps of each file")
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, default=4, help="epochs (default %(default)s)")
     parser.add_argument("--batch-size", type=int, default=DEFAULTS["batch_size"], help="steps a batch (default %(default)s)")
     parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak learning rate (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="weights, step order and sampling (default 0)")
+    add_seed_argument(parser, "weights, step order and sampling (default 0)", default=0)
     parser.add_argument("--cache", type=Path, default=Path("runs/graph-cache"), help="graph sets, as train-graph's")
     parser.add_argument("--price-steps", type=int, default=512,
                         help="steps of the first --val file the replica prices each network on (default %(default)s; 0: none)")
@@ -116,7 +117,7 @@ class Pricing:
     Box2D's warm start alone, on the same steps, in one order (colouring seed 0)."""
 
     def __init__(self, gs, args):
-        from training.gauss_seidel import Steps, gauss_seidel
+        from lab.gauss_seidel import Steps, gauss_seidel
         from training.graph_loss import colour_points
 
         rng = np.random.default_rng(args.seed)

@@ -1,6 +1,6 @@
 """A shipped contact-graph model exported again with the current export, its weights unchanged.
 
-    python -m training.reexport_graph models/graph-projected-max-1-799-r8.json
+    python -m lab.reexport_graph models/graph-projected-max-1-799-r8.json
         # models/graph-projected-max-1-799-r8.onnx rewritten with ScatterND sums; its card,
         # and every card of the folder that serves the same file (the -t1 card), say so
 
@@ -98,12 +98,12 @@ def _serves(card_path: Path, onnx_path: Path) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m training.reexport_graph",
+    parser = argparse.ArgumentParser(prog="python -m lab.reexport_graph",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("cards", type=Path, nargs="+", help="contact-graph model cards, e.g. "
                                                             "models/graph-projected-max-1-799-r8.json")
     args = parser.parse_args(argv)
-    command = "python -m training.reexport_graph " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    command = "python -m lab.reexport_graph " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     for card_path in args.cards:
         try:
             card = ModelCard.load(card_path)

@@ -4,7 +4,7 @@
 # card to models/ (served like the shipped ones), and, where the model predicts a correction, also
 # carded as "-new-points" (same ONNX, applied only to points new this step).
 #
-#   bash training/round2_variants.sh [VARIANT ...]     (default: all)
+#   bash lab/round2_variants.sh [VARIANT ...]     (default: all)
 #
 # Then: deepcontact bench iterations --warm-starts builtin,server:NAME,...
 set -euo pipefail

@@ -6,13 +6,13 @@
 #      that pool start-up is a small part, beside the same sweep without the server (builtin
 #      alone), which is what the simulations cost by themselves.
 #
-# usage: bash bench/scale_many_cores.sh OUTDIR        (PY=python to use, default .venv/bin/python;
+# usage: bash lab/scale_many_cores.sh OUTDIR        (PY=python to use, default .venv/bin/python;
 #        WORKERS (default: the machine's cores), GEN_SEEDS (default 1-256), IT_SEEDS (default 901-964),
 #        REPEATS (default 2))
 # Writes OUTDIR/generate.json and OUTDIR/iterations-*.json. Run where the cores are; see docs/scale.md.
 set -euo pipefail
 
-out=${1:?usage: bash bench/scale_many_cores.sh OUTDIR}
+out=${1:?usage: bash lab/scale_many_cores.sh OUTDIR}
 py=${PY:-.venv/bin/python}
 workers=${WORKERS:-$(nproc)}
 gen_seeds=${GEN_SEEDS:-1-256}
@@ -34,7 +34,7 @@ runs = []
 for c in ("gzip", "lzf", "none"):
     path = f"{tmp}/gen-{c}.h5"
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "deepcontact", "generate", "--quiet", "--seeds", spec, "--workers", workers,
+    subprocess.run([sys.executable, "-m", "commands", "generate", "--quiet", "--seeds", spec, "--workers", workers,
                     "--compression", c, "--out", path], check=True)
     wall = time.perf_counter() - t0
     runs.append({"compression": c, "simulations": n, "wall_s": wall, "simulations_per_s": n / wall,
@@ -47,10 +47,10 @@ write_json_atomic(f"{out}/generate.json", {"workers": int(workers), "seeds": spe
 PYEOF
 
 echo "== bench iterations --workers $workers --seeds $it_seeds: without the server, with 1 and 4 replicas"
-"$py" -m deepcontact bench scale --commands iterations --configs "workers=$workers" --repeats "$repeats" \
+"$py" -m commands bench scale --commands iterations --configs "workers=$workers" --repeats "$repeats" \
     --iteration-seeds "$it_seeds" --warm-starts builtin --json "$out/iterations-builtin.json"
 for r in 1 4; do
-    "$py" -m deepcontact bench scale --commands iterations --configs "workers=$workers" --repeats "$repeats" \
+    "$py" -m commands bench scale --commands iterations --configs "workers=$workers" --repeats "$repeats" \
         --replicas "$r" --iteration-seeds "$it_seeds" --warm-starts builtin,server:default \
         --json "$out/iterations-replicas$r.json"
 done

@@ -7,7 +7,7 @@
 # control. The whole per-state gain of that loss comes in its first epoch (docs/results.md, "On
 # Builtin's states"), which is why one epoch is enough to screen.
 #
-#   bash training/screen_loss.sh            (about 65 min on two cores)
+#   bash lab/screen_loss.sh            (about 65 min on two cores)
 #
 # Needs the round-2 data (TRAIN_SEEDS=1-799 bash training/round2_data.sh) and
 # runs/graph-cache/graph-mse-1-799-e16.weights.npz (bash training/round2_graph.sh
@@ -51,6 +51,6 @@ for setting in "${SETTINGS[@]}"; do
     "$DC" train-graph "${COMMON[@]}" "${flags[@]}" --out "$OUT/$name.onnx"
     echo "$name: trained in $((SECONDS - start)) s"
 done
-"$DC" bench iterations --models "$OUT" --seeds "$SEEDS" --workers 2 --deadline-ms 1000 \
+"$DC" lab iterations --models "$OUT" --seeds "$SEEDS" --workers 2 --deadline-ms 1000 \
     --warm-starts "builtin,price:server:*" --out bench/results/r2-screen-loss --quiet
 echo "screen done in ${SECONDS} s"

@@ -5,7 +5,7 @@
 # priced on the very same states by the engine's trial solves (`shadow:`), in three runs of
 # about twenty models each (a run's every step costs one solve per candidate).
 #
-#   bash bench/shadow_ablation.sh [OUT_PREFIX]     (default bench/results/r2-shadow-ablation)
+#   bash lab/shadow_ablation.sh [OUT_PREFIX]     (default bench/results/r2-shadow-ablation)
 #
 # Writes OUT_PREFIX-0, -1, -2 (summary.json: "picks", results.md: the per-candidate table).
 # About 20-30 min a run on two cores.
@@ -41,6 +41,6 @@ for i in "${!batches[@]}"; do
   for model in ${batches[$i]}; do  # word splitting on purpose: one model name per word
     candidates+="+server:$model"
   done
-  "$deepcontact" bench iterations --seeds 901-950 --workers 2 --deadline-ms 1000 \
+  "$deepcontact" lab iterations --seeds 901-950 --workers 2 --deadline-ms 1000 \
     --warm-starts "builtin,shadow:$candidates" --out "$out-$i"
 done

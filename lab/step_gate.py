@@ -6,7 +6,7 @@ about 0.92x: the default loses at about a quarter of the steps. This asks whethe
 gate the server computes (from the request and the model's own answer, nothing the solve
 tells) finds those steps.
 
-    deepcontact bench step-gate --fit-seeds 800-849 --seeds 850-899 --json bench/results/r2-step-gate.json
+    deepcontact lab step-gate --fit-seeds 800-849 --seeds 850-899 --json bench/results/r2-step-gate.json
 
 It simulates each seed in process with `shadow:` over the model (its own trajectory; each step
 also solved from Box2D's warm start, the world unchanged), records each step's features
@@ -50,10 +50,11 @@ import numpy as np
 
 from bench.inprocess import InProcess
 from bench.stats import ratio_interval
+from deepcontact.arguments import add_models_argument
 from deepcontact.io import write_json_atomic
 from deepcontact.modelcard import ModelCard
 from deepcontact.step_gate import FEATURES, StepGate, step_features
-from simclient.composites import Pick
+from lab.composites import Pick
 from simclient.scene import SceneSpec, add_scene_arguments, spec_from_args
 from simclient.seeds import parse_seeds
 from simclient.simulate import run_simulation
@@ -305,7 +306,7 @@ def format_report(report: dict) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--models", default="models", help="model cards' folder (default %(default)s)")
+    add_models_argument(parser, "model cards' folder")
     parser.add_argument("--model", default="default", help="the model gated (default %(default)s)")
     parser.add_argument("--fit-seeds", default="800-849", help="seeds the gate is fitted on (default %(default)s, "
                                                                "the validation seeds)")
@@ -342,7 +343,7 @@ def run(args: argparse.Namespace) -> int:
                              f"serve its classifier's labels as impulses. Gate a graph model that answers impulses")
         report = measure(args, spec_from_args(args))
     except (OSError, ValueError) as exc:
-        print(f"deepcontact bench step-gate: {exc}", file=sys.stderr)
+        print(f"deepcontact lab step-gate: {exc}", file=sys.stderr)
         return 2
     print(format_report(report))
     if args.json:
@@ -358,6 +359,6 @@ def save_card(models: Path, model: str, name: str, report: dict) -> Path:
     target = ModelCard.alias_target(models / f"{model}.json") or model
     worlds = " and ".join([f"the {report['scene']} world"] + [repr(f) for f in report.get("fit_also", [])])
     why = (f"{model} gated per step: fitted on seeds {report['fit_seeds']} of {worlds}, "
-           f"{report['rows'][f'{model} gated']['value']:.3f}x of Builtin on {report['seeds']} (bench step-gate)")
+           f"{report['rows'][f'{model} gated']['value']:.3f}x of Builtin on {report['seeds']} (lab step-gate)")
     return write_json_atomic(models / f"{name}.json",
                              {"name": name, "alias_of": target, "step_gate": report["gate"], "why": why})

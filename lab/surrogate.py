@@ -1,11 +1,11 @@
-"""`deepcontact bench surrogate`: does the training loss's score of a step say how many
+"""`deepcontact lab surrogate`: does the training loss's score of a step say how many
 iterations a model's warm start saves there?
 
-    deepcontact bench surrogate --model default --data data/thesis-val-801-820.h5
+    deepcontact lab surrogate --model default --data data/thesis-val-801-820.h5
 
 The file's steps are Builtin's own trajectory (`deepcontact generate`), so the engine's
 trial solves along Builtin's trajectory of the same seeds and scene (`price:server:MODEL`,
-as `bench iterations` runs it) price the model's warm start at the very steps the file
+as `lab iterations` runs it) price the model's warm start at the very steps the file
 holds; the file's recorded iteration counts must equal Builtin's trials, step for step, or
 the command stops. Per step with contacts it then sets side by side:
 
@@ -28,13 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_models_argument
 from deepcontact.io import write_json_atomic
 
 BATCH_STEPS = 64  # steps per batch of the loss's sweeps
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
+    add_models_argument(parser)
     parser.add_argument("--model", default="default", help="a contact-graph model to score (default: default)")
     parser.add_argument("--data", type=Path, required=True,
                         help="Builtin's steps recorded by `deepcontact generate` (its scene and seeds are simulated again)")
@@ -62,10 +63,10 @@ def run(args: argparse.Namespace) -> int:
         saved, builtin = _trial_savings(args)
         score = _scores(args, sweeps)
     except (ModelCardError, GridDataError, OSError, ValueError, ConnectionError, RuntimeError) as exc:
-        print(f"deepcontact bench surrogate: {exc}", file=sys.stderr)
+        print(f"deepcontact lab surrogate: {exc}", file=sys.stderr)
         return 2
     if len(score) != len(saved):
-        print(f"deepcontact bench surrogate: {args.data} holds {len(score)} steps with contacts and the simulations "
+        print(f"deepcontact lab surrogate: {args.data} holds {len(score)} steps with contacts and the simulations "
               f"{len(saved)}", file=sys.stderr)
         return 2
     report = summarize(score, saved, builtin)
@@ -137,7 +138,7 @@ def _scores(args, sweeps: tuple[int, ...]) -> np.ndarray:
 
     from deepcontact.channels import channel_values
     from deepcontact.kinematics import contact_physics
-    from bench.corrections import served_on_step
+    from lab.corrections import served_on_step
     from server.predictors import load_model
     from training.graph_loss import (colour_points, friction_bounds, gauss_seidel_changes_after,
                                      projected_changes_after, step_log_norms)

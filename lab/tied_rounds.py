@@ -1,8 +1,8 @@
 """A tied contact-graph model exported to run another number of rounds.
 
-    python -m training.tied_rounds models/graph-mse-1-799-tied8.json --rounds 16
+    python -m lab.tied_rounds models/graph-mse-1-799-tied8.json --rounds 16
         # models/graph-mse-1-799-tied8-r16.onnx + .json: the same weights, sixteen rounds
-    python -m training.tied_rounds models/graph-mse-1-799-tied8.json --depths 4,8,12,16 \
+    python -m lab.tied_rounds models/graph-mse-1-799-tied8.json --depths 4,8,12,16 \
         --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5
         # the squared error train-graph validates with, at each depth; writes nothing
 
@@ -109,7 +109,7 @@ def validation_losses(card_path: Path, depths: list[int], val: list[Path], *, ma
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m training.tied_rounds",
+        prog="python -m lab.tied_rounds",
         description="export a tied contact-graph model (train-graph --tied) to run another number of rounds "
                     "with the same weights; writes NAME-rROUNDS.onnx and its card beside the card")
     parser.add_argument("card", type=Path, help="the tied model's card, e.g. models/graph-mse-1-799-tied8.json")
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if (args.rounds is None) == (args.depths is None) or (args.depths is not None and not args.val):
         parser.error("give --rounds K (export), or --depths with one or more --val (print losses)")
-    command = "python -m training.tied_rounds " + shlex.join(sys.argv[1:] if argv is None else argv)
+    command = "python -m lab.tied_rounds " + shlex.join(sys.argv[1:] if argv is None else argv)
     try:
         if args.depths is not None:
             depths = [int(k) for k in args.depths.split(",") if k.strip().isdigit() and int(k) >= 1]

@@ -1,6 +1,6 @@
 """The contact-graph network trained with JAX, for a machine with an accelerator.
 
-    python -m training.train_graph_jax --train data/a.h5 --train data/b.h5 \\
+    python -m lab.train_graph_jax --train data/a.h5 --train data/b.h5 \\
         --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5 \\
         --config 128x3 --config 128x8 --seconds 300 --out runs/jax
 
@@ -18,7 +18,7 @@ It writes, per network, OUT/NAME.weights.npz (the layout train-graph's
 --init and training.graph_model read, kernels (fan_in, fan_out)), and
 OUT/probe.json: the training files' normalization (what the card carries),
 each network's validation history and the loss of no correction.
-`python -m training.import_graph_weights` turns a weights file into a served
+`python -m lab.import_graph_weights` turns a weights file into a served
 ONNX model and its card on a machine with TensorFlow.
 
 Steps are batched as train-graph batches them (GraphSet.batch: a disjoint
@@ -340,7 +340,7 @@ def _write_json(path: Path, obj) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training.train_graph_jax", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="python -m lab.train_graph_jax", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--train", action="append", required=True, help="recorded .h5 file (repeat; read in parallel)")
     p.add_argument("--val", action="append", required=True, help=f"validation .h5 file ({VAL_STEPS} steps each)")

@@ -7,7 +7,7 @@ start at 128 KiB and move with what was freed; a step that gets fresh pages touc
 one page fault at a time. Fixing the mapping threshold and the trim threshold high keeps
 those pages in the heap, where the next step finds them warm. A server's memory then stays
 near its peak step's, a few tens of MiB. What it saves on a face card's route is in
-`deepcontact bench face-solve` (its "heap as glibc starts" column, the same route with the
+`deepcontact lab face-solve` (its "heap as glibc starts" column, the same route with the
 thresholds set back to glibc's starting values, paired step by step).
 """
 

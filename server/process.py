@@ -47,7 +47,7 @@ class ServerProcess:
         port_file = Path(self._tmp.name) / "port"
         log = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "deepcontact", "serve", "--models", str(self.models), "--bind", self.bind,
+            [sys.executable, "-m", "commands", "serve", "--models", str(self.models), "--bind", self.bind,
              "--port-file", str(port_file), *self.extra_args],
             stdout=log, stderr=log, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         deadline = time.monotonic() + self.startup_timeout

@@ -6,9 +6,11 @@ helpers for the contact limits that several providers share.
     # warm is None (use Box2D's own: builtin or none) or (normal (n,), tangent (n,)) float32, N s
     provider.observe(engine.contacts())                       # after the solve
 
-The providers themselves: simclient.warmstarts (local ones, and the registry make_provider),
-simclient.oracles (experiments that read the step's solution) and simclient.composites
-(several warm starts priced on the same states).
+A composite (`Composite`) is a warm start over warm starts: the engine's trial solves price
+Box2D's warm start and each of its candidates on the same state, and it says which is served.
+
+The product's providers and the registry of names (make_provider) are in simclient.warmstarts;
+the lab's (oracles, probes, the composites) register there when `lab` is imported.
 """
 
 from __future__ import annotations
@@ -23,11 +25,11 @@ CONE_SHARE = 0.99
 
 class Provider:
     """A warm start: `name` is what make_provider was given; a provider that asks the server
-    sets `uses_server`, one that needs the engine's trial solves sets `picks`."""
+    sets `uses_server`, one that needs the engine's trial solves sets `picks` (a Composite)."""
 
     name: str
     uses_server = False
-    picks = False  # pick:...: the engine's trial solves choose among builtin and candidates
+    picks = False  # a Composite: the engine's trial solves choose among builtin and candidates
 
     def prepare(self, engine) -> None:
         """Before the first step (e.g. switch Box2D's own warm starting)."""
@@ -38,6 +40,65 @@ class Provider:
 
     def observe(self, points_after_solve: np.ndarray) -> None:
         """After each solve, with the step's points and their final impulses."""
+
+
+class Composite(Provider):
+    """A warm start over warm starts: each step with contacts the stepping loop asks every
+    one of `candidates` (a server one over the simulation's stream), hands their answers to
+    pick(), which prices them by the engine's trial solves (the world unchanged) and returns
+    the start the step is served. What the loop, run_simulation and bench iterations read:
+
+        candidates   [Provider], in the order of the name (HEAD:W1+W2+...)
+        pick(engine, points, served) -> (normal (P,), tangent (P,)) float32 N s
+                     served: each candidate's answer, None where it fell back (Box2D's)
+        trials       per step with contacts: each priced start's iterations, builtin's first
+        reach        the same steps: each one's sweeps to Builtin's accuracy
+        notes        the same steps: what note_labels names (empty for most)
+        labels       what each entry of a trials row priced: ["builtin", candidates..., derived...]
+        note_labels  what each entry of a notes row counts
+        serves       whose start the steps were served, as a table says it ("Builtin's")
+
+    The composites themselves are the lab's (lab.composites).
+    """
+
+    picks = True
+    sends_oracle = False
+    serves = "the picked"
+
+    def __init__(self, candidates: list[Provider]):
+        self.candidates = list(candidates)
+        self.uses_server = any(c.uses_server for c in self.candidates)
+        self.trials: list[list[int]] = []
+        self.reach: list[list[int]] = []
+        self.notes: list[list[float]] = []
+
+    @property
+    def models(self) -> tuple[str, ...]:
+        """Every model the candidates ask the server for."""
+        return tuple(m for c in self.candidates if c.uses_server for m in c.models)
+
+    @property
+    def model(self) -> str:
+        return self.models[0] if self.models else ""
+
+    @property
+    def labels(self) -> list[str]:
+        return ["builtin", *(c.name for c in self.candidates)]
+
+    @property
+    def note_labels(self) -> list[str]:
+        return []
+
+    def prepare(self, engine) -> None:
+        for c in self.candidates:
+            c.prepare(engine)
+
+    def observe(self, points_after_solve):
+        for c in self.candidates:
+            c.observe(points_after_solve)
+
+    def pick(self, engine, points, served: list):
+        raise NotImplementedError
 
 
 class ReadsFriction(Provider):

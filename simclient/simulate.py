@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact import tls
+from deepcontact.arguments import add_seed_argument
 from deepcontact.io import write_json_atomic
 from deepcontact.modelcard import unknown_model
-from simclient import worlds
+from simclient import warmstarts, worlds
 from simclient.guard import Guard
 from simclient.provider import Provider
 from simclient.stepping import StepRecord, Stepper, columns, summarize  # noqa: F401  (StepRecord: the results' rows)
@@ -83,12 +84,10 @@ def run_simulation(spec, seed: int, provider: Provider, *, client=None, deadline
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     worlds.add_world_arguments(parser)
-    parser.add_argument("--seed", type=int, required=True, help="world seed (benchmarks use 900-999)")
+    add_seed_argument(parser, "world seed (benchmarks use 900-999)", required=True)
     parser.add_argument("--warm-start", required=True, metavar="W",
-                        help="none, builtin, copy, copy2, copy0, extrapolate, or server:MODEL "
-                             "(server:random, server:bad, server:grid-identity, server:<onnx model>); "
-                             "probes and oracles (oracle:VARIANT, solve@K, jitter@S, pick:W1+W2...) "
-                             "are listed in simclient/warmstarts.py, oracles.py and composites.py")
+                        help=f"one of {warmstarts.usage()} (e.g. server:default, server:random, server:bad, "
+                             "server:grid-identity)")
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="warm-start server for server:MODEL (any gRPC target, e.g. dns:///server:50051, or unix:PATH for a server on a Unix socket)")
     parser.add_argument("--deadline-ms", type=float, default=DEFAULT_DEADLINE_MS,
@@ -143,6 +142,7 @@ def tls_files(args: argparse.Namespace) -> tuple:
 
 
 def run(args: argparse.Namespace) -> int:
+    prog = " ".join(("deepcontact", *getattr(args, "_words", ("simulate",))))  # the words that ran this command
     try:
         spec = worlds.spec_from_args(args)
         if isinstance(spec, worlds.WorldSpec):  # a function that raises or returns no world: said now, nothing written
@@ -153,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
         tls.client_credentials(*tls_files(args))  # unreadable or mismatched files: said before anything runs
         check_writable(args.out)
     except (ValueError, OSError) as exc:
-        print(f"deepcontact simulate: {exc}", file=sys.stderr)
+        print(f"{prog}: {exc}", file=sys.stderr)
         return 2
     client = None
     if provider.uses_server:
@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
             client = connect(args.server, "+".join(provider.models), connect_timeout=args.connect_timeout,
                              allow_fallback=args.allow_fallback, tls=tls_files(args))
         except (ValueError, ConnectionError) as exc:
-            print(f"deepcontact simulate: {exc}", file=sys.stderr)
+            print(f"{prog}: {exc}", file=sys.stderr)
             return 2
     from simclient.client import Refused
 
@@ -175,10 +175,10 @@ def run(args: argparse.Namespace) -> int:
                                 progress=(lambda k: bar.update(1)) if bar else None,
                                 guard=None if args.no_guard else Guard())
     except ValueError as exc:  # a user's world that cannot be built for this seed
-        print(f"deepcontact simulate: {exc}", file=sys.stderr)
+        print(f"{prog}: {exc}", file=sys.stderr)
         return 2
     except Refused as exc:
-        print(f"deepcontact simulate: the server at {args.server} refuses {args.warm_start} for this world: {exc}",
+        print(f"{prog}: the server at {args.server} refuses {args.warm_start} for this world: {exc}",
               file=sys.stderr)
         return 2
     finally:

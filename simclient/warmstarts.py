@@ -1,61 +1,117 @@
-"""Warm-start providers: where each step's starting impulses come from, and their registry.
+"""Warm-start providers: where each step's starting impulses come from, and the registry of their names.
 
     provider = make_provider("copy2")
     warm = provider.warm_start(engine, bodies, points, step)   # after collide()
     # warm is None (use Box2D's own: builtin or none) or (normal (n,), tangent (n,)) float32, N s
 
-make_provider knows every name: the local ones below, oracle:VARIANT (simclient.oracles),
-server:NAME, and pick:/shadow:/mean:/price:/split:/boost:/admit:/motion:/graft:/feedback:/shrink:/gate:/face:/solved:/solved-forms: over several
-(simclient.composites). The interface is simclient.provider.Provider.
-
-Local providers (thesis §8.2 plus one it lacked):
+The product's warm starts (thesis §8.2 plus one it lacked), registered here:
     none         zeros (Box2D's warm starting off)
     builtin      Box2D's own: last step's impulse of the same point
     copy         the oracle: this step solved from zero to convergence
     copy2        the oracle rounded to two decimals
     copy0        the oracle rounded to integers
     extrapolate  J(t-1) + (J(t-1) - J(t-2)) for points that persist, builtin otherwise
-Probes of what a model could use (docs/results.md, "Where the iterations are"):
-    lastchange@A builtin + A x the change the solver made to the same point's warm
-                 start on the previous step (temporal information, e.g. A = -0.5)
-    solve@K      builtin + K conjugate-gradient steps on this step's contact problem
-                 without its limits (no friction cone, normal impulses may go
-                 negative until clamped): a global linear solve, as a model with
-                 unlimited reach could at best learn it
-    solve-active@K  the same on the contacts Box2D's warm start says are active:
-                 normal impulses only where it is > 0 (or the point is new), tangent
-                 ones only where last step's friction was inside the cone
-    jitter@S     builtin + Gaussian noise of S N s at persisting points (seeded): a
-                 control for pick:, candidates that know nothing
-    prestress@M  builtin + a self-stress (impulses that move no body) that lifts every
-                 pressing point's normal impulse toward at least M N s where it is below:
-                 the part of that lift that moves no body (deepcontact.kinematics.body_space_part).
-                 Does any self-stress that keeps contacts off their limits pay, or only the
-                 solution's own?
-    preload@M    the same with a lift of M N s at every pressing point, whatever its load
-    rest-admissible  a motion guessed without the solution, then admitted: every touching body
-                 slower than REST_SPEED (m/s) brought to rest by its contacts (their net impulse and
-                 torque cancel its velocity after gravity), every other body moved as Box2D's warm
-                 start moves it; the least-norm change to Box2D's warm start with that motion, then
-                 the smallest self-stress that brings every point inside its cone (as
-                 oracle:near-admissible does with the solution's motion)
-Remote:
     server:NAME  the warm-start server's model or provider NAME (see `ListModels`);
                  `server:grid-identity` is sent the oracle's impulses (thesis's Grid)
+
+The registry: make_provider knows a name registered whole (register_name) or by its prefix
+(register_prefix, e.g. "server:"); the longest registered prefix a name starts with makes it.
+Other packages add theirs when imported: `import lab` registers the research warm starts
+(oracle:VARIANT, the probes, the composites pick:W1+W2+... and the like; lab/README.md).
+A composite's prefix is registered with composite=True: its names read HEAD:W1+W2+...
+(composite_parts). A process started afresh (a pool worker, a Ray task) knows only the
+product's names until it imports the modules that registered the others (extensions,
+load_extensions). The interface is simclient.provider.Provider.
 """
 
 from __future__ import annotations
 
+import importlib
+from typing import Callable, NamedTuple
+
 import numpy as np
 
-from deepcontact.kinematics import REST_SPEED
-from simclient.composites import Pick
-from simclient.oracles import ORACLES, OracleMix, PreviousOracle
-from simclient.provider import (CONE_SHARE, SWITCH_IMPULSE, Provider, ReadsFriction, as_warm_start, persisting_rows,
-                                point_friction)
+from simclient.provider import Provider
 
-LOCAL = ("none", "builtin", "copy", "copy2", "copy0", "extrapolate", "lastchange@A", "solve@K", "solve-active@K",
-         "jitter@S", "prestress@M", "preload@M", "rest-admissible")
+
+class Registered(NamedTuple):
+    """One registered warm start: a whole name or a prefix."""
+
+    usage: str  # how the help writes it, e.g. "server:NAME"
+    make: Callable[[str], Provider]  # the whole name -> a provider (ValueError when it cannot make one)
+    help: str  # one line
+    module: str  # the module that registered it (a fresh process imports it to know the name)
+    composite: bool = False  # HEAD:W1+W2+...: a warm start over the warm starts W1, W2, ...
+
+
+_NAMES: dict[str, Registered] = {}
+_PREFIXES: dict[str, Registered] = {}
+_ORDER: dict[tuple[str, str], Registered] = {}  # both, in the order they were registered
+
+
+def register_name(name: str, factory: Callable[[], Provider], help: str) -> None:
+    """Make `name` mean factory() (a fresh provider per call). Registering a name again replaces it."""
+    _NAMES[name] = _ORDER["name", name] = Registered(name, lambda _name: factory(), help, _module_of(factory))
+
+
+def register_prefix(prefix: str, factory: Callable[[str], Provider], help: str, *, usage: str | None = None,
+                    composite: bool = False) -> None:
+    """Make every name that starts with `prefix` mean factory(name), the whole name; factory
+    raises ValueError, with a one-line message, for a name it cannot make. usage: how help
+    writes it (default PREFIX...). composite: names read HEAD:W1+W2+..., the warm starts W1,
+    W2, ... priced by the engine's trial solves (a simclient.provider.Composite)."""
+    _PREFIXES[prefix] = _ORDER["prefix", prefix] = Registered(usage or f"{prefix}...", factory, help,
+                                                              _module_of(factory), composite)
+
+
+def _module_of(factory) -> str:
+    return getattr(factory, "__module__", None) or __name__
+
+
+def registered() -> list[Registered]:
+    """Every registered warm start in the order it was registered (the product's first)."""
+    return list(_ORDER.values())
+
+
+def usage() -> str:
+    """The registered names as a help text writes them, comma-separated."""
+    return ", ".join(r.usage for r in registered())
+
+
+def extensions() -> tuple[str, ...]:
+    """The modules other than this one that registered warm starts (e.g. lab's), sorted."""
+    return tuple(sorted({r.module for r in registered()} - {__name__}))
+
+
+def load_extensions(modules) -> None:
+    """Import each of `modules` (extensions() of another process), so that their names are known here."""
+    for module in modules:
+        importlib.import_module(module)
+
+
+def _prefix_of(name: str) -> Registered | None:
+    """The registered prefix `name` starts with, the longest; None if none."""
+    matches = [p for p in _PREFIXES if name.startswith(p)]
+    return _PREFIXES[max(matches, key=len)] if matches else None
+
+
+def composite_parts(name: str) -> tuple[str, list[str]] | None:
+    """(HEAD, [W1, W2, ...]) of a composite's name HEAD:W1+W2+..., or None for any other name."""
+    entry = None if name in _NAMES else _prefix_of(name)
+    if entry is None or not entry.composite:
+        return None
+    head, _, rest = name.partition(":")
+    return head, rest.split("+")
+
+
+def make_provider(name: str) -> Provider:
+    """A fresh provider for a registered name; ValueError for a name nothing registered."""
+    if name in _NAMES:
+        return _NAMES[name].make(name)
+    entry = _prefix_of(name)
+    if entry is None:
+        raise ValueError(f"unknown warm start {name!r}: use one of {usage()}")
+    return entry.make(name)
 
 
 class NoWarmStart(Provider):
@@ -113,179 +169,6 @@ class Extrapolate(Provider):
         self._keys, self._impulse_prev2 = keys, prev
 
 
-class LastChange(Provider):
-    """Builtin plus `alpha` times what the solver changed at the same point on the
-    previous step (its final impulse minus where it started), matched by key.
-
-    A large correction is often partly undone one step later, hence a negative
-    alpha (docs/results.md, "Where the iterations are").
-    """
-
-    def __init__(self, alpha: float):
-        self.alpha = alpha
-        self.name = f"lastchange@{alpha:g}"
-        self._keys = np.zeros(0, np.uint64)  # sorted keys of the previous step's points ...
-        self._change = np.zeros((0, 2))  # ... and the solver's change at each, N s
-
-    def warm_start(self, engine, bodies, points, step):
-        if len(points) == 0:
-            return None
-        warm = points["builtin"].astype(np.float64)
-        idx, persisting = persisting_rows(self._keys, points)
-        warm[persisting] += self.alpha * self._change[idx[persisting]]
-        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-        return as_warm_start(warm)
-
-    def observe(self, points_after_solve):
-        order = np.argsort(points_after_solve["key"])
-        after = points_after_solve[order]
-        self._keys = after["key"]
-        self._change = np.nan_to_num(after["impulse"].astype(np.float64) - after["warm_start"])
-
-
-class LinearSolve(ReadsFriction):
-    """Builtin plus `iterations` conjugate-gradient steps on this step's contact
-    problem without its limits: find the correction c (P, 2) that leaves no
-    relative velocity at any point, A c = -v, with A = J M^-1 J^T (both
-    directions of every point) and v the points' relative velocity after
-    gravity and Box2D's warm start. Normal impulses are clamped at 0 and
-    tangent ones to the friction cone afterwards (friction from the scene).
-    It is the global solve a model with unlimited reach could at best
-    learn, minus the contact problem's limits. With `active`, only the
-    unknowns Box2D's warm start says are free take part: the normal impulse
-    where it is > 0 or the point is new, the tangent one where it was also
-    inside the friction cone (below 0.99 of its limit) or the point is new;
-    the others keep Box2D's values (last step's active set).
-    """
-
-    def __init__(self, iterations: int, active: bool = False):
-        self.iterations, self.active = iterations, active
-        self.name = f"solve{'-active' if active else ''}@{iterations}"
-
-    def warm_start(self, engine, bodies, points, step):
-        from deepcontact.kinematics import Physics, contact_velocities
-
-        if len(points) == 0:
-            return None
-        gravity = engine.world.gravity
-        physics = Physics(engine.config.dt, (float(gravity[0]), float(gravity[1])))
-        builtin = points["builtin"].astype(np.float64)
-        still = bodies.copy()
-        still["velocity"], still["angular_velocity"] = 0.0, 0.0
-
-        free = np.ones_like(builtin)  # (P, 2): 1 where the unknown takes part
-        if self.active:
-            new = ~builtin.any(axis=1)
-            limit = point_friction(self._friction, points) * builtin[:, 0]
-            free[:, 0] = (builtin[:, 0] > 0) | new
-            free[:, 1] = (free[:, 0] > 0) & ((np.abs(builtin[:, 1]) < CONE_SHARE * limit) | new)
-
-        def delassus(x):  # A x on the free unknowns: the relative velocities impulses x alone cause, (P, 2) m/s
-            return contact_velocities(still, points, warm=x * free) * free
-
-        residual = -contact_velocities(bodies, points, warm=builtin, physics=physics) * free
-        correction = np.zeros_like(builtin)
-        direction = residual.copy()
-        rr = float((residual * residual).sum())
-        for _ in range(self.iterations):  # conjugate-gradient steps, not points
-            ad = delassus(direction)
-            dad = float((direction * ad).sum())
-            if rr <= 1e-30 or dad <= 1e-30:
-                break
-            step_size = rr / dad
-            correction += step_size * direction
-            residual -= step_size * ad
-            rr_next = float((residual * residual).sum())
-            direction = residual + (rr_next / rr) * direction
-            rr = rr_next
-        warm = builtin + correction
-        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-        limit = point_friction(self._friction, points) * warm[:, 0]
-        warm[:, 1] = np.clip(warm[:, 1], -limit, limit)
-        return as_warm_start(warm)
-
-
-class Jitter(Provider):
-    """Builtin plus Gaussian noise of `sigma` N s on both impulses at persisting
-    points (normal clamped at 0): a control for pick:, whose candidates differ
-    from Box2D's warm start by nothing a model knows."""
-
-    def __init__(self, sigma: float, seed: int = 0):
-        self.sigma = sigma
-        self.name = f"jitter@{sigma:g}"
-        self.reseed(seed)
-
-    def reseed(self, seed: int) -> None:
-        self._rng = np.random.default_rng(seed)  # a fresh provider per world: the same noise every run
-
-    def warm_start(self, engine, bodies, points, step):
-        if len(points) == 0:
-            return None
-        builtin = points["builtin"].astype(np.float64)
-        persisting = builtin.any(axis=1)[:, None]
-        warm = builtin + np.where(persisting, self._rng.normal(0.0, self.sigma, builtin.shape), 0.0)
-        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-        return as_warm_start(warm)
-
-
-class Prestress(Provider):
-    """Builtin plus a self-stress chosen without the solution: the part of a lift of the
-    pressing points' normal impulses that moves no body. `floor`: lift each to at least
-    `impulse` N s; else lift every one by `impulse` N s. Normal clamped at 0 after."""
-
-    def __init__(self, impulse: float, floor: bool = True):
-        self.impulse, self.floor = impulse, floor
-        self.name = f"{'prestress' if floor else 'preload'}@{impulse:g}"
-
-    def warm_start(self, engine, bodies, points, step):
-        from deepcontact.kinematics import body_space_part
-
-        if len(points) == 0:
-            return None
-        builtin = points["builtin"].astype(np.float64)
-        pressing = builtin[:, 0] > SWITCH_IMPULSE
-        lift = np.zeros_like(builtin)
-        lift[:, 0] = np.where(pressing, np.maximum(self.impulse - builtin[:, 0], 0.0) if self.floor else self.impulse, 0.0)
-        warm = builtin + lift - body_space_part(bodies, points, lift)
-        warm[:, 0] = np.maximum(warm[:, 0], 0.0)
-        return as_warm_start(warm)
-
-
-class RestAdmissible(ReadsFriction):
-    """A settled pile's motion guessed from its velocities alone, then admitted (module docstring).
-
-    A pile whose contacts all press and stick comes to rest: after a converged solve its
-    bodies do not move. So a slow body's contacts must cancel its momentum after gravity,
-    -m (v + g dt) and -I w, whatever the solution's self-stress; nearest_admissible then
-    chooses the self-stress from the limits. Bodies that move keep Box2D's warm start's motion.
-    """
-
-    name = "rest-admissible"
-
-    def warm_start(self, engine, bodies, points, step):
-        from deepcontact.kinematics import contact_frame, contact_jacobian, nearest_admissible
-
-        if len(points) == 0:
-            return None
-        builtin = points["builtin"].astype(np.float64)
-        frame = contact_frame(bodies, points)
-        jt = contact_jacobian(bodies, points, frame)  # (3 D, 2 P)
-        dynamic = np.flatnonzero(frame.dynamic)
-        target = (jt @ builtin.ravel()).reshape(-1, 3)  # (D, 3) N s, N s, N m s: Box2D's warm start's motion
-        gravity = np.asarray(engine.world.gravity, np.float64) * engine.config.dt
-        velocity = bodies["velocity"][dynamic].astype(np.float64)
-        touching = np.abs(jt).reshape(len(dynamic), -1).any(axis=1)
-        slow = touching & (np.hypot(*velocity.T) < REST_SPEED)
-        mass, inertia = bodies["mass"][dynamic].astype(np.float64), bodies["inertia"][dynamic].astype(np.float64)
-        target[slow, :2] = -mass[slow, None] * (velocity[slow] + gravity)
-        target[slow, 2] = -inertia[slow] * bodies["angular_velocity"][dynamic][slow]
-        # The least-norm change with that motion (least squares where a body's points cannot give it).
-        change, *_ = np.linalg.lstsq(jt, target.ravel() - jt @ builtin.ravel(), rcond=None)
-        warm = nearest_admissible(bodies, points, builtin + change.reshape(-1, 2), point_friction(self._friction, points),
-                                  frame=frame)
-        return as_warm_start(warm)
-
-
 class Remote(Provider):
     """A model or provider on the warm-start server (see simclient.simulate)."""
 
@@ -302,61 +185,18 @@ class Remote(Provider):
         return (self.model,)
 
 
-def make_provider(name: str) -> Provider:
-    """ValueError for an unknown name."""
-    for mode in ("solved", "solved-forms"):  # solved@P:W: W's labels read pressing above P N s
-        if name.startswith(f"{mode}@") and ":" in name:
-            threshold, rest = name[len(mode) + 1:].split(":", 1)
-            try:
-                pressing = float(threshold)
-            except ValueError:
-                raise ValueError(f"{mode}@P: needs a pressing threshold in N s, e.g. {mode}@0.75:server:NAME, "
-                                 f"got {name!r}") from None
-            inner = make_provider(f"{mode}:{rest}")
-            return Pick(inner.candidates, mode=mode, pressing=pressing)
-    for prefix in Pick.PREFIXES:
-        if name.startswith(prefix):
-            names = [n for n in name[len(prefix):].split("+") if n]
-            if not names or any(Pick.names_one(n) for n in names):
-                raise ValueError(f"{prefix} takes warm starts joined by +, e.g. {prefix}server:default+server:pressure, "
-                                 f"got {name!r}")
-            if any(n in ("none", "builtin") for n in names):
-                raise ValueError(f"{prefix} always tries builtin; for zeros use server:zero, got {name!r}")
-            return Pick([make_provider(n) for n in names], mode=prefix[:-1])
-    if name.startswith("server:"):
-        model = name.split(":", 1)[1]
-        if not model:
-            raise ValueError("server: needs a model name, e.g. server:pressure")
-        return Remote(model)
-    if name in ("oracle:previous", "oracle:near-previous"):
-        return PreviousOracle(near=name == "oracle:near-previous")
-    if name.startswith("oracle:"):
-        return OracleMix(name.split(":", 1)[1])
-    for prefix, parse, make, what in (
-            ("lastchange@", float, LastChange, "a factor, e.g. lastchange@-0.5"),
-            ("jitter@", float, Jitter, "a noise level in N s, e.g. jitter@0.01"),
-            ("prestress@", float, Prestress, "an impulse in N s, e.g. prestress@0.05"),
-            ("preload@", float, lambda m: Prestress(m, floor=False), "an impulse in N s, e.g. preload@0.05"),
-            ("solve@", int, LinearSolve, "a number of iterations, e.g. solve@10"),
-            ("solve-active@", int, lambda k: LinearSolve(k, active=True), "a number of iterations, e.g. solve-active@20")):
-        if name.startswith(prefix):
-            try:
-                value = parse(name[len(prefix):])
-            except ValueError:
-                raise ValueError(f"{prefix}... needs {what}, got {name!r}") from None
-            if (parse is int and value < 1) or (parse is float and prefix != "lastchange@" and not value > 0):
-                raise ValueError(f"{prefix}... needs {what}, got {name!r}")
-            return make(value)
-    factories = {
-        "none": NoWarmStart,
-        "builtin": Builtin,
-        "copy": lambda: Copy("copy", None),
-        "copy2": lambda: Copy("copy2", 2),
-        "copy0": lambda: Copy("copy0", 0),
-        "extrapolate": Extrapolate,
-        "rest-admissible": RestAdmissible,
-    }
-    if name not in factories:
-        raise ValueError(f"unknown warm start {name!r}: use one of {', '.join(LOCAL)}, oracle:VARIANT "
-                         f"({', '.join(ORACLES)}) or server:MODEL")
-    return factories[name]()
+def _remote(name: str) -> Remote:
+    model = name.split(":", 1)[1]
+    if not model:
+        raise ValueError("server: needs a model name, e.g. server:default")
+    return Remote(model)
+
+
+register_name("none", NoWarmStart, "zeros (Box2D's warm starting off)")
+register_name("builtin", Builtin, "Box2D's own: last step's impulse of the same point")
+register_name("copy", lambda: Copy("copy", None), "the oracle: this step solved from zero to convergence")
+register_name("copy2", lambda: Copy("copy2", 2), "the oracle rounded to two decimals")
+register_name("copy0", lambda: Copy("copy0", 0), "the oracle rounded to integers")
+register_name("extrapolate", Extrapolate, "J(t-1) + (J(t-1) - J(t-2)) at points that persist, builtin at new ones")
+register_prefix("server:", _remote, "the warm-start server's model or provider NAME (ListModels); "
+                "server:grid-identity is sent the oracle's impulses", usage="server:NAME")

@@ -51,7 +51,7 @@ _CHUNK_ROWS = {"steps": 4096, "bodies": 16384, "points": 16384, "trace": 65536}
 
 # How the writer compresses (h5py filters; any reader reads all three). One process writes a
 # whole file, so its compression is the ceiling on simulations per second however many workers
-# simulate: `deepcontact bench generate` times each (docs/scale.md). gzip is the smallest.
+# simulate: `deepcontact lab generate` times each (docs/scale.md). gzip is the smallest.
 COMPRESSIONS = {
     "gzip": {"compression": "gzip", "compression_opts": 4, "shuffle": True},
     "lzf": {"compression": "lzf", "shuffle": True},

@@ -39,7 +39,7 @@ def record_simulation(spec: SceneSpec, seed: int, record: bool = True, oracle: b
     step solved from zero to convergence before it is solved as usual (the
     world does not change; a point outside every awake island, which never
     happens with sleeping off, keeps its final impulse). With record=False it
-    only runs the steps (the baseline of `deepcontact bench generate`).
+    only runs the steps (the baseline of `deepcontact lab generate`).
     """
     engine = build_world(spec, seed)
     if not record:
@@ -104,7 +104,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="how the file is compressed (default gzip, the smallest). This one process writes "
                              "every simulation, so on many cores its compression is the ceiling: lzf writes about "
                              "twice as fast for about 16 %% more disk, none about 16 times as fast for 2.4 times "
-                             "the disk (deepcontact bench generate; docs/scale.md)")
+                             "the disk (deepcontact lab generate; docs/scale.md)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

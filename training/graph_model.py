@@ -31,7 +31,7 @@ residual rounds did not train (docs/results.md, "Eight rounds").
 With `tied`, every round uses the same weights (those named round0_*), so the
 network is one learned sweep repeated: how many rounds it runs is then a choice
 made at each call (`rounds=`), not a property of the weights: reach, which is
-what paid from three rounds to eight, without more weights (training/tied_rounds.py
+what paid from three rounds to eight, without more weights (lab/tied_rounds.py
 exports other depths). Measured, it helps only at the depths it was trained at;
 past them the answers get worse (docs/results.md, "One sweep, repeated"). With
 `recall`, every round's update also reads the encoded inputs, so however many

@@ -79,7 +79,7 @@
 #   graph-projected-max-w32    its control: the same at the default's width
 #   graph-mse-1-799-r8         graph-mse-1-799's recipe with 8 rounds of message passing instead
 #                              of 3 (52,834 parameters), 6 epochs: the GPU probe's finding
-#                              (training/device_graph_probe.sh: 8 rounds halve the validation
+#                              (lab/device_graph_probe.sh: 8 rounds halve the validation
 #                              loss) on two cores
 #   graph-projected-max-1-799-r8  graph-projected-max-1-799's recipe from graph-mse-1-799-r8's
 #                              weights (with a -t1 card)
@@ -135,7 +135,7 @@
 #                              (--recall), each batch run at 4 to 12 rounds (--train-rounds 4-12),
 #                              validated and exported at 8; its epochs kept (--checkpoints) and the
 #                              same weights exported at 12, 16 and 24 rounds (-r12, -r16, -r24,
-#                              training.tied_rounds)
+#                              lab.tied_rounds)
 #   graph-mse-1-799-tied12     one more epoch of graph-mse-1-799-tied8 from its weights, each batch
 #                              run at 8 to 16 rounds, validated and exported at 12 (peak rate 5e-4):
 #                              whether depth past the first run's range pays once trained for; the
@@ -270,7 +270,7 @@
 #   graph-face-r8-40k          a classifier of the points (--targets face: the recorded solve's active
 #                              set written as impulses), eight rounds, squared error, 40,000 steps of
 #                              the thesis file only (its friction, 0.5, reads the labels), 4 epochs,
-#                              into runs/face-screen/; read back with `bench faces --pressing 0.5
+#                              into runs/face-screen/; read back with `lab faces --pressing 0.5
 #                              --share 1` (docs/results.md "The active set alone"); 3 min on two cores
 #   graph-face-r8              the same on every step of the thesis file, 6 epochs
 #   graph-face-r8-e12          six more epochs of graph-face-r8 (from its weights, --lr 1e-3, cosine):
@@ -355,14 +355,14 @@ run() {
             variant "$1" --loss mse --rounds 8 --tied --recall --train-rounds 4-12 --epochs 6 --patience 3 \
                 --checkpoints "runs/epochs/$1"
             for k in 12 16 24; do
-                "$PY" -m training.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
+                "$PY" -m lab.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
             done ;;
         graph-mse-1-799-tied12)
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss mse --rounds 12 --tied --recall --train-rounds 8-16 --epochs 1 --lr 5e-4 \
                 --init runs/graph-cache/graph-mse-1-799-tied8.weights.npz
             for k in 16 20; do
-                "$PY" -m training.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
+                "$PY" -m lab.tied_rounds "$OUT/$1.json" --rounds $k --weights "runs/graph-cache/$1.weights.npz"
             done ;;
         graph-projected-max-1-799-tied16|graph-projected-max-1-799-tied16-lr2e-4)
             local lr=5e-4
@@ -490,7 +490,7 @@ run() {
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-r8-ln.weights.npz
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-w128-r8-gpu)
-            # From the GPU probe's weights (training/device_graph_probe.sh), recovered from the shipped
+            # From the GPU probe's weights (lab/device_graph_probe.sh), recovered from the shipped
             # file first: python -m training.recover_weights models/graph-mse-1-799-w128-r8-gpu.json
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --width 128 --rounds 8 --max-steps-per-file 3000 --epochs 2 \

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deepcontact.arguments import add_seed_argument
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard
@@ -137,7 +138,7 @@ def _network_arguments(parser) -> None:
                              "(pre-norm): what let sixteen rounds train on the GPU (docs/results.md)")
     parser.add_argument("--tied", action="store_true",
                         help="every round uses the same weights (one learned sweep, repeated --rounds times), so "
-                             "the trained network can be exported at another depth (python -m training.tied_rounds); "
+                             "the trained network can be exported at another depth (python -m lab.tied_rounds); "
                              "it helps at the depths it was trained at (--train-rounds), not past them; fine-tuning it "
                              "at sixteen rounds needed a lower --lr than the untied network (2e-4, not 5e-4)")
     parser.add_argument("--recall", action="store_true",
@@ -183,7 +184,7 @@ def _loss_arguments(parser) -> None:
                              "oracle: to the step solved from zero to convergence (files from `generate --oracle`); "
                              "face: to the recorded solve's active set written as impulses (1 N s where a point "
                              "presses, +-1 N s along the tangent where it slides; friction read as the thesis "
-                             "world's 0.5): a classifier of the points, read back with `bench faces --pressing 0.5 "
+                             "world's 0.5): a classifier of the points, read back with `lab faces --pressing 0.5 "
                              "--share 1`")
     parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving",
                                            "relative-moving", "solver", "solver-log",
@@ -229,7 +230,7 @@ def _loss_arguments(parser) -> None:
     parser.add_argument("--harm-weight", type=float, default=1.0, metavar="K",
                         help="solver-projected-max: multiply a step's score by K where it is above 0 (the warm "
                              "start worse than Box2D's by the loss), since such steps cost more iterations per unit "
-                             "of score than others save (deepcontact bench surrogate; default %(default)s)")
+                             "of score than others save (deepcontact lab surrogate; default %(default)s)")
     parser.add_argument("--order", choices=ORDERS, default="jacobi",
                         help="solver-projected losses: the order of their sweeps. jacobi (default): every point "
                              "from the same impulses, damped; gauss-seidel: the solver's own, point after point "
@@ -249,7 +250,7 @@ def _schedule_arguments(parser) -> None:
     parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak learning rate (default %(default)s)")
     parser.add_argument("--patience", type=int, default=DEFAULTS["patience"],
                         help="stop after this many epochs without a better validation loss (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="weights, step order and step sampling (default 0)")
+    add_seed_argument(parser, "weights, step order and step sampling (default 0)", default=0)
     parser.add_argument("--init", type=Path, metavar="WEIGHTS",
                         help="start from these weights (the .weights.npz an earlier run left in --cache) instead of "
                              "random ones, for more epochs on a new schedule; same --width and --rounds, and the same "
@@ -750,7 +751,7 @@ class BatchLoss:
                                  zip(changes, builtin_changes)]) / len(args.sweeps)
             if args.loss == "solver-projected-max":
                 # A step the warm start makes worse costs more iterations per unit of this score
-                # than a step it makes better saves (bench surrogate): --harm-weight K > 1 says so.
+                # than a step it makes better saves (lab surrogate): --harm-weight K > 1 says so.
                 harm = args.harm_weight
                 if harm != 1.0:
                     per_step = tf.where(per_step > 0, harm * per_step, per_step)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from deepcontact.cli import main
+from commands import main
 from tests.server.conftest import write_conv_model
 
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 from tests.server.conftest import write_conv_model
 
 
@@ -17,28 +17,15 @@ def test_bench_iterations_writes_summary_table_and_figures(tmp_path):
     write_conv_model(models, "tiny")
     out = tmp_path / "out"
     assert main(["bench", "iterations", "--seeds", "901", "--steps", "30", "--warm-starts",
-                 "none,builtin,extrapolate,server:tiny,server:grid-identity,pick:server:tiny+server:zero,price:server:tiny",
-                 "--models", str(models),
+                 "none,builtin,extrapolate,server:tiny,server:grid-identity", "--models", str(models),
                  "--deadline-ms", "1000", "--out", str(out), "--quiet"]) == 0
     written = json.loads((out / "summary.json").read_text())
     summary = written["warm_starts"]
-    assert set(summary) == {"none", "builtin", "extrapolate", "server:tiny", "server:grid-identity", "pick:server:tiny+server:zero",
-                            "price:server:tiny"}
+    assert set(summary) == {"none", "builtin", "extrapolate", "server:tiny", "server:grid-identity"}
     assert summary["server:tiny"]["p50_latency_ms"] > 0 and summary["server:tiny"]["fallback_steps"] == 0
-    pick = written["picks"]["pick:server:tiny+server:zero"]  # the trial solves: every candidate on the same states
-    assert pick["candidates"] == ["builtin", "server:tiny", "server:zero"] and pick["over_builtin"][0]["value"] == 1.0
-    assert abs(sum(pick["picked"]) - 1.0) < 1e-9
-    # two models: each is also priced against the first on the same states
-    assert pick["over_first"][1]["value"] == 1.0 and pick["over_first"][2]["value"] > 0
-    assert written["picks"]["price:server:tiny"]["over_first"] is None  # one model: nothing to pair
-    assert pick["steps"] == summary["pick:server:tiny+server:zero"]["steps_with_contacts"]
-    assert pick["trajectory"]["seeds"] == 1 and pick["trajectory"]["value"] > 0  # builtin here against on its own
-    priced = written["picks"]["price:server:tiny"]  # served builtin: Builtin's own trajectory
-    assert priced["trajectory"]["value"] == 1.0
-    assert summary["price:server:tiny"]["mean_velocity_iterations"] == summary["builtin"]["mean_velocity_iterations"]
+    assert written["picks"] == {}  # no composite: no trial solves (deepcontact lab iterations prices those)
     table = (out / "results.md").read_text()
-    assert "`price:server:tiny`: every candidate solved from the same state at each of" in table
-    assert "| builtin |" in table and "`pick:server:tiny+server:zero`: every candidate" in table
+    assert "| builtin |" in table and "| server:tiny |" in table
     for fig in ("fig20_contacts_iterations.png", "fig21_convergence.png", "fig26_mse.png"):
         assert (out / fig).stat().st_size > 10_000
 
@@ -55,8 +42,7 @@ def test_server_star_names_every_model_the_server_serves_and_no_provider(tmp_pat
     for name in ("tiny-e10", "tiny-e2"):
         write_conv_model(models, name)
     with ServerProcess(models) as server:
-        assert expand_served(["builtin", "server:*", "price:server:*+jitter@0.1"], server.address) == [
-            "builtin", "server:tiny-e2", "server:tiny-e10", "price:server:tiny-e2+server:tiny-e10+jitter@0.1"]
+        assert expand_served(["builtin", "server:*"], server.address) == ["builtin", "server:tiny-e2", "server:tiny-e10"]
 
 
 def test_ratios_to_builtin_come_with_their_interval_over_seeds(tmp_path):
@@ -86,13 +72,9 @@ def test_every_series_of_a_figure_has_its_own_look_and_baselines_stay_grey():
     assert all(isinstance(styles[n]["color"], str) and styles[n]["ls"] != "-" for n in ("none", "copy", "server:bad"))
 
 
-def test_a_composite_of_many_warm_starts_is_named_short_in_the_legend():
+def test_a_long_name_is_cut_short_in_the_legend():
     from bench.iterations import legend_label
 
-    many = "shadow:server:default+" + "+".join(f"server:graph-variant-{i}" for i in range(5))
-    assert legend_label(many) == "shadow:server:default (+5 more)"
-    assert legend_label("price:server:a+server:b") == "price:server:a (+1 more)"
-    assert legend_label("split:server:default") == "split:server:default"  # one warm start: as it is
     assert legend_label("server:default") == "server:default"
     long = "server:" + "x" * 80
     assert len(legend_label(long)) == 60 and legend_label(long).endswith("\u2026")

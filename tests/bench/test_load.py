@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 from server.process import ServerProcess
 
 

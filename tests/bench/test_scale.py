@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from bench.scale import config_flags
-from deepcontact.cli import main
+from commands import main
 
 
 def test_bench_scale_times_each_configuration_and_compares_the_answers(tmp_path, capsys):

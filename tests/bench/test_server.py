@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from deepcontact.cli import main
+from commands import main
 
 
 def test_bench_server_reports_every_stage_and_the_round_trip(tmp_path, model_dir):

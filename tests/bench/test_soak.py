@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from bench.soak import accounting_check, memory_check
-from deepcontact.cli import main
+from commands import main
 
 
 def test_a_short_soak_accounts_for_every_step_and_samples_the_servers_memory(model_dir, tmp_path):

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 
 
 def test_bench_transfer_times_the_four_transfers_and_loses_no_particle(tmp_path, capsys):

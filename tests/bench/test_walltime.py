@@ -7,7 +7,7 @@ import json
 import pytest
 
 from bench.walltime import scene_for
-from deepcontact.cli import main
+from commands import main
 from tests.server.conftest import write_conv_model
 
 

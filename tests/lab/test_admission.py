@@ -1,4 +1,4 @@
-"""`deepcontact bench admission`: the admission's cost per step beside Box2D's solve."""
+"""`deepcontact lab admission`: the admission's cost per step beside Box2D's solve."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import json
 
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 
 
 def test_bench_admission_times_every_part_on_steps_with_contacts(tmp_path, capsys):
     out = tmp_path / "admission.json"
-    assert main(["bench", "admission", "--seeds", "901", "--settle", "120", "--steps", "2", "--json", str(out)]) == 0
+    assert main(["lab", "admission", "--seeds", "901", "--settle", "120", "--steps", "2", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     parts = {"body_space", "moving_split", "admit", "admit_moving", "box2d_solve"}
     assert set(result["summary"]) == parts
@@ -23,6 +23,6 @@ def test_bench_admission_times_every_part_on_steps_with_contacts(tmp_path, capsy
 
 def test_bench_admission_refuses_bad_arguments():
     with pytest.raises(SystemExit, match="--steps >= 1"):
-        main(["bench", "admission", "--steps", "0"])
-    with pytest.raises(SystemExit, match="bench admission"):
-        main(["bench", "admission", "--seeds", "x"])
+        main(["lab", "admission", "--steps", "0"])
+    with pytest.raises(SystemExit, match="lab admission"):
+        main(["lab", "admission", "--seeds", "x"])

@@ -1,4 +1,4 @@
-"""Warm starts over warm starts (simclient.composites): trial solves on the same states."""
+"""Warm starts over warm starts (lab.composites): trial solves on the same states."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from simclient.composites import Pick, sweeps_to_builtin
-from simclient.oracles import OracleMix
+from lab.composites import Pick, sweeps_to_builtin
+from lab.oracles import OracleMix
 from simclient.provider import Provider, as_warm_start
 from simclient.scene import SceneSpec
 from simclient.simulate import run_simulation
@@ -304,3 +304,18 @@ def test_feedback_serves_its_warm_start_and_takes_off_an_error_that_repeats():
     assert trials[:, 4].mean() < 0.6 * trials[:, 1].mean()
     with pytest.raises(ValueError, match="one warm start"):
         make_provider("feedback:oracle:near+oracle:half")
+
+
+def test_pick_keeps_the_cheapest_of_builtin_and_the_servers_answers_each_step(tmp_path):
+    from server.process import ServerProcess
+    from simclient.client import WarmStartClient
+
+    spec = dataclasses.replace(SceneSpec.thesis(), steps=80)
+    with ServerProcess(tmp_path) as server, WarmStartClient(server.address) as client:  # the server's providers only
+        picked = run_simulation(spec, 904, make_provider("pick:server:zero+server:bad"), client=client, deadline_ms=1000)
+    its = [i for i, n in zip(picked["per_step"]["velocity_iterations"], picked["per_step"]["contact_points"]) if n]
+    trials = picked["trials"]  # per step with contacts: builtin's, zero's and bad's iterations
+    assert len(trials) == len(its) > 0 and all(len(t) == 3 for t in trials)
+    assert its == [min(t) for t in trials]
+    assert any(t[1] < t[0] for t in trials)  # even zeros win some steps ...
+    assert sum(t[2] for t in trials) > sum(t[0] for t in trials)  # ... and (50, 50) loses overall

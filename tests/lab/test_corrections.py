@@ -1,4 +1,4 @@
-"""`deepcontact bench corrections`: a served model's corrections against the solver's, by size."""
+"""`deepcontact lab corrections`: a served model's corrections against the solver's, by size."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from bench.corrections import band_table, fit_of, lost_contact
+from lab.corrections import band_table, fit_of, lost_contact
 from deepcontact.channels import Step
-from deepcontact.cli import main
+from commands import main
 from deepcontact.kinematics import BODY_DYNAMIC
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 
@@ -55,32 +55,32 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
     data = tmp_path / "rec.h5"
     assert main(["generate", "--steps", "60", "--seeds", "1", "--out", str(data), "--quiet"]) == 0
     out = tmp_path / "bands.json"
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
                  "--max-steps", "20", "--json", str(out)]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert sum(r["points"] for r in rows if r["group"] in ("persisting, all", "new points")) > 0
     assert "| persisting, all |" in capsys.readouterr().out
     # Two models: the mean of their warm starts is served.
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny,zero-ish", "--data", str(data),
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny,zero-ish", "--data", str(data),
                  "--max-steps", "20"]) == 2  # no such model
     mean = tmp_path / "mean.json"
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny,tiny", "--data", str(data),
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny,tiny", "--data", str(data),
                  "--max-steps", "20", "--json", str(mean)]) == 0
     assert json.loads(mean.read_text())["rows"] == rows  # the mean of a model and itself is the model
     assert "the mean of tiny, tiny" in capsys.readouterr().out
     # A model agrees with itself wherever it corrects anything.
     agreed = tmp_path / "agreed.json"
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny,tiny", "--agree", "0.2",
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny,tiny", "--agree", "0.2",
                  "--data", str(data), "--max-steps", "20", "--json", str(agreed)]) == 0
     assert json.loads(agreed.read_text())["rows"] == rows
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--agree", "0.2",
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny", "--agree", "0.2",
                  "--data", str(data)]) == 2
     assert "at least two models" in capsys.readouterr().err
     # --where splits the persisting and new points between bodies that lost a contact and the rest.
     split = {}
     for where in ("lost-contact", "kept-contacts", "settled", "moving"):
         out = tmp_path / f"{where}.json"
-        assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
+        assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(data),
                      "--max-steps", "20", "--where", where, "--json", str(out)]) == 0
         table = json.loads(out.read_text())
         assert table["where"] == where
@@ -89,8 +89,8 @@ def test_bench_corrections_replays_recorded_steps_through_a_served_model(tmp_pat
     for part, rest in (("lost-contact", "kept-contacts"), ("settled", "moving")):
         assert all(split[part][g] + split[rest][g] == every[g] for g in every)
     assert "since the previous step" in capsys.readouterr().out
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "nope", "--data", str(data)]) == 2
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny",
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "nope", "--data", str(data)]) == 2
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny",
                  "--data", str(tmp_path / "none.h5")]) == 2
     assert "none.h5" in capsys.readouterr().err
 
@@ -102,7 +102,7 @@ def test_bench_corrections_can_score_against_the_converged_solve(tmp_path, model
     rows = {}
     for reference in ("final", "oracle"):
         out = tmp_path / f"{reference}.json"
-        assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(oracle),
+        assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(oracle),
                      "--reference", reference, "--json", str(out)]) == 0
         table = json.loads(out.read_text())
         assert table["reference"] == reference
@@ -114,11 +114,11 @@ def test_bench_corrections_can_score_against_the_converged_solve(tmp_path, model
     # `recorded` serves the recorded solve's end: no error against it, some against the converged solve.
     for reference, exact in (("final", True), ("oracle", False)):
         out = tmp_path / f"recorded-{reference}.json"
-        assert main(["bench", "corrections", "--model", "recorded", "--data", str(oracle), "--reference", reference,
+        assert main(["lab", "corrections", "--model", "recorded", "--data", str(oracle), "--reference", reference,
                      "--json", str(out)]) == 0
         errors = [r["rms_error"] for r in json.loads(out.read_text())["rows"] if r["points"]]
         assert (max(errors) == 0.0) is exact
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(plain),
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "tiny", "--data", str(plain),
                  "--reference", "oracle"]) == 2
     assert "--oracle" in capsys.readouterr().err
 
@@ -130,7 +130,7 @@ def test_bench_corrections_splits_each_correction_into_the_part_that_moves_the_b
     tables = {}
     for part in ("whole", "body-space", "self-stress"):
         out = tmp_path / f"{part}.json"
-        assert main(["bench", "corrections", "--models", str(model_dir), "--model", "recorded", "--data", str(data),
+        assert main(["lab", "corrections", "--models", str(model_dir), "--model", "recorded", "--data", str(data),
                      "--max-steps", "20", "--part", part, "--json", str(out)]) == 0
         tables[part] = json.loads(out.read_text())
         assert tables[part]["part"] == part
@@ -139,7 +139,7 @@ def test_bench_corrections_splits_each_correction_into_the_part_that_moves_the_b
     rms = {part: {r["group"]: r["rms_correction"] for r in t["rows"]}["persisting, all"] for part, t in tables.items()}
     assert 0.0 < rms["self-stress"] < rms["whole"]  # a pile has a self-stress, a share of the correction
     assert "self-stress part of each correction" in capsys.readouterr().out
-    assert main(["bench", "corrections", "--models", str(model_dir), "--model", "recorded,recorded", "--agree", "0.2",
+    assert main(["lab", "corrections", "--models", str(model_dir), "--model", "recorded,recorded", "--agree", "0.2",
                  "--part", "self-stress", "--data", str(data)]) == 2
     assert "leave out --part" in capsys.readouterr().err
 

@@ -1,16 +1,16 @@
-"""`deepcontact bench face-solve`: the face route's parts timed by step size, on the shipped default."""
+"""`deepcontact lab face-solve`: the face route's parts timed by step size, on the shipped default."""
 
 from __future__ import annotations
 
 import json
 import platform
 
-from deepcontact.cli import main
+from commands import main
 
 
 def test_bench_face_solve_times_each_part_and_the_route_with_both_heaps(tmp_path, capsys):
     out = tmp_path / "face-solve.json"
-    assert main(["bench", "face-solve", "--steps", "90", "--json", str(out)]) == 0
+    assert main(["lab", "face-solve", "--steps", "90", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["model"] == "default" and result["steps"] == len(result["rows"]) > 0
     for row in result["rows"]:
@@ -22,5 +22,5 @@ def test_bench_face_solve_times_each_part_and_the_route_with_both_heaps(tmp_path
 
 
 def test_bench_face_solve_refuses_a_card_without_a_face(capsys):
-    assert main(["bench", "face-solve", "--model", "pressure", "--steps", "5"]) == 2
+    assert main(["lab", "face-solve", "--model", "pressure", "--steps", "5"]) == 2
     assert "has no face" in capsys.readouterr().err

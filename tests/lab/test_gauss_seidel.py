@@ -1,13 +1,13 @@
-"""training.gauss_seidel: a NumPy replica of the solver's projected Gauss-Seidel on recorded steps."""
+"""lab.gauss_seidel: a NumPy replica of the solver's projected Gauss-Seidel on recorded steps."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 from training.contact_graph import build_graph_set
-from training.gauss_seidel import Steps, gauss_seidel
+from lab.gauss_seidel import Steps, gauss_seidel
 from training.graph_loss import colour_points
 
 

@@ -1,15 +1,15 @@
-"""`deepcontact bench generate`: the cost of recording, and of writing with each compression."""
+"""`deepcontact lab generate`: the cost of recording, and of writing with each compression."""
 
 from __future__ import annotations
 
 import json
 
-from deepcontact.cli import main
+from commands import main
 
 
 def test_bench_generate_times_the_write_with_each_compression(tmp_path, capsys):
     out = tmp_path / "generate.json"
-    assert main(["bench", "generate", "--seeds", "900", "--compressions", "gzip,none", "--json", str(out)]) == 0
+    assert main(["lab", "generate", "--seeds", "900", "--compressions", "gzip,none", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert set(result["write"]) == {"gzip", "none"}
     # times are not asserted (benchmarks measure speed); what each costs on disk is
@@ -18,5 +18,5 @@ def test_bench_generate_times_the_write_with_each_compression(tmp_path, capsys):
 
 
 def test_an_unknown_compression_is_refused(capsys):
-    assert main(["bench", "generate", "--compressions", "zstd"]) == 2
+    assert main(["lab", "generate", "--compressions", "zstd"]) == 2
     assert "zstd" in capsys.readouterr().err

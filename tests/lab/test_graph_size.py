@@ -1,4 +1,4 @@
-"""bench/graph_size.py: a shipped contact-graph model timed on synthetic steps of given sizes."""
+"""lab/graph_size.py: a shipped contact-graph model timed on synthetic steps of given sizes."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.graph_size import parse_sizes, synthetic_step
-from deepcontact.cli import main
+from lab.graph_size import parse_sizes, synthetic_step
+from commands import main
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 
@@ -35,7 +35,7 @@ def test_a_synthetic_step_has_the_server_s_shapes_and_ends_within_the_bodies():
 
 def test_the_default_and_a_named_model_are_timed_at_every_size(tmp_path, capsys):
     out = tmp_path / "sizes.json"
-    code = main(["bench", "graph-size", "--models", str(MODELS), "--model", "default,graph-projected-max-1-799-long-e2",
+    code = main(["lab", "graph-size", "--models", str(MODELS), "--model", "default,graph-projected-max-1-799-long-e2",
                  "--sizes", "5x3,20x10", "--repeats", "2", "--json", str(out)])
     assert code == 0
     rows = json.loads(out.read_text())["rows"]
@@ -51,7 +51,7 @@ def test_the_default_and_a_named_model_are_timed_at_every_size(tmp_path, capsys)
 
 def test_a_grid_model_is_refused_with_a_message():
     with pytest.raises(SystemExit, match="not a contact-graph one"):
-        main(["bench", "graph-size", "--models", str(MODELS), "--model", "pressure", "--sizes", "5x3", "--repeats", "1"])
+        main(["lab", "graph-size", "--models", str(MODELS), "--model", "pressure", "--sizes", "5x3", "--repeats", "1"])
 
 
 def test_a_card_with_two_passes_is_timed_as_two_runs_of_its_network(tmp_path, monkeypatch):
@@ -70,7 +70,7 @@ def test_a_card_with_two_passes_is_timed_as_two_runs_of_its_network(tmp_path, mo
 
     monkeypatch.setattr(GraphPredictor, "run_session", counted)
     out = tmp_path / "sizes.json"
-    assert main(["bench", "graph-size", "--models", str(tmp_path), "--model",
+    assert main(["lab", "graph-size", "--models", str(tmp_path), "--model",
                  "graph-projected-max-1-799-long-e2,graph-projected-max-1-799-long-e2-p2", "--sizes", "5x3",
                  "--repeats", "7", "--json", str(out)]) == 0
     once, twice = json.loads(out.read_text())["rows"]

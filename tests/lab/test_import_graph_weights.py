@@ -1,4 +1,4 @@
-"""training.import_graph_weights: a network trained elsewhere (training.train_graph_jax) served
+"""lab.import_graph_weights: a network trained elsewhere (lab.train_graph_jax) served
 here, over a real server; and the JAX trainer's batching, which needs no JAX."""
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ import pytest
 
 from deepcontact.modelcard import ModelCard
 from training.contact_graph import build_graph_set
-from training.import_graph_weights import import_weights, main
+from lab.import_graph_weights import import_weights, main
 from training.recover_weights import recover
-from training.train_graph_jax import concatenate, padded_batch, parse_config
+from lab.train_graph_jax import concatenate, padded_batch, parse_config
 
-from .test_ensemble import served
+from tests.training.test_ensemble import served
 
 SHIPPED = Path(__file__).parents[2] / "models"
 SOURCE = "graph-projected-max-1-799"  # a network train-graph wrote: width 32, 3 rounds
@@ -26,7 +26,7 @@ SOURCE = "graph-projected-max-1-799"  # a network train-graph wrote: width 32, 3
 def probe_for(card: ModelCard, key: str) -> dict:
     """What train_graph_jax writes in probe.json for one network of `card`'s shape."""
     config = card.architecture["config"]
-    return {"command": "python -m training.train_graph_jax ...", "jax": "test", "device": "cpu",
+    return {"command": "python -m lab.train_graph_jax ...", "jax": "test", "device": "cpu",
             "train": ["a.h5"], "val": ["b.h5"], "train_steps": 1, "train_points": 1, "val_steps": 1, "val_points": 1,
             "read_seconds": 0.0, "train_seconds": 1.0, "batch_steps": 1, "lr": 1e-3, "seed": 0,
             "normalization": {k: list(v) for k, v in card.gridspec.normalization.items()}, "loss": "mse",
@@ -62,7 +62,7 @@ def test_the_imported_card_says_where_and_how_the_network_was_trained(folder):
     folder, _ = folder
     card = ModelCard.load(folder / "imported.json")
     assert (card.kind, card.combine, card.parameters) == ("graph", "residual", 21474)
-    assert card.training["trained_with"] == "training.train_graph_jax"
+    assert card.training["trained_with"] == "lab.train_graph_jax"
     assert card.validation["loss"] == 0.5 and card.parity_max_abs_error < 1e-4
     assert card.gridspec.normalization == ModelCard.load(folder / f"{SOURCE}.json").gridspec.normalization
 
@@ -116,7 +116,7 @@ def test_a_network_is_given_as_width_x_rounds_and_n_for_layer_norms():
 
 @pytest.mark.skipif(importlib.util.find_spec("jax") is not None, reason="JAX is installed here")
 def test_the_jax_trainer_says_it_needs_jax_where_jax_is_missing(data, tmp_path, capsys):
-    from training.train_graph_jax import main as train
+    from lab.train_graph_jax import main as train
 
     assert train(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--config", "8x2",
                   "--out", str(tmp_path / "run")]) == 2
@@ -125,8 +125,8 @@ def test_the_jax_trainer_says_it_needs_jax_where_jax_is_missing(data, tmp_path, 
 
 
 def test_the_jax_trainer_leaves_each_networks_weights_and_its_validation_history(data, tmp_path):
-    pytest.importorskip("jax", reason="JAX is not a dependency; training.train_graph_jax runs where it is installed")
-    from training.train_graph_jax import main as train
+    pytest.importorskip("jax", reason="JAX is not a dependency; lab.train_graph_jax runs where it is installed")
+    from lab.train_graph_jax import main as train
 
     out = tmp_path / "run"
     assert train(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--config", "8x2",
@@ -166,12 +166,12 @@ def test_a_network_with_layer_norms_is_imported_with_them_and_its_onnx_file_comp
 
 
 def test_the_jax_network_computes_what_the_tensorflow_network_does_with_and_without_layer_norms():
-    pytest.importorskip("jax", reason="JAX is not a dependency; training.train_graph_jax runs where it is installed")
+    pytest.importorskip("jax", reason="JAX is not a dependency; lab.train_graph_jax runs where it is installed")
     import jax
     import jax.numpy as jnp
 
     from training.graph_model import ContactGraphNet, GraphConfig, init_weights
-    from training.train_graph_jax import _network
+    from lab.train_graph_jax import _network
 
     forward = _network(jax, jnp)
     rng = np.random.default_rng(1)

@@ -1,4 +1,4 @@
-"""`deepcontact bench inference`: ONNX Runtime levers timed on the server's own input grids."""
+"""`deepcontact lab inference`: ONNX Runtime levers timed on the server's own input grids."""
 
 from __future__ import annotations
 
@@ -6,14 +6,14 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.inference import add_arguments
-from deepcontact.cli import main
+from lab.inference import add_arguments
+from commands import main
 from deepcontact.modelcard import ModelCard
 
 
 def test_bench_inference_times_every_lever_against_the_default_session(tmp_path, model_dir, capsys):
     out = tmp_path / "inference.json"
-    assert main(["bench", "inference", "--models", str(model_dir), "--model", "tiny", "--steps", "80",
+    assert main(["lab", "inference", "--models", str(model_dir), "--model", "tiny", "--steps", "80",
                  "--repeats", "1", "--rows", "32", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert set(result["median_ms"]) == {"default", "no-spinning", "extended", "basic", "no-arena", "int8", "rows=32"}
@@ -23,9 +23,9 @@ def test_bench_inference_times_every_lever_against_the_default_session(tmp_path,
 
 
 def test_bench_inference_refuses_what_it_cannot_time(tmp_path, model_dir, capsys):
-    assert main(["bench", "inference", "--models", str(model_dir), "--model", "nope"]) == 2
+    assert main(["lab", "inference", "--models", str(model_dir), "--model", "nope"]) == 2
     assert "nope" in capsys.readouterr().err
-    assert main(["bench", "inference", "--models", str(model_dir), "--model", "tiny", "--rows", "a"]) == 2
+    assert main(["lab", "inference", "--models", str(model_dir), "--model", "tiny", "--rows", "a"]) == 2
 
 
 def test_bench_inference_times_a_shipped_grid_model_when_no_model_is_named():

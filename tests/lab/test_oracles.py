@@ -1,4 +1,4 @@
-"""Oracle experiments (simclient.oracles) on the real engine: where a warm start's value lies."""
+"""Oracle experiments (lab.oracles) on the real engine: where a warm start's value lies."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 
 from simclient.scene import SceneSpec
 from simclient.simulate import run_simulation
+import lab  # noqa: F401  (registers the lab's warm starts)
 from simclient.warmstarts import make_provider
 
 SHORT = dataclasses.replace(SceneSpec.thesis(), steps=120)
@@ -138,7 +139,7 @@ def test_near_cone_and_inside_split_the_points_by_whether_friction_is_at_its_con
 
 
 def test_every_listed_oracle_variant_makes_a_provider_and_unknown_ones_are_refused():
-    from simclient.oracles import ORACLES
+    from lab.oracles import ORACLES
 
     for variant in ORACLES:
         name = "oracle:" + variant.split("@")[0] + ("@0.5" if "@" in variant else "")

@@ -1,4 +1,4 @@
-"""`deepcontact bench order`: the solver's replica (training.gauss_seidel) run in several
+"""`deepcontact lab order`: the solver's replica (lab.gauss_seidel) run in several
 orders from Box2D's warm start on recorded steps.
 
 The command itself loads TensorFlow (the self-stress split), so it runs as its own process:
@@ -12,11 +12,11 @@ import sys
 
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 
 
 def deepcontact(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "deepcontact", *args], capture_output=True, text=True, timeout=600)
+    return subprocess.run([sys.executable, "-m", "commands", *args], capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,7 @@ def recorded(tmp_path_factory):
 
 def test_the_command_sets_the_orders_answers_side_by_side(recorded, tmp_path):
     out = tmp_path / "order.json"
-    done = deepcontact("bench", "order", "--data", str(recorded), "--steps", "20", "--orders", "3", "--model", "",
+    done = deepcontact("lab", "order", "--data", str(recorded), "--steps", "20", "--orders", "3", "--model", "",
                        "--json", str(out))
     assert done.returncode == 0, done.stderr
     report = json.loads(out.read_text())
@@ -41,5 +41,5 @@ def test_the_command_sets_the_orders_answers_side_by_side(recorded, tmp_path):
 
 
 def test_one_order_is_not_a_comparison(recorded, capsys):
-    assert main(["bench", "order", "--data", str(recorded), "--orders", "1"]) == 2
+    assert main(["lab", "order", "--data", str(recorded), "--orders", "1"]) == 2
     assert "--orders 2 or more" in capsys.readouterr().err

@@ -1,5 +1,5 @@
 """Networks whose rounds read the contact problem's operator (training.graph_model, `probes`),
-and the screen that trains them beside a plain control (training.probe_screen)."""
+and the screen that trains them beside a plain control (lab.probe_screen)."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def test_a_network_with_probes_needs_its_physics_and_cards_without_them_read_as_
 
 
 def test_the_screen_trains_the_control_and_the_probed_network_the_same_way(data, tmp_path, capsys):
-    from training.probe_screen import main
+    from lab.probe_screen import main
 
     out = tmp_path / "screen.json"
     assert main(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--probes", "0,2", "--epochs", "2",
@@ -84,7 +84,7 @@ def test_a_body_state_is_kept_by_the_bodies_that_take_impulses_only(graphs):
 
 def one_network_screened(data, tmp_path, *flags: str) -> dict:
     """The screen's row for one small network (width 8, two rounds, one epoch) trained with `flags`."""
-    from training.probe_screen import main
+    from lab.probe_screen import main
 
     out = tmp_path / "screen.json"
     assert main(["--train", str(data / "train.h5"), "--val", str(data / "val.h5"), *flags, "--epochs", "1",

@@ -1,4 +1,4 @@
-"""training.reexport_graph: a shipped contact-graph model exported again with scatter sums
+"""lab.reexport_graph: a shipped contact-graph model exported again with scatter sums
 serves what it served, over a real server, and its cards say how it was exported."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import onnx
 
 from deepcontact.modelcard import ModelCard
 from training.recover_weights import exported_incidence, recover
-from training.reexport_graph import main
+from lab.reexport_graph import main
 
-from .test_ensemble import served
+from tests.training.test_ensemble import served
 
 SHIPPED = Path(__file__).parents[2] / "models"
 SOURCE = "graph-projected-max-1-799"  # three rounds, exported with one-hot matmuls, with a -t1 card
@@ -43,7 +43,7 @@ def test_a_reexported_model_serves_what_it_served_and_its_cards_say_how_it_is_ex
         card = ModelCard.load(after / f"{name}.json")
         assert card.architecture["onnx_incidence"] == "scatter"
         assert card.architecture["onnx_bytes"] == (after / f"{SOURCE}.onnx").stat().st_size
-        assert card.commands[-1].startswith("python -m training.reexport_graph")
+        assert card.commands[-1].startswith("python -m lab.reexport_graph")
     assert json.loads((after / "default.json").read_text())["alias_of"] == SOURCE  # an alias stays an alias
     # The weights are the shipped ones, recovered from either file.
     old_weights, _ = recover(before / f"{SOURCE}.json")

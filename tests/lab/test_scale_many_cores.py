@@ -1,4 +1,4 @@
-"""bench/scale_many_cores.sh: one run answers generate's per-compression rate and the served sweep's cost."""
+"""lab/scale_many_cores.sh: one run answers generate's per-compression rate and the served sweep's cost."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_the_script_runs_small_and_every_compression_records_the_same_simulations(tmp_path):
     env = dict(os.environ, PY=sys.executable, WORKERS="2", GEN_SEEDS="1-2", IT_SEEDS="901-901", REPEATS="1")
-    subprocess.run(["bash", str(ROOT / "bench" / "scale_many_cores.sh"), str(tmp_path)], cwd=ROOT, env=env,
+    subprocess.run(["bash", str(ROOT / "lab" / "scale_many_cores.sh"), str(tmp_path)], cwd=ROOT, env=env,
                    check=True, capture_output=True, text=True)
 
     generate = json.loads((tmp_path / "generate.json").read_text())

@@ -1,4 +1,4 @@
-"""`deepcontact bench step-gate`: a per-step gate between a model's warm start and Box2D's,
+"""`deepcontact lab step-gate`: a per-step gate between a model's warm start and Box2D's,
 fitted on some seeds' steps and priced on others', on the model's own states."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 
 
-from deepcontact.cli import main
+from commands import main
 from deepcontact.modelcard import ModelCard
-from bench.step_gate import RACE_SWEEPS, HiddenTap, raced
+from lab.step_gate import RACE_SWEEPS, HiddenTap, raced
 from deepcontact.step_gate import FEATURES
 
 SHIPPED = Path(__file__).parents[2] / "models"
@@ -37,7 +37,7 @@ def _shipped_default(tmp_path: Path) -> Path:
 def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tmp_path):
     out, models = tmp_path / "gate.json", _shipped_default(tmp_path)
     target = GRAPH
-    assert main(["bench", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
+    assert main(["lab", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
                  "--steps", "40", "--workers", "1", "--json", str(out), "--save-card", "default-gated"]) == 0
     report = json.loads(out.read_text())
     assert report["features"] == list(FEATURES) and len(report["gate"]["coefficients"]) == len(FEATURES) + 1
@@ -62,14 +62,14 @@ def test_the_command_prices_the_gate_between_the_model_and_the_perfect_choice(tm
 
 
 def test_fitting_and_pricing_on_the_same_seeds_is_refused(capsys):
-    assert main(["bench", "step-gate", "--fit-seeds", "800-801", "--seeds", "801-802", "--steps", "20"]) == 2
+    assert main(["lab", "step-gate", "--fit-seeds", "800-801", "--seeds", "801-802", "--steps", "20"]) == 2
     assert "overlap" in capsys.readouterr().err
 
 
 def test_a_gate_fitted_on_two_worlds_counts_each_worlds_steps_and_names_them_in_its_card(tmp_path):
     out, models = tmp_path / "gate.json", _shipped_default(tmp_path)
     family = "--radius 0.3 0.55 --friction 0.2 0.8 --steps 40"
-    assert main(["bench", "step-gate", "--models", str(models), "--fit-seeds", "800", "--seeds", "850",
+    assert main(["lab", "step-gate", "--models", str(models), "--fit-seeds", "800", "--seeds", "850",
                  "--steps", "40", "--workers", "1", "--fit-also", family, "--json", str(out),
                  "--save-card", "pooled"]) == 0
     report = json.loads(out.read_text())
@@ -81,16 +81,16 @@ def test_a_gate_fitted_on_two_worlds_counts_each_worlds_steps_and_names_them_in_
 
 
 def test_a_fit_world_that_is_not_scene_flags_is_refused_before_anything_runs(capsys):
-    assert main(["bench", "step-gate", "--fit-also", "--radius 0.3", "--steps", "20"]) == 2
+    assert main(["lab", "step-gate", "--fit-also", "--radius 0.3", "--steps", "20"]) == 2
     assert "--radius" in capsys.readouterr().err
-    assert main(["bench", "step-gate", "--fit-also", "--bogus 3", "--steps", "20"]) == 2
+    assert main(["lab", "step-gate", "--fit-also", "--bogus 3", "--steps", "20"]) == 2
     assert "unrecognized" in capsys.readouterr().err
 
 
 def test_a_gate_on_the_networks_inner_state_is_priced_beside_the_plain_one(tmp_path):
     out, models = tmp_path / "gate.json", _shipped_default(tmp_path)
     tensor = "m0/add_49:0"  # the shipped default's last point states, rows for the points and their mirror images
-    assert main(["bench", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
+    assert main(["lab", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
                  "--steps", "40", "--workers", "1", "--hidden", tensor, "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     rows = report["rows"]
@@ -121,10 +121,10 @@ def test_the_tap_hands_the_network_its_answer_and_keeps_the_pooled_state():
 
 def test_a_tensor_the_model_does_not_hold_and_a_card_for_a_screens_gate_are_refused(tmp_path, capsys):
     models = _shipped_default(tmp_path)
-    assert main(["bench", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "no/such:0"]) == 2
+    assert main(["lab", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "no/such:0"]) == 2
     err = capsys.readouterr().err
     assert "no/such:0" in err and "m0/add_49:0" in err  # it names some tensors that are there
-    assert main(["bench", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "m0/add_49:0",
+    assert main(["lab", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "m0/add_49:0",
                  "--save-card", "x"]) == 2
     assert "--save-card with --hidden" in capsys.readouterr().err
 

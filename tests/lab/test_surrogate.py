@@ -1,4 +1,4 @@
-"""`deepcontact bench surrogate`: the loss's per-step score beside the iterations a model saves,
+"""`deepcontact lab surrogate`: the loss's per-step score beside the iterations a model saves,
 on the steps of a recorded file, simulated again with the engine's trial solves.
 
 The commands that load TensorFlow (train-graph, the surrogate's scoring) run as their own
@@ -14,11 +14,11 @@ import h5py
 import numpy as np
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 
 
 def deepcontact(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "deepcontact", *args], capture_output=True, text=True, timeout=600)
+    return subprocess.run([sys.executable, "-m", "commands", *args], capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def recorded(tmp_path_factory):
 
 def test_every_recorded_step_gets_its_score_and_its_saving(recorded, tmp_path):
     out = tmp_path / "surrogate.json"
-    scored = deepcontact("bench", "surrogate", "--models", str(recorded / "models"), "--model", "g",
+    scored = deepcontact("lab", "surrogate", "--models", str(recorded / "models"), "--model", "g",
                          "--data", str(recorded / "val.h5"), "--sweeps", "0,4", "--json", str(out))
     assert scored.returncode == 0, scored.stderr
     report = json.loads(out.read_text())
@@ -51,7 +51,7 @@ def test_every_recorded_step_gets_its_score_and_its_saving(recorded, tmp_path):
 
 def test_the_score_can_follow_the_solvers_own_order(recorded, tmp_path):
     out = tmp_path / "surrogate-gs.json"
-    scored = deepcontact("bench", "surrogate", "--models", str(recorded / "models"), "--model", "g",
+    scored = deepcontact("lab", "surrogate", "--models", str(recorded / "models"), "--model", "g",
                          "--data", str(recorded / "val.h5"), "--sweeps", "0,4", "--order", "gauss-seidel",
                          "--json", str(out))
     assert scored.returncode == 0, scored.stderr
@@ -67,7 +67,7 @@ def test_a_file_that_the_engine_does_not_repeat_is_refused(recorded, tmp_path, c
         steps = f["steps"][...]
         steps["velocity_iterations"][np.flatnonzero(steps["point_count"] > 0)[0]] += 1
         f["steps"][...] = steps
-    assert main(["bench", "surrogate", "--models", str(recorded / "models"), "--model", "g",
+    assert main(["lab", "surrogate", "--models", str(recorded / "models"), "--model", "g",
                  "--data", str(altered), "--sweeps", "0,4"]) == 2
     assert "do not repeat the file's recorded iterations" in capsys.readouterr().err
 
@@ -76,6 +76,6 @@ def test_a_grid_model_has_no_such_loss(recorded, capsys):
     from tests.server.conftest import write_conv_model
 
     write_conv_model(recorded / "models", "grid")
-    assert main(["bench", "surrogate", "--models", str(recorded / "models"), "--model", "grid",
+    assert main(["lab", "surrogate", "--models", str(recorded / "models"), "--model", "grid",
                  "--data", str(recorded / "val.h5")]) == 2
     assert "contact-graph" in capsys.readouterr().err

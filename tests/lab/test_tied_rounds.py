@@ -6,8 +6,8 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
-from deepcontact.cli import main
-from training.tied_rounds import main as tied_rounds
+from commands import main
+from lab.tied_rounds import main as tied_rounds
 
 
 def _step(in_channels: int, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -66,7 +66,7 @@ def test_train_graph_trains_a_tied_network_at_several_depths_and_exports_it_deep
     deeper = json.loads((tmp_path / "tied-r6.json").read_text())
     assert deeper["name"] == "tied-r6" and deeper["onnx_file"] == "tied-r6.onnx"
     assert deeper["architecture"]["config"] == config | {"rounds": 6} and deeper["parity_max_abs_error"] < 1e-4
-    assert deeper["commands"][-1].startswith("python -m training.tied_rounds")
+    assert deeper["commands"][-1].startswith("python -m lab.tied_rounds")
     rng = np.random.default_rng(1)
     points, ends, dynamic = _step(card["architecture"]["config"]["in_channels"], rng)
     feed = {"points": points, "ends": ends, "dynamic": dynamic}

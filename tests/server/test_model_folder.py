@@ -47,7 +47,7 @@ def test_every_bad_file_is_named_in_one_error(tmp_path):
 
 
 def test_serve_names_them_all_on_one_line_and_exits_2(tmp_path, capsys):
-    from deepcontact.cli import main
+    from commands import main
 
     assert main(["serve", "--models", str(bad_folder(tmp_path)), "--bind", "127.0.0.1:0"]) == 2
     err = capsys.readouterr().err
@@ -59,7 +59,7 @@ def test_serve_names_them_all_on_one_line_and_exits_2(tmp_path, capsys):
 def test_with_skip_bad_models_the_good_models_serve_and_each_bad_file_is_logged(tmp_path):
     folder = bad_folder(tmp_path)
     port_file = tmp_path / "port"
-    proc = subprocess.Popen([sys.executable, "-m", "deepcontact", "serve", "--models", str(folder),
+    proc = subprocess.Popen([sys.executable, "-m", "commands", "serve", "--models", str(folder),
                              "--bind", "127.0.0.1:0", "--port-file", str(port_file), "--skip-bad-models",
                              "--grace", "1"],
                             stderr=subprocess.PIPE, text=True)

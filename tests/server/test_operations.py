@@ -92,7 +92,7 @@ def test_past_the_concurrency_bound_clients_get_resource_exhausted_at_once(model
     (["--tls-cert", "cert.pem"], "--tls-cert and --tls-key go together"),
 ])
 def test_serve_refuses_bad_arguments_before_it_binds_or_logs(model_dir, capsys, extra, says):
-    from deepcontact.cli import main
+    from commands import main
 
     assert main(["serve", "--models", str(model_dir), "--bind", "127.0.0.1:0", *extra]) == 2
     err = capsys.readouterr().err
@@ -101,7 +101,7 @@ def test_serve_refuses_bad_arguments_before_it_binds_or_logs(model_dir, capsys, 
 
 def test_sigterm_drains_and_exits_cleanly(model_dir, tmp_path, thesis_steps):
     port_file = tmp_path / "port"
-    proc = subprocess.Popen([sys.executable, "-m", "deepcontact", "serve", "--models", str(model_dir),
+    proc = subprocess.Popen([sys.executable, "-m", "commands", "serve", "--models", str(model_dir),
                              "--bind", "127.0.0.1:0", "--port-file", str(port_file), "--grace", "2"],
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -154,7 +154,7 @@ def test_a_server_on_a_unix_socket_is_dialled_at_its_bind_address(model_dir, tmp
 
 
 def test_an_address_it_cannot_bind_is_refused_with_the_address(model_dir, tmp_path, capsys):
-    from deepcontact.cli import main
+    from commands import main
 
     bind = f"unix:{tmp_path / 'no-such-folder' / 'warmstart.sock'}"
     assert main(["serve", "--models", str(model_dir), "--bind", bind]) == 2

@@ -14,7 +14,7 @@ from deepcontact.features import world_to_grids
 from deepcontact.transfer import g2p, p2g
 from deepcontact.v1 import warmstart_pb2 as pb
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
-from deepcontact.cli import main
+from commands import main
 from server.serve import Server
 from server.service import Limits
 
@@ -50,6 +50,7 @@ def test_predict_runs_p2g_onnx_g2p_like_training(stub, thesis_steps, model_dir):
     np.testing.assert_allclose(np.stack([normal, tangent], 1), expected, rtol=1e-5, atol=1e-6)
     t = reply.timings
     assert t.total_us >= t.p2g_us + t.inference_us + t.g2p_us > 0
+    assert t.features_us == t.solve_us == t.admit_us == 0  # a grid model's stages only
 
 
 def test_stream_answers_in_order_with_the_world_sent_once(stub, thesis_steps):

@@ -19,7 +19,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from deepcontact import tls, wire
-from deepcontact.cli import main
+from commands import main
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server.serve import Server
 from simclient.client import StepFailed, WarmStartClient
@@ -171,7 +171,7 @@ def test_serve_names_a_tls_file_it_cannot_use(model_dir, pki, capsys):
 def _serve(model_dir, tmp_path, *extra):
     """`deepcontact serve --bind 0.0.0.0:0 EXTRA` as a process: (process, the loopback address of its port)."""
     port_file = tmp_path / "port"
-    proc = subprocess.Popen([sys.executable, "-m", "deepcontact", "serve", "--models", str(model_dir),
+    proc = subprocess.Popen([sys.executable, "-m", "commands", "serve", "--models", str(model_dir),
                              "--bind", "0.0.0.0:0", "--port-file", str(port_file), "--grace", "1", *extra],
                             stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60

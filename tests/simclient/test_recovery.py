@@ -99,7 +99,7 @@ def test_steps_past_the_deadline_fall_back_and_are_counted(slow_server):
 def test_a_late_reply_is_never_applied_to_a_later_step(slow_server, thesis_steps):
     world, steps = thesis_steps
     bodies, points = steps[0]
-    expected = {k: RandomPredictor(seed=0).predict(None, points, None, k)[0] for k in (4, 5)}
+    expected = {k: RandomPredictor(seed=0).predict(None, points, None, k).impulses for k in (4, 5)}
     with WarmStartClient(slow_server.address, world=world) as client:
         with pytest.raises(StepFailed) as failed:
             client.step(wire.encode_step(3, "random", bodies, points), timeout=DEADLINE_MS / 1e3)  # held 300 ms

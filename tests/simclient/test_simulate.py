@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 from server.process import ServerProcess
 from simclient.client import WarmStartClient
 from simclient.scene import SceneSpec
@@ -51,18 +51,6 @@ def test_server_zero_equals_none_exactly(server):
     with WarmStartClient(server.address) as client:
         remote = run_simulation(spec, 902, make_provider("server:zero"), client=client, deadline_ms=1000)
     assert remote["per_step"]["velocity_iterations"] == local["per_step"]["velocity_iterations"]
-
-
-def test_pick_keeps_the_cheapest_of_builtin_and_the_models_each_step(server):
-    spec = dataclasses.replace(SceneSpec.thesis(), steps=80)
-    with WarmStartClient(server.address) as client:
-        picked = run_simulation(spec, 904, make_provider("pick:server:zero+server:bad"), client=client, deadline_ms=1000)
-    its = [i for i, n in zip(picked["per_step"]["velocity_iterations"], picked["per_step"]["contact_points"]) if n]
-    trials = picked["trials"]  # per step with contacts: builtin's, zero's and bad's iterations
-    assert len(trials) == len(its) > 0 and all(len(t) == 3 for t in trials)
-    assert its == [min(t) for t in trials]
-    assert any(t[1] < t[0] for t in trials)  # even zeros win some steps ...
-    assert sum(t[2] for t in trials) > sum(t[0] for t in trials)  # ... and (50, 50) loses overall
 
 
 def test_a_server_killed_mid_run_costs_fallbacks_not_the_run(tmp_path):

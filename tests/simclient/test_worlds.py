@@ -10,7 +10,7 @@ import pytest
 
 import Box2D
 from deepcontact import wire
-from deepcontact.cli import main
+from commands import main
 from simclient import worlds
 
 WORLD = textwrap.dedent("""

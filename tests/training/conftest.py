@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from deepcontact import dispatch
-from deepcontact.cli import main
+from commands import main
 from training.dataset import Dataset, DatasetError, Writer, differences
 
 SMALL = ["--steps", "60", "--seeds", "1-3", "--quiet"]

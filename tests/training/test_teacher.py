@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 
-from deepcontact.cli import main
+from commands import main
 from deepcontact.modelcard import ModelCard
 from tests.training.conftest import SMALL
 from training import teacher as teacher_module

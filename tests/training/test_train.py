@@ -143,7 +143,7 @@ def test_the_points_loss_is_the_error_the_solver_receives_at_the_contact_points(
 
 
 def test_training_on_worlds_of_several_box_sizes(data, tmp_path):
-    from deepcontact.cli import main
+    from commands import main
 
     wide = tmp_path / "wide.h5"
     assert main(["generate", "--steps", "20", "--seeds", "4", "--box-size", "20", "10", "--bodies", "40",

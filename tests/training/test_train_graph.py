@@ -8,7 +8,7 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
-from deepcontact.cli import main
+from commands import main
 from tests.training.conftest import SMALL
 from training.contact_graph import GRAPH_INPUTS, GraphSet, build_graph_set
 
@@ -618,7 +618,7 @@ def test_a_run_stopped_mid_epoch_and_resumed_reaches_the_weights_of_one_never_st
     assert not state.exists()  # done: the same command now starts a new run
 
 
-def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins_states(data, tmp_path):
+def test_every_epoch_is_kept_as_a_model_that_lab_iterations_prices_on_builtins_states(data, tmp_path):
     checkpoints = tmp_path / "epochs"
     assert main(["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"),
                  "--out", str(tmp_path / "g.onnx"), "--epochs", "2", "--batch-size", "4", "--width", "8",
@@ -633,7 +633,7 @@ def test_every_epoch_is_kept_as_a_model_that_bench_iterations_prices_on_builtins
     # The folder is a models folder: both epochs priced, in one run, on the same (Builtin's) states;
     # server:* names every model the server serves.
     out = tmp_path / "priced"
-    assert main(["bench", "iterations", "--models", str(checkpoints), "--seeds", "901", "--steps", "20",
+    assert main(["lab", "iterations", "--models", str(checkpoints), "--seeds", "901", "--steps", "20",
                  "--warm-starts", "builtin,price:server:*", "--deadline-ms", "1000",
                  "--out", str(out), "--quiet"]) == 0
     priced = json.loads((out / "summary.json").read_text())["picks"]["price:server:g-e1+server:g-e2"]
@@ -762,9 +762,9 @@ def test_a_model_reading_the_friction_is_served_the_requests_friction_and_refuse
                                                       builtin=points["builtin"], friction=friction))
                 sent = wire.decode_step(wire.encode_step(0, "rubs", bodies, points, builtin=points["builtin"]),
                                         max_bodies=10**4, max_points=10**5)
-                want, _ = local.predict(*sent, world, 0, friction=friction.astype(np.float64))
+                want = local.predict(*sent, world, 0, friction=friction.astype(np.float64)).impulses
                 np.testing.assert_allclose(np.stack(wire.decode_impulses(reply), 1), want, atol=1e-6)
-            assert not np.allclose(want, local.predict(*sent, world, 0, friction=mu.astype(np.float64))[0])
+            assert not np.allclose(want, local.predict(*sent, world, 0, friction=mu.astype(np.float64)).impulses)
             with pytest.raises(grpc.RpcError) as err:
                 stub.Predict(wire.encode_step(0, "rubs", bodies, points, world=world_msg, builtin=points["builtin"]))
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "point_friction" in err.value.details()

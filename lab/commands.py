@@ -1,0 +1,37 @@
+"""The `deepcontact lab` commands: the research instruments (lab/README.md).
+
+`simulate` and `iterations` are the product's `simulate` and `bench iterations` (the same
+modules, the same flags), run with the lab's warm starts registered: importing this table
+imports `lab`, which registers them. The others are the lab's own benches.
+"""
+
+from __future__ import annotations
+
+from deepcontact.cli import Command
+
+COMMANDS = [
+    Command(("simulate",), "simclient.simulate",
+            "`deepcontact simulate` with the lab's warm starts too (oracle:, probes, composites)"),
+    Command(("iterations",), "bench.iterations",
+            "`deepcontact bench iterations` with the lab's warm starts too (price:, shadow:, pick:, oracle:, ...)"),
+    Command(("admission",), "lab.admission",
+            "what admitting a motion (nearest_admissible) costs a step, beside Box2D's solve"),
+    Command(("corrections",), "lab.corrections",
+            "a served model's corrections against the solver's, by size: where it errs"),
+    Command(("face-solve",), "lab.face_solve",
+            "the face route's solve by step size: its system, the dual solve against gelsy, the admission"),
+    Command(("faces",), "lab.faces",
+            "a served model's answer read as an active set (open, sticks, slides): how many labels a step are wrong"),
+    Command(("generate",), "lab.generate", "what recording simulations costs over running them"),
+    Command(("graph-size",), "lab.graph_size", "a contact-graph model's inference against the step's points and bodies"),
+    Command(("joints-price",), "lab.joints_price",
+            "does declining at jointed points pay? a model priced on Box2D's states with the joints sent and withheld"),
+    Command(("inference",), "lab.inference",
+            "ONNX Runtime levers on a grid model's inference: session options, int8, cropped grids"),
+    Command(("order",), "lab.order",
+            "does the order of the solver's sweep choose its answer? a Gauss-Seidel replica in several orders"),
+    Command(("step-gate",), "lab.step_gate",
+            "a per-step gate between a model's warm start and Box2D's, fitted on some seeds, priced on others"),
+    Command(("surrogate",), "lab.surrogate",
+            "does the training loss's score of a step follow the iterations a model saves there?"),
+]
