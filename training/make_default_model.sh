@@ -2,30 +2,29 @@
 # The shipped default and the thesis's models from nothing (make default-model): data,
 # training, ONNX export, cards, evaluation on the validation seeds.
 #
-#   models/graph-projected-max-1-799-r8-e9-reflect-sym-mirror.onnx + .json
+#   models/contact-graph.onnx + .json
 #                         the contact-graph model (message passing over the contact points,
 #                         eight rounds) trained on 1,598 simulations of the thesis world and
 #                         the scene family, served as the mean of its answer and its mirror
 #                         image's: the squared error for 6 epochs, 3 more with half the steps
 #                         reflected left to right, then 2 epochs of the loss the solver's
 #                         stopping rule reads, scored on that mean (training/round2_graph.sh;
-#                         each run starts from the last one's weights, so all three are
-#                         rebuilt on the way, with their own cards)
-#   models/graph-face-r8-e12.onnx, graph-face-fr-r8, graph-face-fr-r8-long, graph-face-fr-r12,
-#   graph-face-fr-r12-e10, graph-face-fr-r12-e15 and graph-face-fr-r12-e15-mirror (.onnx + .json)
+#                         each run starts from the last one's weights). In the research store
+#                         (lab/models/) it is graph-projected-max-1-799-r8-e9-reflect-sym-mirror,
+#                         beside the runs it was trained through.
+#   models/contact-modes.onnx + .json
 #                         the same network trained to label the points (which let go, stick,
 #                         slide which way: train-graph --targets face) on the thesis world, 12
 #                         epochs; then 5 more on the thesis world and the scene family with
-#                         each point's friction as an input (graph-face-fr-r8), 6 more on every
-#                         step of both (-long), grown to twelve rounds for 5 (-r12) and 5 more
-#                         (-r12-e10) and 4 more (-r12-e15), served with its mirror image (-mirror)
-#   models/default.json   the face route: an alias of graph-face-fr-r12-e15-mirror whose labels
-#                         the server solves the step on and admits, falling back to
-#                         graph-projected-max-1-799-r8-e9-reflect-sym-mirror where the admitted
-#                         solve misses its labels or the step is large (docs/results.md, "The
-#                         solve refined, the classifier trained on")
-#   models/pressure.onnx  + pressure.json, pressure-new-points.json   the thesis's kind of model
-#   models/residual.onnx  + residual.json, residual-new-points.json   Box2D's warm start + a correction
+#                         each point's friction as an input, 6 more on every step of both,
+#                         grown to twelve rounds for 5 and 5 more and 4 more, served with its
+#                         mirror image (graph-face-fr-r12-e15-mirror in lab/models/, with every
+#                         stage before it)
+#   models/default.json   the face route: an alias of contact-modes whose labels the server
+#                         solves the step on and admits, falling back to contact-graph where the
+#                         admitted solve misses its labels or the step is large
+#   models/pressure.onnx  + pressure.json   the thesis's kind of model (with pressure-new-points,
+#                         residual and residual-new-points in lab/models/)
 #
 #   bash training/make_default_model.sh          (make default-model)
 #   DEFAULT_ONLY=1 make default-model            the default alone
@@ -40,7 +39,7 @@
 # each beside benchmarks, 44, 47 and 49 min of it training; 29 min 50 s for the last, alone,
 # 28 min 43 s of it training); the grid models about 55 min more with AVX2, 16 with AVX-512 (docs/models.md,
 # "Since the default became ...-r8-e9-reflect-sym-mirror"; GRID_ONLY=1 rebuilds them alone).
-# The other models in models/ come from training/round2_graph.sh and training/round2_variants.sh.
+# The other models of lab/models/ come from training/round2_graph.sh and lab/round2_variants.sh.
 # Data files are kept and reused (generation is deterministic and their names say what
 # they hold); run directories are always started afresh.
 #
@@ -49,6 +48,11 @@
 # did not do better).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Every model trained on the way goes to the research store under its recipe's name; the
+# shipped ones are copied into models/ under names that say what they are (training/ship.py).
+STORE=${STORE:-lab/models}
+export STORE
+mkdir -p "$STORE" models
 
 DC=${DEEPCONTACT:-.venv/bin/deepcontact}
 PY=${PYTHON:-.venv/bin/python}
@@ -68,13 +72,17 @@ DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror   # the graph model: 
 FACE_FR=graph-face-fr-r8                                      # the classifier with each point's friction
 FACE_NET=graph-face-fr-r12-e15                                # the same trained on, twelve rounds
 FACE=$FACE_NET-mirror                                         # served with its mirror image: what the default solves on
+MODES_LINE="a contact-graph classifier (twelve rounds of message passing over the contact points, served with its mirror image): labels each point open, sticking or sliding which way; the default solves the step on its labels"
+GRAPH_LINE="a contact-graph network (eight rounds of message passing over the contact points, served with its mirror image): a correction to Box2D's warm start at each point; the default's fallback"
+DEFAULT_LINE="the face route: contact-modes labels each point, the server solves the step on the labels and admits the answer into the friction cones; contact-graph answers where that cannot serve (the solve misses its labels, over 300 points, or past the request's deadline)"
+PRESSURE_LINE="the thesis's Pressure CNN: the step splatted onto SPH grids, a CNN, the impulses read back at the points (P2G, ONNX, G2P)"
 WHY="the face route: $FACE_NET's labels (twelve rounds, each point's friction an input), the mean of its answer and its mirror image's, read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 60 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 300 points, the graph model $DEFAULT is served (docs/results.md, The solve refined, the classifier trained on); rebuilt by make default-model"
 if [ "${GRID_ONLY:-0}" != 1 ]; then
 # The shipped files of the chain, kept before the runs overwrite them, so that each rebuild is
 # compared with what it replaced (below).
 SHIPPED=runs/shipped-models
 rm -rf "$SHIPPED" && mkdir -p "$SHIPPED"
-for name in "${CHAIN[@]}" "$DEFAULT"; do cp "models/$name.json" "models/$name.onnx" "$SHIPPED/"; done
+for name in "${CHAIN[@]}" "$DEFAULT"; do cp "$STORE/$name.json" "$STORE/$name.onnx" "$SHIPPED/"; done
 # The default: the thesis world and the scene family, 799 simulations each, then the
 # training runs of its recipe, each from the last one's weights.
 TRAIN_SEEDS=1-799 bash training/round2_data.sh
@@ -102,30 +110,41 @@ BOTH=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5
 "$DC" train-graph --train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 "${FACE_RUN[@]}" \
     --out runs/face-chain/graph-face-r8.onnx --resume runs/resume/graph-face-r8.state.npz --epochs 6
 "$DC" train-graph --train data/thesis-train-1-799.h5 --val data/thesis-val-801-820.h5 "${FACE_RUN[@]}" \
-    --out models/graph-face-r8-e12.onnx --resume runs/resume/graph-face-r8-e12.state.npz --epochs 6 --lr 1e-3 \
+    --out $STORE/graph-face-r8-e12.onnx --resume runs/resume/graph-face-r8-e12.state.npz --epochs 6 --lr 1e-3 \
     --init runs/graph-cache/graph-face-r8.weights.npz
 "$DC" train-graph "${BOTH[@]}" --max-steps-per-file 100000 "${FACE_RUN[@]}" \
-    --out models/$FACE_FR.onnx --resume runs/resume/$FACE_FR.state.npz --epochs 5 --lr 1e-3 \
+    --out $STORE/$FACE_FR.onnx --resume runs/resume/$FACE_FR.state.npz --epochs 5 --lr 1e-3 \
     --init runs/graph-cache/graph-face-r8-e12.weights.npz --extra-inputs friction
 "$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" \
-    --out models/graph-face-fr-r8-long.onnx --resume runs/resume/graph-face-fr-r8-long.state.npz --epochs 6 --lr 1e-3 \
+    --out $STORE/graph-face-fr-r8-long.onnx --resume runs/resume/graph-face-fr-r8-long.state.npz --epochs 6 --lr 1e-3 \
     --init runs/graph-cache/$FACE_FR.weights.npz --extra-inputs friction
 "$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" --rounds 12 \
-    --out models/graph-face-fr-r12.onnx --resume runs/resume/graph-face-fr-r12.state.npz --epochs 5 --lr 1e-3 \
+    --out $STORE/graph-face-fr-r12.onnx --resume runs/resume/graph-face-fr-r12.state.npz --epochs 5 --lr 1e-3 \
     --init runs/graph-cache/graph-face-fr-r8-long.weights.npz --extra-inputs friction
 "$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" --rounds 12 --seed 1 \
-    --out models/graph-face-fr-r12-e10.onnx --resume runs/resume/graph-face-fr-r12-e10.state.npz --epochs 5 --lr 5e-4 \
+    --out $STORE/graph-face-fr-r12-e10.onnx --resume runs/resume/graph-face-fr-r12-e10.state.npz --epochs 5 --lr 5e-4 \
     --init runs/graph-cache/graph-face-fr-r12.weights.npz --extra-inputs friction
 "$DC" train-graph "${BOTH[@]}" "${FACE_RUN[@]}" --rounds 12 --seed 2 \
-    --out models/$FACE_NET.onnx --resume runs/resume/$FACE_NET.state.npz --epochs 4 --lr 3e-4 \
+    --out $STORE/$FACE_NET.onnx --resume runs/resume/$FACE_NET.state.npz --epochs 4 --lr 3e-4 \
     --init runs/graph-cache/graph-face-fr-r12-e10.weights.npz --extra-inputs friction
-"$PY" -m training.ensemble models/$FACE_NET.json --mirror --name $FACE
+"$PY" -m training.ensemble $STORE/$FACE_NET.json --mirror --name $FACE
 echo "$FACE trained after ${SECONDS} s"
 
-tmp=models/.default.json.part
+tmp=$STORE/.default.json.part
 printf '%s\n' "{" '  "name": "default",' "  \"alias_of\": \"$FACE\"," \
     "  \"why\": \"$WHY\"," \
     "  \"face\": {\"pressing\": 0.75, \"rounds\": 60, \"max_residual\": 0.3, \"max_points\": 300, \"solver\": \"dual\", \"fallback\": \"$DEFAULT\"}" \
+    "}" > "$tmp"
+mv "$tmp" $STORE/default.json
+# Shipped: the classifier as contact-modes, the graph model as contact-graph, and the default
+# card naming them.
+"$PY" -m training.ship "$STORE/$FACE.json" --as contact-modes --description "$MODES_LINE"
+"$PY" -m training.ship "$STORE/$DEFAULT.json" --as contact-graph --description "$GRAPH_LINE"
+tmp=models/.default.json.part
+printf '%s\n' "{" '  "name": "default",' '  "alias_of": "contact-modes",' \
+    "  \"description\": \"$DEFAULT_LINE\"," \
+    "  \"why\": \"contact-modes is $FACE and contact-graph $DEFAULT of the research store ($STORE); rebuilt by make default-model\"," \
+    '  "face": {"pressing": 0.75, "rounds": 60, "max_residual": 0.3, "max_points": 300, "solver": "dual", "fallback": "contact-graph"}' \
     "}" > "$tmp"
 mv "$tmp" models/default.json
 [ "${DEFAULT_ONLY:-0}" = 1 ] && { echo "done (default only) in ${SECONDS} s"; exit 0; }
@@ -138,8 +157,9 @@ echo "data ready after ${SECONDS} s"
 rm -rf runs/pressure
 "$DC" train --model pressure --train "$TRAIN" --val "$VAL" --out runs/pressure "${RECIPE[@]}" \
     --epochs 15 --patience 4 --max-steps-per-file 10000 --max-val-steps 2000
-"$DC" export runs/pressure --out models/pressure.onnx
-"$PY" -m training.card_variant models/pressure.json --combine new-points
+"$DC" export runs/pressure --out $STORE/pressure.onnx
+"$PY" -m training.ship "$STORE/pressure.json" --as pressure --description "$PRESSURE_LINE"
+"$PY" -m training.card_variant $STORE/pressure.json --combine new-points
 echo "pressure trained after ${SECONDS} s"
 
 rm -rf runs/residual
@@ -147,11 +167,11 @@ rm -rf runs/residual
     --epochs 8 --patience 3 --max-steps-per-file 6000 --max-val-steps 1000 \
     --inputs mass,vx,vy,omega,normal_x,normal_y,builtin_normal,builtin_tangent \
     --targets correction_normal,correction_tangent
-"$DC" export runs/residual --out models/residual.onnx      # combine: residual (from the targets)
-"$PY" -m training.card_variant models/residual.json --combine new-points
+"$DC" export runs/residual --out $STORE/residual.onnx      # combine: residual (from the targets)
+"$PY" -m training.card_variant $STORE/residual.json --combine new-points
 echo "residual trained after ${SECONDS} s"
 
-"$DC" evaluate --model models/pressure.onnx --data "$VAL" --json runs/pressure/eval.json
-"$DC" evaluate --model models/residual.onnx --data "$VAL" --json runs/residual/eval.json
-ls -l models/pressure.onnx models/residual.onnx "models/$DEFAULT.onnx" models/default.json
+"$DC" evaluate --model $STORE/pressure.onnx --data "$VAL" --json runs/pressure/eval.json
+"$DC" evaluate --model $STORE/residual.onnx --data "$VAL" --json runs/residual/eval.json
+ls -l models/ $STORE/pressure.onnx $STORE/residual.onnx
 echo "done in ${SECONDS} s"

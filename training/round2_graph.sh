@@ -282,7 +282,7 @@ PY=${PYTHON:-.venv/bin/python}
 TRAIN_SEEDS=${TRAIN_SEEDS:-1-300}
 DATA=(--train data/thesis-train-$TRAIN_SEEDS.h5 --train data/family-train-$TRAIN_SEEDS.h5
       --val data/thesis-val-801-820.h5 --val data/family-val-801-820.h5 --max-val-steps 500 --seed 0 --quiet)
-OUT=models
+OUT=${STORE:-lab/models}  # the research store; make default-model ships from it (training/ship.py)
 
 ASINH=vn_builtin_asinh,vt_builtin_asinh,jacobi_normal_asinh,jacobi_tangent_asinh
 
@@ -404,7 +404,7 @@ run() {
             local teach=()
             if [ "$1" = graph-mse-1-799-r16-distill ]; then
                 local teacher=runs/teachers/graph-mse-1-799-w128-r16-ln-gpu-mirror.json
-                [ -f "$teacher" ] || "$PY" -m training.ensemble models/graph-mse-1-799-w128-r16-ln-gpu.json --mirror \
+                [ -f "$teacher" ] || "$PY" -m training.ensemble "$OUT/graph-mse-1-799-w128-r16-ln-gpu.json" --mirror \
                     --name graph-mse-1-799-w128-r16-ln-gpu-mirror --out-dir runs/teachers
                 teach=(--teacher "$teacher")
             fi
@@ -491,7 +491,7 @@ run() {
             "$PY" -m training.card_variant "$OUT/$1.json" --correction-threshold 1.0 ;;
         graph-projected-max-1-799-w128-r8-gpu)
             # From the GPU probe's weights (lab/device_graph_probe.sh), recovered from the shipped
-            # file first: python -m training.recover_weights models/graph-mse-1-799-w128-r8-gpu.json
+            # file first: python -m training.recover_weights lab/models/graph-mse-1-799-w128-r8-gpu.json
             local DATA=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5 "${DATA[@]:4}")
             variant "$1" --loss solver-projected-max --width 128 --rounds 8 --max-steps-per-file 3000 --epochs 2 \
                 --lr 5e-4 --init runs/graph-cache/graph-mse-1-799-w128-r8-gpu.weights.npz

@@ -13,7 +13,7 @@ from simclient.scene import SceneSpec
 from simclient.simulate import connect, run_simulation
 from simclient.warmstarts import make_provider
 
-MODELS = Path(__file__).resolve().parents[2] / "models"
+MODELS = Path(__file__).resolve().parents[2] / "lab" / "models"  # the research store
 
 
 def test_the_default_called_in_process_takes_the_served_trajectory_step_for_step():

@@ -11,7 +11,7 @@ import pytest
 from lab.graph_size import parse_sizes, synthetic_step
 from commands import main
 
-MODELS = Path(__file__).resolve().parents[2] / "models"
+MODELS = Path(__file__).resolve().parents[2] / "lab" / "models"  # the research store
 
 
 def test_sizes_read_as_points_by_bodies_and_bad_ones_are_refused():

@@ -19,7 +19,7 @@ from lab.train_graph_jax import concatenate, padded_batch, parse_config
 
 from tests.training.test_ensemble import served
 
-SHIPPED = Path(__file__).parents[2] / "models"
+SHIPPED = Path(__file__).parents[2] / "lab" / "models"  # the research store
 SOURCE = "graph-projected-max-1-799"  # a network train-graph wrote: width 32, 3 rounds
 
 

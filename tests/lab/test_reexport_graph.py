@@ -16,7 +16,7 @@ from lab.reexport_graph import main
 
 from tests.training.test_ensemble import served
 
-SHIPPED = Path(__file__).parents[2] / "models"
+SHIPPED = Path(__file__).parents[2] / "lab" / "models"  # the research store
 SOURCE = "graph-projected-max-1-799"  # three rounds, exported with one-hot matmuls, with a -t1 card
 
 

@@ -22,7 +22,7 @@ from server.predictors import load_model, load_models
 from server.serve import Server
 from tests.server.conftest import write_conv_model
 
-SHIPPED = Path(__file__).parents[2] / "models"
+SHIPPED = Path(__file__).parents[2] / "lab" / "models"  # the research store
 GARBAGE = b"this is not an ONNX model\n" * 8
 
 

@@ -218,7 +218,7 @@ def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_
     from deepcontact.step_gate import FEATURES, StepGate
     from server.predictors import load_model
 
-    shipped = Path(__file__).parents[2] / "models"
+    shipped = Path(__file__).parents[2] / "lab" / "models"  # the research store
     # the shipped default's network: its face fallback where the default is the face route
     target = (ModelCard.load(shipped / "default.json").face or {}).get("fallback") \
         or ModelCard.alias_target(shipped / "default.json")
@@ -257,7 +257,7 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
 
     from server.predictors import load_model
 
-    shipped = Path(__file__).parents[2] / "models"
+    shipped = Path(__file__).parents[2] / "lab" / "models"  # the research store
     classifier = json.loads((shipped / "face.json").read_text())["alias_of"]
     for name in (f"{classifier}.json", f"{classifier}.onnx"):
         shutil.copy(shipped / name, tmp_path)
@@ -317,7 +317,7 @@ def test_a_face_card_serves_the_step_solved_on_its_classifiers_labels_and_needs_
     from server.predictors import load_model
     from server.serve import Server
 
-    shipped = Path(__file__).parents[2] / "models"
+    shipped = Path(__file__).parents[2] / "lab" / "models"  # the research store
     face = json.loads((shipped / "face.json").read_text())
     for name in ("face.json", f"{face['alias_of']}.json", f"{face['alias_of']}.onnx"):
         shutil.copy(shipped / name, tmp_path)
@@ -374,7 +374,7 @@ def test_a_face_card_serves_its_fallback_where_its_route_would_miss_the_clients_
     from server.predictors import load_model
     from server.serve import Server
 
-    shipped = Path(__file__).parents[2] / "models"
+    shipped = Path(__file__).parents[2] / "lab" / "models"  # the research store
     classifier = json.loads((shipped / "face.json").read_text())["alias_of"]
     for name in (f"{classifier}.json", f"{classifier}.onnx"):
         shutil.copy(shipped / name, tmp_path)
@@ -421,7 +421,7 @@ def shipped_classifier(folder):
     import shutil
     from pathlib import Path
 
-    shipped = Path(__file__).parents[2] / "models"
+    shipped = Path(__file__).parents[2] / "lab" / "models"  # the research store
     classifier = json.loads((shipped / "face.json").read_text())["alias_of"]
     for name in (f"{classifier}.json", f"{classifier}.onnx"):
         shutil.copy(shipped / name, folder)

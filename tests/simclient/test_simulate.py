@@ -135,7 +135,7 @@ def test_the_simulation_sends_each_points_friction_so_the_shipped_face_route_is_
     import shutil
     from pathlib import Path
 
-    shipped = Path(__file__).parents[2] / "models"
+    shipped = Path(__file__).parents[2] / "lab" / "models"  # the research store
     target = json.loads((shipped / "face.json").read_text())["alias_of"]
     for name in ("face.json", f"{target}.json", f"{target}.onnx"):
         shutil.copy(shipped / name, tmp_path)

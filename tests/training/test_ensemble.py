@@ -13,7 +13,7 @@ from training.card_variant import card_variant
 from tests.conftest import reflected
 from training.ensemble import agreed_mean, build_ensemble, main
 
-SHIPPED = Path(__file__).parents[2] / "models"
+SHIPPED = Path(__file__).parents[2] / "lab" / "models"  # the research store
 MEMBERS = ("graph-projected-max-1-799", "graph-projected-max-1-799-pooled")  # two normalizations, two networks
 
 

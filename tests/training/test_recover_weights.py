@@ -12,7 +12,7 @@ from training.graph_model import GraphConfig
 from training.recover_weights import PARITY_TOLERANCE, main, recover
 from training.train_graph import initial_weights
 
-SHIPPED = Path(__file__).parents[2] / "models"
+SHIPPED = Path(__file__).parents[2] / "lab" / "models"  # the research store
 
 
 def test_the_default_s_weights_come_back_and_init_accepts_them(tmp_path):
