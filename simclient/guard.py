@@ -56,11 +56,14 @@ class GuardSettings:
     cap: a trial of the learned start stops at this many times Box2D's recent sweeps.
     free_probes: probes made whatever the budget (the first ones, on a run's first
         steps with contacts, before any budget has been earned).
+    history: where the last this many paired probes, summed, still say the learned start
+        wins (at most `enter`), a window that says otherwise does not end its turn (only a
+        probe lost by more than `severe`, or a panic, does).
     recent: how many of Box2D's last measured steps (served or priced) its reference,
         their median, is taken over.
     floor: where Box2D's recent steps took fewer sweeps than this, its own start is
-        served and nothing is probed: a learned start could save a step at most those
-        few sweeps and can cost it hundreds (a stack at rest needs one or two)."""
+        served (probes go on, as cheap as those steps): a learned start could save a step
+        at most those few sweeps and can cost it hundreds (a stack at rest needs one or two)."""
 
     budget: float = 0.04
     window: int = 8
@@ -73,6 +76,7 @@ class GuardSettings:
     cap: float = 1.0
     free_probes: int = 2
     recent: int = 9
+    history: int = 24
     floor: float = 5.0
 
     def __post_init__(self) -> None:
@@ -99,6 +103,7 @@ class Guard:
         self.settings = settings
         self.mode = BUILTIN
         self.pairs: collections.deque[tuple[float, float]] = collections.deque(maxlen=settings.window)
+        self.history: collections.deque[tuple[float, float]] = collections.deque(maxlen=settings.history)
         self._recent: collections.deque[float] = collections.deque(maxlen=settings.recent)
         self._learned: collections.deque[float] = collections.deque(maxlen=settings.recent)  # served learned steps
         self.reference: float | None = None  # Box2D's recent sweeps a step: the median of the last `recent` seen
@@ -107,7 +112,9 @@ class Guard:
         self.interval = settings.interval[0]
         self.countdown = 0  # steps with contacts until the next probe is due
         self.pending = False  # an alarm asked for a probe
-        self.since_alarm = settings.interval[1] + 1  # steps since the last alarm
+        self.below_floor = False  # the last plan found Box2D's reference under the floor
+        self.since_alarm = settings.interval[1] + 1  # learned steps since the last alarm
+        self.since_panic = settings.interval[1] + 1  # learned steps since the last panic
         self.probes = 0
         self.switches = 0
 
@@ -118,8 +125,10 @@ class Guard:
             return Plan(ask=False, probe=False)
         if self.reference < self.settings.floor:
             if self.mode == LEARNED:
-                self._switch(BUILTIN)
-            return Plan(ask=False, probe=False)
+                self._switch(BUILTIN)  # a world at rest: no learned start there (probes go on, cheap, for later)
+            self.below_floor = True
+        elif self.below_floor:  # the world just got busy enough for a learned start: find out now
+            self.below_floor, self.pending = False, True
         # An alarm's recheck is made whatever the budget says (alarms come at most one an
         # interval's length apart); a scheduled probe waits until the budget allows it.
         probe = self.pending or (self.countdown <= 0 and self._affordable())
@@ -136,11 +145,16 @@ class Guard:
         return max(self.reference or 0.0, _median(self._learned))
 
     def _affordable(self) -> bool:
-        """Whether the budget allows a scheduled probe now."""
+        """Whether the budget allows a scheduled probe now: what it is expected to cost (a trial of
+        Box2D's start, the reference; of the learned start, the reference times the paired ratio
+        seen so far, up to the cap) within what has been earned."""
         if self.probes < self.settings.free_probes:
             return True
-        expected = self.reference * (self.settings.cap if self.mode == BUILTIN else 1.0)
-        return self.spent + expected <= self.earned
+        share = 1.0
+        if self.mode == BUILTIN:
+            seen = self.ratio()
+            share = self.settings.cap if seen is None else min(self.settings.cap, max(0.25, seen))
+        return self.spent + share * self.reference <= self.earned
 
     # -- after a step ------------------------------------------------------
     def served(self, start: str, cost: float, sweeps: int) -> None:
@@ -155,12 +169,13 @@ class Guard:
         scale = self.scale()
         self._learned.append(float(sweeps))
         self.since_alarm += 1
+        self.since_panic += 1
         if self.reference is None:
             return
         if sweeps > self.settings.panic * scale:
             self._switch(BUILTIN)  # far worse than the world has been needing: no second such step
-            if self.since_alarm > self.settings.interval[1]:  # and a recheck, in case the world just got busier
-                self.since_alarm, self.pending = 0, True
+            if self.since_panic > self.settings.interval[1]:  # and a recheck, in case the world just got busier
+                self.since_panic, self.pending = 0, True
         elif _median(self._learned) > self.settings.alarm * self.reference and self.since_alarm > self.settings.interval[1]:
             # The learned start's recent steps cost more than Box2D's last measured ones: maybe the
             # world got busier, maybe the learned start went wrong. The next step is a probe.
@@ -182,6 +197,7 @@ class Guard:
             self.countdown = self.settings.interval[0]  # soon again, once the reference has caught up
             return
         self.pairs.append((float(learned), float(builtin)))
+        self.history.append((float(learned), float(builtin)))
         switched = self._decide()
         longest = self.settings.interval[1]
         self.interval = self.settings.interval[0] if switched else min(2 * self.interval, longest)
@@ -204,13 +220,24 @@ class Guard:
         learned, builtin = self.pairs[-1]
         last = learned / builtin if builtin > 0 else (1.0 if learned == 0 else float("inf"))
         if (self.mode == BUILTIN and len(self.pairs) >= min(2, self.settings.window) and ratio <= self.settings.enter
-                and last <= 1.0):
+                and last <= 1.0 and self.reference >= self.settings.floor):
             self._switch(LEARNED)
             return True
-        if self.mode == LEARNED and (ratio > self.settings.leave or last > self.settings.severe):
+        # A learned start that has been winning over many probes keeps serving through a window
+        # of bad luck: in a busy pile a step's paired ratio swings several-fold, and each turn
+        # on Box2D's start costs the steps until the next probe. Where it loses in the long run
+        # too, or a probe loses badly, it goes.
+        settled = len(self.history) >= self.settings.history and self.long_ratio() <= self.settings.enter
+        if self.mode == LEARNED and ((ratio > self.settings.leave and not settled) or last > self.settings.severe):
             self._switch(BUILTIN)
             return True
         return False
+
+    def long_ratio(self) -> float:
+        """The learned start's cost over Box2D's over the last `history` paired probes."""
+        learned = sum(p[0] for p in self.history)
+        builtin = sum(p[1] for p in self.history)
+        return learned / builtin if builtin > 0 else 1.0
 
     def _switch(self, mode: str) -> None:
         self.mode = mode

@@ -63,7 +63,7 @@ def test_a_start_that_goes_wrong_is_dropped_within_a_few_steps():
     learned[150:] = 1000  # good for 150 steps, then at the solver's cap
     served, _, guard = play(builtin, learned)
     assert guard.mode == BUILTIN
-    assert (served[150:] > builtin[150:]).sum() <= 3
+    assert (served[150:] > builtin[150:]).sum() <= 6  # the recent steps' median turns after five
     assert served.sum() < builtin.sum()
 
 
@@ -75,11 +75,13 @@ def test_a_start_that_goes_far_wrong_is_dropped_after_one_step():
     assert guard.mode == BUILTIN and (served[150:] > builtin[150:]).sum() == 1
 
 
-def test_a_world_at_rest_gets_box2ds_start_and_no_probes():
-    """A stack at rest needs a sweep or two a step: a learned start could save next to nothing."""
+def test_a_world_at_rest_gets_box2ds_start_and_only_cheap_probes():
+    """A stack at rest needs a sweep or two a step: a learned start could save next to nothing,
+    and a trial of it stops at those few sweeps."""
     builtin = np.ones(250, int)
     served, spent, guard = play(builtin, np.full(250, 400))
-    assert served.sum() == builtin.sum() and spent <= 2 * 400 and guard.probes <= guard.settings.free_probes
+    assert served.sum() == builtin.sum() and guard.switches == 0
+    assert spent <= 0.04 * builtin.sum() + guard.settings.free_probes
 
 
 def test_the_trials_stay_inside_the_budget_whatever_the_world():
