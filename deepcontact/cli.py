@@ -96,6 +96,12 @@ def _lazy(sub: argparse.ArgumentParser, load) -> None:
     sub.parse_known_args = parse_known_args
 
 
+#: The packages of pyproject.toml's extras, by the name a missing one is imported as: a command
+#: whose part needs one says which extra installs it, in one line.
+EXTRAS = {"tensorflow": "train", "tf2onnx": "train", "keras": "train", "h5py": "train", "matplotlib": "bench",
+          "hdrh": "bench", "ray": "ray"}
+
+
 def main(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     """Parse `argv` and run the chosen command: its exit status, 130 on ^C, and 1 with one line
     on stderr for an exception it did not expect (DEEPCONTACT_DEBUG=1: the traceback instead)."""
@@ -108,6 +114,11 @@ def main(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as exc:
+        missing = _missing_part(exc)
+        if missing and not os.environ.get("DEEPCONTACT_DEBUG"):
+            words = words or _command_words(sys.argv[1:] if argv is None else argv)  # parsing itself failed
+            print(f"{' '.join((parser.prog, *words))}{missing}", file=sys.stderr)
+            return 2
         # Commands answer what they expect with their own one-line errors; this is
         # for what they did not expect (a bug). DEEPCONTACT_DEBUG=1 shows where.
         if os.environ.get("DEEPCONTACT_DEBUG"):
@@ -115,3 +126,24 @@ def main(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
         print(f"{' '.join((parser.prog, *words))}: unexpected error: {type(exc).__name__}: {exc} "
               "(DEEPCONTACT_DEBUG=1 shows the traceback)", file=sys.stderr)
         return 1
+
+
+def _missing_part(exc: Exception) -> str | None:
+    """The end of a one-line error for a package this install lacks (" needs ...: pip install
+    'deepcontact[EXTRA]'", or the patched Box2D's build hint), None for any other exception."""
+    if isinstance(exc, ModuleNotFoundError) and (exc.name or "").split(".")[0] in EXTRAS:
+        return (f" needs {exc.name}, which this install lacks: "
+                f"pip install 'deepcontact[{EXTRAS[exc.name.split('.')[0]]}]'")
+    if isinstance(exc, ImportError) and "make box2d" in str(exc):  # simclient.engine's own hint
+        return f": {exc}"
+    return None
+
+
+def _command_words(argv: list[str]) -> tuple[str, ...]:
+    """The command's words at the head of argv (before the first flag, at most two, no paths)."""
+    words = []
+    for arg in argv[:2]:
+        if arg.startswith("-") or "/" in arg or "." in arg:
+            break
+        words.append(arg)
+    return tuple(words)
