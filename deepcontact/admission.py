@@ -85,7 +85,7 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     keep = np.ones(len(points)) if open_points is None else (~np.asarray(open_points, bool)).astype(np.float64)
     if np.array_equal(project_to_cones(c, mu) * keep[:, None], c):
         # Admissible as it is (half of a thesis world's steps under 100 points solved on their labels,
-        # `deepcontact bench face-solve`):
+        # `deepcontact lab face-solve`):
         # the rounds would end in the first, at c, after a factorization that costs more than they do.
         return c.copy()
     f = contact_frame(bodies, points) if frame is None else frame

@@ -203,7 +203,7 @@ def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float, solver: 
 #: values that a face's system resolves, far above what S S^T's rounding leaves in its null
 #: space. A face's system has a clean gap between the two: on the thesis world's largest steps
 #: (seed 903, the default's labels) its singular values are above about 1e-6 of the largest or
-#: below 1e-12, the right-hand side nowhere in the latter (`deepcontact bench face-solve`).
+#: below 1e-12, the right-hand side nowhere in the latter (`deepcontact lab face-solve`).
 DUAL_RIDGE = 1e-15
 #: minimum_norm_solve's rounds of iterative refinement on S S^T y = b, each from the ridged
 #: factor: squaring S squares its condition (1e12 where a singular value is 1e-6 of the

@@ -54,21 +54,21 @@ with about 1 N s along the normal where it presses and +-1 N s along the tangent
 slides; the server reads that as labels (pressing above `pressing` N s, sliding at `share`
 of the friction limit), solves the step's contact problem on them and moves the result by
 the smallest self-stress that every friction cone admits, in at most `rounds` rounds
-(deepcontact.kinematics.solved_on_labels). It needs each point's friction in the request
+(deepcontact.faces.solved_on_labels). It needs each point's friction in the request
 (StepRequest.point_friction). Keys: pressing (N s, default 0.5), share (default 1.0),
 rounds (default 1000), label_friction (default null: each point's own friction; a number:
 the sliding labels read at that friction everywhere, since the answer is a label, about
 +-1 N s, not an impulse, and its reading need not follow the world's friction; the solve
 uses each point's own either way), max_residual (default null: always served; a number: at a
 step whose served impulses leave their labels' equations unmet by more than this share,
-kinematics.face_residual, the labels are taken for wrong and Box2D's warm start, the request's
+faces.face_residual, the labels are taken for wrong and Box2D's warm start, the request's
 builtin impulses, is served instead), fallback (default null: Box2D's warm start; the name of
 another card beside this one, without a face of its own, whose answer is served in its place at
 those steps, at steps past max_points, and where the route would miss the request's budget_us,
 docs/server.md "Deadlines"), damping (default 0: the solve is the minimum-norm least-squares one; a
 number: damped least squares, the singular values below about sqrt(damping) of the largest
 damped away, solve_on_face), solver (default "gelsy": the minimum-norm solution by LAPACK's
-gelsy; "dual": by kinematics.minimum_norm_solve, its dual by Cholesky with two rounds of
+gelsy; "dual": by faces.minimum_norm_solve, its dual by Cholesky with two rounds of
 refinement, three to four times as fast at the thesis world's largest steps and nearer the
 pseudo-inverse's solution than gelsy, which on about 1 % of those steps answers along a direction
 that is rounding; the default card's since session 96), max_points (default null: every step solved; a number: a step
@@ -80,7 +80,7 @@ turn and the first reading whose solve meets it is served, the fallback only whe
 the step's factorizations are shared, so a retry costs its solve and admission rounds), close
 (default null: off; a speed in m/s: the points labelled open that the solve on the labels leaves
 closing faster than that are labelled pressing and the step solved again before the admission,
-kinematics.solved_on_labels).
+faces.solved_on_labels).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -88,7 +88,7 @@ alias of an alias is refused, so the chain is one step and cannot loop.
 `step_gate` (graph models with combine "residual"; in a full card or an alias card, which
 then serves its target gated) holds a per-step gate (deepcontact.step_gate.StepGate.to_dict):
 at a step where it predicts that the model's warm start loses to Box2D's, the server serves
-Box2D's, the request's builtin impulses unchanged. `deepcontact bench step-gate --save-card
+Box2D's, the request's builtin impulses unchanged. `deepcontact lab step-gate --save-card
 NAME` fits one and writes such an alias.
 """
 

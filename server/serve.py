@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"deepcontact serve: {exc}", file=sys.stderr)
         return 2
     # One BLAS thread per call: the server's parallelism is its requests. SciPy's OpenBLAS,
-    # loaded on the first solve of a face card (deepcontact.kinematics.solve_on_face), would
+    # loaded on the first solve of a face card (deepcontact.faces.solve_on_face), would
     # otherwise start a thread per core and make every small least-squares solve wait on
     # them, about twice as slow at the median on 2 busy cores and ten times at the p90.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
