@@ -6,6 +6,10 @@
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
 FROM ${PYTHON_IMAGE} AS build
+# A proxy's certificate authority, where the network re-signs TLS (docker/extra-ca/README.md).
+COPY docker/extra-ca/ /usr/local/share/ca-certificates/
+RUN update-ca-certificates
+ENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt
 RUN apt-get update \
     && apt-get install -y --no-install-recommends build-essential patch \
     && rm -rf /var/lib/apt/lists/*
@@ -29,6 +33,9 @@ COPY proto/ proto/
 RUN pip wheel --no-cache-dir --no-deps --no-build-isolation -w /wheels/deepcontact .
 
 FROM ${PYTHON_IMAGE} AS runtime
+COPY docker/extra-ca/ /usr/local/share/ca-certificates/
+RUN update-ca-certificates
+ENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt
 RUN python3.11 -m venv /opt/deepcontact
 ENV PATH=/opt/deepcontact/bin:$PATH PYTHONUNBUFFERED=1
 WORKDIR /app
