@@ -4,6 +4,8 @@
 # The build stage compiles what they need (deepcontact's C kernels, the patched pybox2d wheel);
 # the runtime stages install the wheels, pinned by requirements.lock, and nothing else.
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
+# The runtime stages' base: the same by default; any Python 3.11 with venv and CA certificates.
+ARG RUNTIME_IMAGE=${PYTHON_IMAGE}
 
 FROM ${PYTHON_IMAGE} AS build
 # A proxy's certificate authority, where the network re-signs TLS (docker/extra-ca/README.md).
@@ -32,18 +34,20 @@ COPY lab/ lab/
 COPY proto/ proto/
 RUN pip wheel --no-cache-dir --no-deps --no-build-isolation -w /wheels/deepcontact .
 
-FROM ${PYTHON_IMAGE} AS runtime
+FROM ${RUNTIME_IMAGE} AS runtime
 COPY docker/extra-ca/ /usr/local/share/ca-certificates/
 RUN update-ca-certificates
 ENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt
-RUN python3.11 -m venv /opt/deepcontact
 ENV PATH=/opt/deepcontact/bin:$PATH PYTHONUNBUFFERED=1
 WORKDIR /app
 
 FROM runtime AS server
 COPY requirements.lock /tmp/requirements.lock
 COPY --from=build /wheels/deepcontact/ /tmp/wheels/
-RUN pip install --no-cache-dir --constraint /tmp/requirements.lock /tmp/wheels/*.whl \
+# One layer: the environment, what it serves with, and pip taken out again (nothing installs later).
+RUN python3.11 -m venv /opt/deepcontact \
+    && pip install --no-cache-dir --constraint /tmp/requirements.lock /tmp/wheels/*.whl \
+    && pip uninstall --yes pip setuptools \
     && rm -rf /tmp/wheels /tmp/requirements.lock
 COPY models/ models/
 EXPOSE 50051
@@ -56,8 +60,23 @@ FROM runtime AS client
 COPY requirements.lock /tmp/requirements.lock
 COPY --from=build /wheels/ /tmp/wheels/
 # [bench]: the figures and latency histograms of bench iterations and bench load.
-RUN pip install --no-cache-dir --constraint /tmp/requirements.lock \
+RUN python3.11 -m venv /opt/deepcontact \
+    && pip install --no-cache-dir --constraint /tmp/requirements.lock \
         "$(ls /tmp/wheels/deepcontact/*.whl)[bench]" /tmp/wheels/box2d/*.whl \
+    && pip uninstall --yes pip setuptools \
+    && rm -rf /tmp/wheels /tmp/requirements.lock
+COPY examples/ examples/
+ENTRYPOINT ["deepcontact"]
+CMD ["--help"]
+
+# docker compose --profile scale: the client with Ray, for the Ray head, workers and the sweep (docs/scale.md).
+FROM runtime AS cluster
+COPY requirements.lock /tmp/requirements.lock
+COPY --from=build /wheels/ /tmp/wheels/
+RUN python3.11 -m venv /opt/deepcontact \
+    && pip install --no-cache-dir --constraint /tmp/requirements.lock \
+        "$(ls /tmp/wheels/deepcontact/*.whl)[bench,ray]" /tmp/wheels/box2d/*.whl \
+    && pip uninstall --yes pip setuptools \
     && rm -rf /tmp/wheels /tmp/requirements.lock
 COPY examples/ examples/
 ENTRYPOINT ["deepcontact"]

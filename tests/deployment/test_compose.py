@@ -46,16 +46,18 @@ def test_clients_reach_the_server_through_dns_round_robin():
 
 def test_the_dockerfile_builds_a_server_and_a_client_each_with_only_what_it_uses():
     dockerfile = (ROOT / "Dockerfile").read_text()
-    stages = dict(re.findall(r"^FROM (\S+) AS (\S+)$", dockerfile, re.M)[i][::-1] for i in range(4))
-    assert stages == {"build": "${PYTHON_IMAGE}", "runtime": "${PYTHON_IMAGE}", "server": "runtime",
-                      "client": "runtime"}
+    stages = {stage: base for base, stage in re.findall(r"^FROM (\S+) AS (\S+)$", dockerfile, re.M)}
+    assert stages == {"build": "${PYTHON_IMAGE}", "runtime": "${RUNTIME_IMAGE}", "server": "runtime",
+                      "client": "runtime", "cluster": "runtime"}
     server = dockerfile.split("FROM runtime AS server")[1].split("FROM ")[0]
     client = dockerfile.split("FROM runtime AS client")[1]
     assert "build-essential" not in server + client and "box2d" not in server  # no compilers; no engine to serve
     assert "[train]" not in server + client and "tensorflow" not in (server + client).lower()
     assert "/tmp/wheels/box2d/" in client and 'ENTRYPOINT ["deepcontact"]' in server + client
-    for service in ("server", "simclient", "loadtest"):
-        assert COMPOSE["services"][service]["build"]["target"] == ("server" if service == "server" else "client")
+    targets = {"server": "server", "simclient": "client", "loadtest": "client", "ray-head": "cluster",
+               "ray-worker": "cluster", "sweep": "cluster"}
+    for service, target in targets.items():
+        assert COMPOSE["services"][service]["build"]["target"] == target
 
 
 def ray_start(service: str) -> dict:
