@@ -71,7 +71,7 @@ damped away, solve_on_face), solver (default "gelsy": the minimum-norm solution 
 gelsy; "dual": by faces.minimum_norm_solve, its dual by Cholesky with two rounds of
 refinement, three to four times as fast at the thesis world's largest steps and nearer the
 pseudo-inverse's solution than gelsy, which on about 1 % of those steps answers along a direction
-that is rounding; the default card's since session 96), max_points (default null: every step solved; a number: a step
+that is rounding; the default card's since 2026-12-02), max_points (default null: every step solved; a number: a step
 with more contact points than this is not solved, since the dense solve grows as the cube of
 the points, and is served the fallback card's answer, else Box2D's warm start), retry_pressing
 (default []: none; a list of thresholds in N s, only with max_residual: where the step solved on
