@@ -85,6 +85,19 @@ faces.solved_on_labels).
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
 
+`trained_on` (optional) is what the model's training data held (deepcontact.envelope.Envelope:
+shapes, radius, density, friction, gravity, dt, joints, kinematic bodies); the server tells the
+client, with each reply, whether the step lies inside it. A card without it is unfamiliar with
+every world. train-graph writes it from its training files' scenes.
+
+`measured` (optional; in a full card or an alias card) is what the model, served as the card
+says, was measured to need on the worlds of its trained_on, without the guard: {"ratio": mean
+iterations over Builtin's, "interval": [low, high] its 95 % bootstrap interval over seeds,
+"command": the command that measured it}, on choosing seeds. The server calls a step familiar
+(and the client's guard trusts the model there from the first step) only where the step lies
+inside trained_on and the whole interval lies below 1: a model trained on a world but not
+measured to win there (the thesis's Pressure CNN) is held to Box2D's start like any other.
+
 `step_gate` (graph models with combine "residual"; in a full card or an alias card, which
 then serves its target gated) holds a per-step gate (deepcontact.step_gate.StepGate.to_dict):
 at a step where it predicts that the model's warm start loses to Box2D's, the server serves
@@ -101,6 +114,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from deepcontact.envelope import Envelope
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_json_atomic
 from deepcontact.faces import SOLVERS
@@ -108,7 +122,9 @@ from deepcontact.step_gate import StepGate
 
 CARD_VERSION = 1
 COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
-ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face", "description"})
+ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face", "description", "measured"})
+#: What an alias card may set for the card it names (the rest is the target's).
+ALIAS_OVERRIDES = ("step_gate", "face", "description", "measured")
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None}
@@ -159,7 +175,20 @@ class ModelCard:
     parity_max_abs_error: float | None = None  # TF vs ONNX Runtime on random input
     commands: tuple[str, ...] = ()  # the commands that made the model
     description: str = ""  # what the model is, in one line: ListModels returns it, `deepcontact serve` logs it
+    trained_on: dict | None = None  # what its training data held (deepcontact.envelope.Envelope.to_dict)
+    measured: dict | None = None  # its iterations over Builtin's on those worlds: ratio, interval, command
     version: int = CARD_VERSION
+
+    @property
+    def envelope(self) -> Envelope | None:
+        """The card's trained_on as an Envelope (None: the card records none)."""
+        return None if self.trained_on is None else Envelope.from_dict(self.trained_on)
+
+    @property
+    def wins_where_trained(self) -> bool:
+        """Whether the card records a measured gain over Box2D's start on its training worlds
+        (`measured`'s whole interval below 1)."""
+        return self.measured is not None and self.measured["interval"][1] < 1.0
 
     def to_dict(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -201,6 +230,13 @@ class ModelCard:
                 raise ModelCardError(f"model card step_gate: {exc}") from None
         if d.get("face") is not None:
             d["face"] = _face_settings(d["face"], d["kind"])
+        if d.get("trained_on") is not None:
+            try:
+                d["trained_on"] = Envelope.from_dict(d["trained_on"]).to_dict()
+            except ValueError as exc:
+                raise ModelCardError(f"model card {exc}") from None
+        if d.get("measured") is not None:
+            d["measured"] = _measured(d["measured"])
         if not isinstance(d.get("description", ""), str) or "\n" in d.get("description", ""):
             raise ModelCardError("model card description: one line of text")
         if d.get("combine", "replace") not in COMBINE:
@@ -220,14 +256,15 @@ class ModelCard:
             unknown = set(data) - ALIAS_KEYS
             if unknown or not isinstance(data.get("name"), str) or not isinstance(data["alias_of"], str):
                 raise ModelCardError(f"{path}: an alias card holds a name and alias_of (strings) and "
-                                     f"optionally why, description, step_gate and face; got keys {sorted(data)}")
+                                     f"optionally why, description, step_gate, face and measured; got keys "
+                                     f"{sorted(data)}")
             target_path = path.with_name(f"{data['alias_of']}.json")
             target = _read_card(target_path)
             if isinstance(target, dict) and "alias_of" in target:
                 raise ModelCardError(f"{path}: alias of {target_path.name}, itself an alias; "
                                      f"name the card it points at ({target['alias_of']!r})")
             if isinstance(target, dict):
-                target = {**target, **{k: data[k] for k in ("step_gate", "face", "description") if k in data}}
+                target = {**target, **{k: data[k] for k in ALIAS_OVERRIDES if k in data}}
             try:
                 card = cls.from_dict(target)
             except ModelCardError as exc:
@@ -276,6 +313,17 @@ def _face_settings(face: Any, kind: str) -> dict:
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
             "retry_pressing": [float(r) for r in retries]}
+
+
+def _measured(m: Any) -> dict:
+    """A card's `measured`, checked; ModelCardError for anything else."""
+    number = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0  # noqa: E731
+    if not (isinstance(m, dict) and set(m) == {"ratio", "interval", "command"} and number(m["ratio"])
+            and isinstance(m["interval"], list) and len(m["interval"]) == 2 and all(map(number, m["interval"]))
+            and m["interval"][0] <= m["ratio"] <= m["interval"][1] and isinstance(m["command"], str)):
+        raise ModelCardError(f"model card measured: {{\"ratio\": r, \"interval\": [low, high], \"command\": "
+                             f"\"...\"}} with 0 < low <= r <= high, got {m!r}")
+    return {"ratio": float(m["ratio"]), "interval": [float(x) for x in m["interval"]], "command": m["command"]}
 
 
 def _read_card(path: Path) -> Any:

@@ -62,6 +62,8 @@ class FaceRoutePredictor(Predictor):
         if card.face is None:
             raise ModelCardError(f"{card.name}: the face route serves a card with face")
         self.card, self.name, self.kind, self.description = card, card.name, card.kind, card.description
+        # The classifier's training worlds (the route answers for the worlds it labels), the route's measured gain.
+        self.envelope, self.wins_where_trained = card.envelope, card.wins_where_trained
         self.gridspec = card.gridspec
         self.settings = card.face
         self.classifier = classifier

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from deepcontact.channels import Step, channel_values, needs
+from deepcontact.envelope import Envelope
 from deepcontact.features import world_to_grids
 from deepcontact.gridspec import GridSpec
 from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_physics, points_at_rest
@@ -102,6 +103,8 @@ class Predictor:
     requires: tuple[str, ...] = ()
     batchable: bool = False  # infer(x) on one (1, ny, nx, C) grid, which server.batching can stack
     takes_deadline: bool = False  # predict(..., deadline=) may answer otherwise to meet it
+    envelope: Envelope | None = None  # what the model was trained on (its card's trained_on); None: not recorded
+    wins_where_trained: bool = False  # its card records a measured gain over Box2D's start there
 
     def predict(self, bodies: np.ndarray, points: np.ndarray, world: World, step: int,
                 previous: np.ndarray | None = None) -> Prediction:
@@ -217,6 +220,7 @@ class ModelPredictor(Predictor):
         self.name = card.name
         self.kind = card.kind
         self.description = card.description
+        self.envelope, self.wins_where_trained = card.envelope, card.wins_where_trained
         self.fixed_grid = card.fixed_grid
         self.gridspec = card.gridspec
         self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
@@ -306,6 +310,7 @@ class GraphPredictor(Predictor):
             raise ModelCardError(f"{card.name}: a card with face is served by server.face_route.FaceRoutePredictor "
                                  "(load_model builds it)")
         self.card, self.name, self.kind, self.description = card, card.name, card.kind, card.description
+        self.envelope, self.wins_where_trained = card.envelope, card.wins_where_trained
         self.gridspec = card.gridspec
         self.session = _session(onnx_path, intra_op_threads, inter_op_threads)
         names = {i.name for i in self.session.get_inputs()}

@@ -204,10 +204,9 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         try:
             bodies, points = wire.decode_step(request, max_bodies=self.limits.max_bodies,
                                               max_points=self.limits.max_points)
+            friction, joints = wire.decode_friction(request), wire.decode_joints(request)
             # Only a predictor that asks for the friction gets it: the others' predict() takes none.
-            extra = {"friction": wire.decode_friction(request)} if "point_friction" in predictor.requires else {}
-            # A provider (zero, random, ...) answers as it is; a model only about points free of joints.
-            joints = wire.decode_joints(request) if predictor.kind != "provider" else None
+            extra = {"friction": friction} if "point_friction" in predictor.requires else {}
             if predictor.takes_deadline and request.budget_us:
                 extra["deadline"] = t0 + 1e-6 * request.budget_us - self.deadline_margin_s
             predictor.check_domain(world.domain)
@@ -217,7 +216,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         try:
             if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
                 answer = Prediction(np.zeros((0, 2), np.float32))
-            elif joints is not None:
+            elif joints is not None and predictor.kind != "provider":  # a provider (zero, ...) answers as it is
                 answer = predict_around_joints(predictor, bodies, points, joints, world, request.step, previous,
                                                **extra)
             else:
@@ -230,6 +229,10 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         if self.fault is not None and self.fault.applies(request.step):
             time.sleep(self.fault.seconds)
         reply = wire.encode_impulses(request.step, predictor.name, answer.impulses)
+        if len(points):
+            unfamiliar = _unfamiliar(predictor, bodies, points, friction, joints, world)
+            reply.familiar = unfamiliar is None
+            reply.unfamiliar = unfamiliar or ""
         if answer.served_by:
             reply.served_by = answer.served_by
             metrics.SERVED_BY.labels(model=predictor.name, served_by=answer.served_by).inc()
@@ -247,6 +250,22 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         timings.total_us = _us(total)
         metrics.observe_step(predictor.name, t1 - t0, stages, total)
         return reply, points
+
+
+#: Why a predictor's steps are all unfamiliar: its card records no training envelope, or no
+#: measured gain over Box2D's start on the worlds it holds (deepcontact.modelcard, measured).
+NO_ENVELOPE = "the card records no trained_on"
+NO_GAIN = "the card records no measured gain over Box2D's start where it was trained"
+
+
+def _unfamiliar(predictor: Predictor, bodies, points, friction, joints, world: World) -> str | None:
+    """Why the step is not one the predictor's card vouches for, or None where it is: inside what
+    the model was trained on (deepcontact.envelope) and measured to win there."""
+    if predictor.envelope is None:
+        return NO_ENVELOPE
+    if not predictor.wins_where_trained:
+        return NO_GAIN
+    return predictor.envelope.unfamiliar(bodies, points, friction, world.physics, joints)
 
 
 class _StreamSteps:

@@ -225,3 +225,19 @@ def differences(a: str | os.PathLike, b: str | os.PathLike) -> list[str]:
             if field != "solve_ms" and sa[field].tobytes() != sb[field].tobytes():
                 found.append(f"steps.{field}")
     return found
+
+
+def trained_on(paths) -> dict | None:
+    """The envelope (deepcontact.envelope.Envelope.to_dict) of the scenes the data files at
+    `paths` were recorded from, a card's `trained_on`; None where one of them cannot say (not a
+    data file of this schema)."""
+    from deepcontact.envelope import Envelope
+
+    scenes = []
+    for path in paths:
+        try:
+            with Dataset(path) as ds:
+                scenes.append(ds.scene)
+        except (DatasetError, OSError, KeyError):
+            return None
+    return Envelope.from_scenes(scenes).to_dict() if scenes else None

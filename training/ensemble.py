@@ -370,9 +370,16 @@ def build_ensemble(card_paths: list[Path], name: str, out_dir: Path | None = Non
                                   **({"agree": agree} if agree is not None else {}),
                                   **({"mirror": True} if mirror else {})},
                       "onnx_bytes": len(data), "parameters": {"total": sum(c.parameters for c, _ in members)}},
-        training={"ensemble_of": described}, parity_max_abs_error=parity,
+        training={"ensemble_of": described}, parity_max_abs_error=parity, trained_on=_trained_on(members),
         commands=tuple(cmd for member, _ in members for cmd in member.commands) + (command,))
     return card.save(out_dir / f"{name}.json")
+
+
+def _trained_on(members) -> dict | None:
+    """What the members were trained on, where every one records it and all agree; else None
+    (an ensemble answers for the worlds each of its members knows)."""
+    seen = [card.trained_on for card, _ in members]
+    return seen[0] if seen[0] is not None and all(s == seen[0] for s in seen) else None
 
 
 def main(argv: list[str] | None = None) -> int:

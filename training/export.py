@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from deepcontact.envelope import Envelope
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import COMBINE, ModelCard
@@ -136,6 +137,8 @@ def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, name: str 
         validation=_validation_record(info, state),
         parity_max_abs_error=parity,
         commands=tuple(commands + ([command] if command else [])),
+        trained_on=Envelope.from_scenes([d["scene"] for d in train]).to_dict() if all("scene" in d for d in train)
+        else None,
     )
     card_path = out.with_suffix(".json")
     card.save(card_path)

@@ -37,7 +37,7 @@ from deepcontact.arguments import add_seed_argument
 from deepcontact.gridspec import GridSpec
 from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard
-from training import machine
+from training import dataset, machine
 from deepcontact.channels import CHANNELS, mirror_signs
 from training.contact_graph import (GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set,
                                     step_converged, step_iterations)
@@ -1105,6 +1105,7 @@ class _CardParts:
             validation={**validation, "points": int(sum(len(g.targets) for g in self.val))},
             parity_max_abs_error=parity,
             commands=(self.command,),
+            trained_on=dataset.trained_on(self.sources),
         )
 
 

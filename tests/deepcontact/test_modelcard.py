@@ -113,3 +113,34 @@ def test_an_unknown_model_among_many_is_told_with_the_closest_names_only():
     assert message.startswith(f"no model 'defualt' among {len(known)} (the closest: default")
     assert "graph-variant-50" not in message  # not the whole list
     assert "none is close" in unknown_model("zzzzzzzz", known)
+
+
+def test_a_card_says_what_its_model_was_trained_on_and_measured_to_need(tmp_path):
+    """trained_on is what training saw; measured, on an alias too, what the model is worth there.
+    Only a measured gain (the whole interval below 1) makes the server vouch for a world."""
+    import dataclasses
+
+    from deepcontact.envelope import Envelope
+
+    seen = Envelope(radius=(0.3, 0.55), friction=(0.2, 0.8))
+    dataclasses.replace(_card(tmp_path), trained_on=seen.to_dict()).save(tmp_path / "residual-new-points.json")
+    measured = {"ratio": 0.8, "interval": [0.75, 0.86], "command": "deepcontact bench iterations --seeds 850-899"}
+    (tmp_path / "default.json").write_text(json.dumps(
+        {"name": "default", "alias_of": "residual-new-points", "measured": measured}))
+    card = ModelCard.load(tmp_path / "default.json")
+    assert card.envelope == seen and card.measured == measured and card.wins_where_trained
+    target = ModelCard.load(tmp_path / "residual-new-points.json")
+    assert target.envelope == seen and target.measured is None and not target.wins_where_trained
+    tie = {**measured, "interval": [0.9, 1.02], "ratio": 0.96}
+    (tmp_path / "tie.json").write_text(json.dumps({"name": "tie", "alias_of": "residual-new-points", "measured": tie}))
+    assert not ModelCard.load(tmp_path / "tie.json").wins_where_trained
+
+
+def test_a_malformed_envelope_or_measurement_is_refused_in_one_line(tmp_path):
+    card = _card(tmp_path).to_dict()
+    for key, value, message in (("trained_on", {"radius": [0.6, 0.3]}, "trained_on"),
+                                ("trained_on", {"flavour": "x"}, "trained_on"),
+                                ("measured", {"ratio": 0.8}, "measured"),
+                                ("measured", {"ratio": 1.2, "interval": [0.7, 0.9], "command": ""}, "measured")):
+        with pytest.raises(ModelCardError, match=message):
+            ModelCard.from_dict({**card, key: value})

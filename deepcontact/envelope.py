@@ -1,0 +1,148 @@
+"""What a model was trained on, and whether a step lies inside it.
+
+A network trained on piles of discs in a box has seen nothing of a stack of boxes, a body on a
+joint or another time step, and its warm start there can cost many times Box2D's own. A card's
+`trained_on` records the worlds its training data held, as an Envelope; the server tests every
+step it answers against it and says, in the reply, whether the step is familiar and, where not,
+why (`Impulses.familiar`, `Impulses.unfamiliar`). The client's guard (simclient.guard) trusts a
+model on a familiar world from its first step and holds an unfamiliar one to Box2D's start until
+its own trial solves say the model wins there.
+
+    envelope = Envelope.from_scenes([thesis_spec_dict, family_spec_dict])   # what training saw
+    reason = envelope.unfamiliar(bodies, points, friction, physics, joints)  # None: familiar
+
+The test reads only what a request carries, so any client's world can be judged: a body is a
+disc where its rotational inertia about its centre of mass is that of a uniform disc of its
+bounding radius (I = m r^2 / 2); polygons, several fixtures and shapes off the body's centre
+are not. Each range is widened by `SLACK` of itself on either side: a model is not lost at
+0.56 m having seen 0.55 m.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+#: Each range of an envelope is widened by this share of its upper end on either side.
+SLACK = 0.1
+#: A body is a disc where I / (m r^2) lies within this of 1/2 (float32 rounding, thin margins).
+DISC_TOLERANCE = 0.02
+#: The shape kinds an envelope can hold: discs, and every other body (polygons, several fixtures).
+SHAPES = ("disc", "other")
+
+
+@dataclasses.dataclass(frozen=True)
+class Envelope:
+    """The worlds a model's training data held. Ranges are (low, high), inclusive.
+
+    shapes: the body kinds seen ("disc", "other"); radius: the bodies' bounding radius (m);
+    density: discs' mass over area (kg/m^2); friction: the points' friction coefficient;
+    gravity: its magnitude (m/s^2); dt: the time step (s); joints, kinematic: whether bodies on
+    joints, and kinematic bodies, were seen."""
+
+    shapes: tuple[str, ...] = ("disc",)
+    radius: tuple[float, float] = (0.5, 0.5)
+    density: tuple[float, float] = (1.0, 1.0)
+    friction: tuple[float, float] = (0.5, 0.5)
+    gravity: tuple[float, float] = (9.8, 9.8)
+    dt: tuple[float, float] = (0.01, 0.01)
+    joints: bool = False
+    kinematic: bool = False
+
+    def __post_init__(self) -> None:
+        ranges = (self.radius, self.density, self.friction, self.gravity, self.dt)
+        if not self.shapes or set(self.shapes) - set(SHAPES) or not all(
+                len(r) == 2 and all(isinstance(x, (int, float)) and math.isfinite(x) for x in r)
+                and 0 <= r[0] <= r[1] for r in ranges):
+            raise ValueError(f"an envelope holds shapes among {SHAPES} and ranges (low, high) with "
+                             f"0 <= low <= high, got {self}")
+
+    # -- the card ---------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: list(v) if isinstance(v, tuple) else v
+                for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> "Envelope":
+        """ValueError, in one line, for anything but an envelope's dict."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        if not isinstance(d, dict) or set(d) - names:
+            raise ValueError(f"trained_on: an object with keys among {sorted(names)}, got {d!r}")
+        try:
+            return cls(**{k: tuple(float(x) if k != "shapes" else x for x in v) if isinstance(v, list) else v
+                          for k, v in d.items()})
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"trained_on: {exc}") from None
+
+    @classmethod
+    def from_scenes(cls, scenes: list[dict]) -> "Envelope":
+        """The union of the project's scenes (simclient.scene.SceneSpec as the data files' `scene`
+        attribute holds it: bodies, radius, polygons, friction, density, gravity, solver.dt).
+        A scene with polygons adds "other" (boxes of their circle's area)."""
+        if not scenes:
+            raise ValueError("an envelope of no scenes")
+        radius = [r for s in scenes for r in s["radius"]]
+        # A box of the same area as its circle has a bounding radius sqrt(pi/2) times the circle's.
+        boxed = [math.sqrt(math.pi / 2) * max(s["radius"]) for s in scenes if s.get("polygons", 0) > 0]
+        friction = [f for s in scenes for f in s["friction"]]
+        density = [s["density"] for s in scenes]
+        gravity = [s["gravity"] for s in scenes]
+        dt = [s["solver"]["dt"] for s in scenes]
+        shapes = ("disc", "other") if boxed else ("disc",)
+        return cls(shapes=shapes, radius=(min(radius), max(radius + boxed)), density=(min(density), max(density)),
+                   friction=(min(friction), max(friction)), gravity=(min(gravity), max(gravity)), dt=(min(dt), max(dt)))
+
+    # -- a step -----------------------------------------------------------------
+    def unfamiliar(self, bodies: np.ndarray, points: np.ndarray, friction: np.ndarray | None, physics,
+                   joints: np.ndarray | None) -> str | None:
+        """Why a step lies outside the envelope, in a few words, or None where it lies inside.
+
+        bodies: (B + 1,) BODY_DTYPE as deepcontact.wire.decode_step gives them (row 0 the walls'
+        static stand-in; mass 0 a kinematic body); points: (P,) CONTACT_DTYPE; friction: (P,)
+        each point's coefficient, or None (not judged); physics: deepcontact.kinematics.Physics
+        (dt s, gravity m/s^2; dt 0: not sent, not judged); joints: (J, 2) rows of bodies, or
+        None. Only the bodies that touch a point are judged: a body far from every contact
+        changes nothing of the step's problem."""
+        reasons = []
+        if joints is not None and len(joints) and not self.joints:
+            reasons.append(f"{len(joints)} joints")
+        touched = np.zeros(len(bodies), bool)
+        touched[points["body_a"]] = touched[points["body_b"]] = True
+        touched[0] = False  # the walls
+        moving = bodies[touched]
+        mass = moving["mass"].astype(np.float64)
+        kinematic = mass <= 0
+        if kinematic.any() and not self.kinematic:
+            reasons.append(f"{int(kinematic.sum())} kinematic bodies")
+        dynamic = moving[~kinematic]
+        m, r = mass[~kinematic], dynamic["radius"].astype(np.float64)
+        disc = np.abs(dynamic["inertia"] / np.maximum(m * r * r, 1e-30) - 0.5) <= DISC_TOLERANCE
+        if "other" not in self.shapes and not disc.all():
+            reasons.append(f"{int((~disc).sum())} of {len(disc)} bodies not discs")
+        reasons += _outside("radius", r, self.radius, "m")
+        reasons += _outside("density", m[disc] / (np.pi * r[disc] ** 2), self.density, "kg/m^2")
+        if friction is not None:
+            reasons += _outside("friction", np.asarray(friction, np.float64), self.friction, "")
+        if physics.dt > 0:
+            reasons += _outside("dt", np.array([physics.dt]), self.dt, "s")
+            reasons += _outside("gravity", np.array([math.hypot(*physics.gravity)]), self.gravity, "m/s^2")
+        return "; ".join(reasons) or None
+
+
+def _outside(name: str, values: np.ndarray, seen: tuple[float, float], unit: str) -> list[str]:
+    """[a few words] where some of values lie outside `seen` widened by SLACK, else []."""
+    if not len(values):
+        return []
+    low, high = float(values.min()), float(values.max())
+    margin = SLACK * seen[1]
+    if low >= seen[0] - margin and high <= seen[1] + margin:
+        return []
+    unit = f" {unit}" if unit else ""
+    return [f"{name} {_g(low)}-{_g(high)}{unit}, trained on {_g(seen[0])}-{_g(seen[1])}"]
+
+
+def _g(x: float) -> str:
+    return f"{x:.3g}"
