@@ -235,8 +235,12 @@ def guard_note(summaries: dict[str, dict], runs: dict[str, list[dict]]) -> str:
             continue
         cost = (f", trial sweeps {s['guard_trial_iterations'] / reference:.1%} of Builtin's"
                 if reference else f", {s['guard_trial_iterations']:,} trial sweeps")
+        heard = s.get("familiar_steps", 0) + s.get("unfamiliar_steps", 0)
+        word = (f"; the server called {s['familiar_steps']:,} of the {heard:,} steps it answered familiar"
+                + (f" (otherwise: {s['unfamiliar']})" if s.get("unfamiliar") else "")) if heard else ""
         lines.append(f"- {name}: the learned start on {s['learned_steps']:,} steps, Box2D's on "
-                     f"{s['guarded_steps']:,}; {s['guard_probes']:,} probes, {s['guard_switches']:,} switches{cost}")
+                     f"{s['guarded_steps']:,}; {s['guard_probes']:,} probes, {s['guard_switches']:,} switches{cost}"
+                     f"{word}")
     return ("\nGuard (the learned start served only while it beats Box2D's; --no-guard turns it off):\n"
             + "\n".join(lines) + "\n") if lines else ""
 

@@ -25,6 +25,14 @@ own start has been needing, so the guard costs at most that share of Box2D's
 solve time. A trial of the learned start stops at `cap` times Box2D's recent
 sweeps: past that it has lost, and how badly does not matter.
 
+The server also says, with each answer, whether the step lies inside what its
+model was trained on (deepcontact.envelope; `heard`). On a familiar world the
+model's gain has been measured before the run, so the guard trusts it: the
+learned start serves from the first step, probes go on within the budget, and
+only a full window of probes that says it loses ends its turn; no single
+step's loss (a severe probe, a panic) does, nor a world at rest. An unfamiliar
+world is held to Box2D's start until its own probes say otherwise.
+
 With no stopping tolerance every step runs the same number of sweeps; a step's
 cost is then how far from converged its start leaves it (the last sweep's
 largest impulse change, N s), and the guard compares that instead.
@@ -63,7 +71,18 @@ class GuardSettings:
         their median, is taken over.
     floor: where Box2D's recent steps took fewer sweeps than this, its own start is
         served (probes go on, as cheap as those steps): a learned start could save a step
-        at most those few sweeps and can cost it hundreds (a stack at rest needs one or two)."""
+        at most those few sweeps and can cost it hundreds (a stack at rest needs one or two).
+    trust: serve the learned start from the first step of a world the server calls familiar
+        (module docstring); False holds every world to Box2D's start until probes say otherwise.
+    ask_first: steps with contacts on which the guard asks the server before it has heard
+        whether the world is familiar (the first answer says; a step that gets none, a late or
+        failed one, asks again on the next, up to this many).
+    checks: probes made whatever the budget while a trusted start serves (a familiar world's
+        first steps, when they are cheap): a model that loses on the worlds it was trained
+        on (the thesis's Pressure CNN) is found out within a few dozen steps.
+    verdict: on a familiar world, the learned start goes where its last `verdict` probes lost in
+        sum and in the median probe (robust to one busy step at the solver's cap), or a full
+        `window` lost by more than `leave`."""
 
     budget: float = 0.04
     window: int = 8
@@ -78,6 +97,10 @@ class GuardSettings:
     recent: int = 9
     history: int = 24
     floor: float = 5.0
+    trust: bool = True
+    ask_first: int = 3
+    checks: int = 4
+    verdict: int = 4
 
     def __post_init__(self) -> None:
         if not (0 <= self.budget < 1 and self.window >= 1 and 0 < self.enter <= self.leave <= self.severe
@@ -117,13 +140,24 @@ class Guard:
         self.since_panic = settings.interval[1] + 1  # learned steps since the last panic
         self.probes = 0
         self.switches = 0
+        self.familiar: bool | None = None  # the server's last word on this world (None: not heard yet)
+        self.unfamiliar = ""  # why the server last called it unfamiliar
+        self.trusted = False  # the learned start serves because the world is familiar, not yet by probes
+        self.asked = 0  # steps asked before the server was heard
 
     # -- before a step -----------------------------------------------------
     def plan(self) -> Plan:
         """Called once per step with contacts, before the warm start is chosen."""
-        if self.reference is None:  # the first step with contacts sets the scale of everything
-            return Plan(ask=False, probe=False)
-        if self.reference < self.settings.floor:
+        if self.familiar is None and self.settings.trust and self.asked < self.settings.ask_first:
+            self.asked += 1
+            return Plan(ask=True, probe=False)  # the answer says whether the world is familiar
+        if self.reference is None:  # nothing measured of Box2D's start yet
+            if self.mode == LEARNED:  # a trusted start: its first probes are free
+                return Plan(ask=True, probe=self.countdown <= 0 and self._affordable())
+            return Plan(ask=False, probe=False)  # the first step with contacts sets the scale of everything
+        if self.familiar:
+            pass  # a familiar world's start serves at rest too: its gain there was measured, not guessed
+        elif self.reference < self.settings.floor:
             if self.mode == LEARNED:
                 self._switch(BUILTIN)  # a world at rest: no learned start there (probes go on, cheap, for later)
             self.below_floor = True
@@ -148,13 +182,31 @@ class Guard:
         """Whether the budget allows a scheduled probe now: what it is expected to cost (a trial of
         Box2D's start, the reference; of the learned start, the reference times the paired ratio
         seen so far, up to the cap) within what has been earned."""
-        if self.probes < self.settings.free_probes:
+        if self.probes < (self.settings.checks if self.trusted else self.settings.free_probes):
             return True
         share = 1.0
         if self.mode == BUILTIN:
             seen = self.ratio()
             share = self.settings.cap if seen is None else min(self.settings.cap, max(0.25, seen))
         return self.spent + share * self.reference <= self.earned
+
+    # -- the server's word -------------------------------------------------
+    def heard(self, familiar: bool, why: str = "") -> None:
+        """The server's answer to this step says whether the world lies inside what its model
+        was trained on (why: the reason where not). A familiar world's learned start is trusted
+        (served from now, until a full window of probes says it loses); a world that stops
+        being familiar (a body of another kind added) loses that trust at once."""
+        if not self.settings.trust:
+            return
+        first = self.familiar is None
+        self.familiar, self.unfamiliar = familiar, "" if familiar else why
+        if familiar and first and self.mode == BUILTIN:
+            self.trusted = True
+            self._switch(LEARNED)
+        elif not familiar and self.trusted:
+            self.trusted = False
+            if self.mode == LEARNED:
+                self._switch(BUILTIN)
 
     # -- after a step ------------------------------------------------------
     def served(self, start: str, cost: float, sweeps: int) -> None:
@@ -170,7 +222,7 @@ class Guard:
         self._learned.append(float(sweeps))
         self.since_alarm += 1
         self.since_panic += 1
-        if self.reference is None:
+        if self.reference is None or self.familiar:  # a familiar world's turn ends only by its probes
             return
         if sweeps > self.settings.panic * scale:
             self._switch(BUILTIN)  # far worse than the world has been needing: no second such step
@@ -205,11 +257,7 @@ class Guard:
 
     def ratio(self) -> float | None:
         """The learned start's cost over Box2D's, summed over the last paired probes."""
-        if not self.pairs:
-            return None
-        learned = sum(p[0] for p in self.pairs)
-        builtin = sum(p[1] for p in self.pairs)
-        return learned / builtin if builtin > 0 else (1.0 if learned == 0 else float("inf"))
+        return _sum_ratio(self.pairs) if self.pairs else None
 
     def _decide(self) -> bool:
         """Switch where the window says so; True when it did. A sum over the window weighs
@@ -220,9 +268,20 @@ class Guard:
         learned, builtin = self.pairs[-1]
         last = learned / builtin if builtin > 0 else (1.0 if learned == 0 else float("inf"))
         if (self.mode == BUILTIN and len(self.pairs) >= min(2, self.settings.window) and ratio <= self.settings.enter
-                and last <= 1.0 and self.reference >= self.settings.floor):
+                and last <= 1.0 and (self.familiar or self.reference >= self.settings.floor)):
             self._switch(LEARNED)
             return True
+        if self.familiar:
+            # A familiar world's learned start goes only where a whole window of probes says it
+            # loses: its gain was measured on such worlds, and a busy pile's paired ratio swings
+            # several-fold from step to step (one step at the solver's cap is not the world).
+            recent = list(self.pairs)[-self.settings.verdict:]
+            lost = len(recent) >= self.settings.verdict and _sum_ratio(recent) > 1.0 and _median(
+                [(l + 1.0) / (b + 1.0) for l, b in recent]) > 1.0
+            if self.mode == LEARNED and (lost or len(self.pairs) >= self.settings.window and ratio > self.settings.leave):
+                self._switch(BUILTIN)
+                return True
+            return False
         # A learned start that has been winning over many probes keeps serving through a window
         # of bad luck: in a busy pile a step's paired ratio swings several-fold, and each turn
         # on Box2D's start costs the steps until the next probe. Where it loses in the long run
@@ -240,6 +299,8 @@ class Guard:
         return learned / builtin if builtin > 0 else 1.0
 
     def _switch(self, mode: str) -> None:
+        if mode == BUILTIN:
+            self.trusted = False
         self.mode = mode
         self.switches += 1
         self.interval = self.settings.interval[0]
@@ -249,6 +310,12 @@ class Guard:
         # A median, not a mean: one step at the cap must not make a resting world look like a busy one.
         self._recent.append(float(sweeps))
         self.reference = _median(self._recent)
+
+
+def _sum_ratio(pairs) -> float:
+    """The learned start's cost over Box2D's, summed over (learned, builtin) pairs."""
+    learned, builtin = sum(p[0] for p in pairs), sum(p[1] for p in pairs)
+    return learned / builtin if builtin > 0 else (1.0 if learned == 0 else float("inf"))
 
 
 def _median(values) -> float:

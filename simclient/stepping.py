@@ -56,6 +56,8 @@ class StepRecord:
     trial_iterations: int = 0  # the guard's trial sweeps on this step
     trial_ms: float = 0.0  # their time
     learned: bool = False  # the server's model's own answer (not a fallback's, nor Box2D's) started the solve
+    familiar: bool | None = None  # the server's word: the step lies inside what its model was trained on (None: not asked)
+    unfamiliar: str | None = None  # where not, why (the reply's unfamiliar)
 
 
 @dataclasses.dataclass
@@ -70,6 +72,8 @@ class _Served:
     reconnect: bool = False
     served_by: str | None = None  # the reply's served_by, where set
     detail: str = ""  # a failure's message
+    familiar: bool | None = None  # the reply's familiar (None: no reply)
+    unfamiliar: str | None = None  # the reply's unfamiliar, where not familiar
 
 
 class _Laps:
@@ -142,6 +146,8 @@ class Stepper:
         engine, guard = self.engine, self.guard
         plan = guard.plan()
         served = self._ask(k, bodies, points) if plan.ask else _Served()
+        if served.warm is not None:
+            guard.heard(served.familiar, served.unfamiliar or "")
         provider_s = laps.lap()
         learned, mode, trial, trial_s, inject_s, capped = served.warm, guard.mode, None, 0.0, 0.0, False
         if plan.probe and learned is not None:
@@ -235,7 +241,8 @@ class Stepper:
                        server_us={"decode": tm.decode_us, "p2g": tm.p2g_us, "features": tm.features_us,
                                   "inference": tm.inference_us, "g2p": tm.g2p_us, "solve": tm.solve_us,
                                   "admit": tm.admit_us, "total": tm.total_us},
-                       reconnect=client.reconnects > streams, served_by=reply.served_by or None)
+                       reconnect=client.reconnects > streams, served_by=reply.served_by or None,
+                       familiar=reply.familiar, unfamiliar=reply.unfamiliar or None)
 
     def _refused(self, n_points: int, reason: str) -> None:
         """The server refused a step of n_points: log it the first time, and send no step that large again."""
@@ -280,7 +287,8 @@ class Stepper:
             client_us=1e6 * (export_s + served.codec_s + inject_s), provider_ms=1e3 * provider_s,
             solve_ms=stats.solve_ms, collide_ms=1e3 * collide_s, export_ms=1e3 * export_s, inject_ms=1e3 * inject_s,
             fallback=served.fallback_reason is not None, fallback_reason=served.fallback_reason,
-            reconnect=served.reconnect, served_by=served.served_by)
+            reconnect=served.reconnect, served_by=served.served_by, familiar=served.familiar,
+            unfamiliar=served.unfamiliar)
 
 
 def columns(records: list[StepRecord]) -> dict[str, list]:
@@ -327,4 +335,8 @@ def summarize(records: list[StepRecord]) -> dict:
         "guard_trial_ms": float(sum(r.trial_ms for r in guarded)),
         # Steps with contacts the server's model's own answer started (no fallback, no other card, not the guard's Box2D).
         "learned_route_steps": sum(r.learned for r in solved),
+        # The server's word on the world (deepcontact.envelope): steps it called familiar, and why it did not.
+        "familiar_steps": sum(r.familiar is True for r in records),
+        "unfamiliar_steps": sum(r.familiar is False for r in records),
+        "unfamiliar": next((r.unfamiliar for r in records if r.familiar is False), None),
     }

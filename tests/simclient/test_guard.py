@@ -13,11 +13,15 @@ import pytest
 from simclient.guard import BUILTIN, LEARNED, Guard, GuardSettings
 
 
-def play(builtin, learned, settings: GuardSettings = GuardSettings()):
-    """(sweeps served (N,), trial sweeps spent, guard) over per-step sweeps builtin, learned (N,)."""
+def play(builtin, learned, settings: GuardSettings = GuardSettings(), familiar=False):
+    """(sweeps served (N,), trial sweeps spent, guard) over per-step sweeps builtin, learned (N,).
+    familiar: what the server says of the world with each answer (a bool, or (N,) bools)."""
     guard, served, spent = Guard(settings), [], 0
-    for b, l in zip(builtin, learned):
+    familiar = np.broadcast_to(familiar, len(builtin))
+    for b, l, f in zip(builtin, learned, familiar):
         plan = guard.plan()
+        if plan.ask:
+            guard.heard(bool(f), "" if f else "3 of 3 bodies not discs")
         if plan.probe and guard.mode == LEARNED:  # Box2D's start priced beside the learned one
             guard.probed(learned=l, builtin=b, trial_sweeps=b, builtin_sweeps=b)
             served.append(l)
@@ -99,3 +103,48 @@ def test_settings_that_cannot_work_are_refused():
         GuardSettings(enter=1.1, leave=1.0)
     with pytest.raises(ValueError):
         GuardSettings(interval=(8, 2))
+
+
+# -- worlds the server calls familiar (deepcontact.envelope) ---------------------------------
+
+def test_a_familiar_world_is_served_the_learned_start_from_its_first_step():
+    builtin = busy_world()
+    learned = (0.6 * builtin).astype(int)
+    served, spent, guard = play(builtin, learned, familiar=True)
+    assert guard.mode == LEARNED and guard.switches == 1  # trusted on the first answer
+    assert served.sum() == learned.sum()
+    assert spent <= 0.05 * builtin.sum() + guard.settings.checks * builtin.max()
+
+
+def test_a_familiar_world_keeps_its_start_through_single_steps_at_the_cap():
+    """A busy pile's learned start now and then runs to the solver's cap where Box2D's takes
+    300 sweeps: no single step is the world."""
+    builtin = busy_world()
+    learned = (0.5 * builtin).astype(int)
+    learned[::25] = 1000
+    served, _, guard = play(builtin, learned, familiar=True)
+    assert guard.mode == LEARNED and guard.switches == 1
+    assert served.sum() == learned.sum() < builtin.sum()
+
+
+def test_a_familiar_world_whose_start_loses_is_dropped_after_a_few_probes():
+    builtin = busy_world()
+    served, _, guard = play(builtin, 3 * builtin, familiar=True)
+    assert guard.mode == BUILTIN
+    assert served.sum() <= 1.25 * builtin.sum()  # the trusted first steps, then Box2D's start
+
+
+def test_a_world_that_stops_being_familiar_loses_the_trust_at_once():
+    builtin = busy_world()
+    familiar = np.arange(len(builtin)) < 100  # a box dropped into the pile at step 100
+    learned = (0.6 * builtin).astype(int)
+    learned[100:] = 4 * builtin[100:]
+    served, _, guard = play(builtin, learned, familiar=familiar)
+    assert guard.mode == BUILTIN and guard.familiar is False and guard.unfamiliar
+    assert (served[100:] > builtin[100:]).sum() <= 2
+
+
+def test_without_trust_a_familiar_world_is_held_to_box2ds_start_until_probes_say_otherwise():
+    builtin = busy_world()
+    served, _, guard = play(builtin, 3 * builtin, GuardSettings(trust=False), familiar=True)
+    assert guard.switches == 0 and served.sum() <= 1.05 * builtin.sum()

@@ -231,3 +231,24 @@ def test_steps_follow_the_callers_time_step_and_iterations(test_server):
         summary = session.summary()
     assert all(r.velocity_iterations == 7 for r in fixed + halves if r.points)  # no tolerance: Box2D's fixed count
     assert summary["fallback_steps"] == 0
+
+
+def test_the_server_says_whether_it_knows_the_world(default_server):
+    """The shipped default was trained on piles of discs and measured to win there: a thesis
+    pile is familiar, and the guard serves the learned start from its first step with contacts;
+    a world of boxes, polygons and joints is not, and the summary says why."""
+    from simclient.scene import SceneSpec, build_world
+
+    engine = build_world(SceneSpec.thesis(), 903)
+    with WarmStartSession(engine.world, default_server.address, model="default", deadline_ms=2000) as pile:
+        results = [pile.step(0.01, 1000, 1000) for _ in range(60)]
+        summary = pile.summary()
+    touching = [r for r in results if r.points]
+    assert summary["unfamiliar_steps"] == 0 and summary["familiar_steps"] > 0
+    assert touching[0].start == "learned" and summary["guarded_steps"] == 0
+    with WarmStartSession(everything_world(), default_server.address, model="default", deadline_ms=2000) as mixed:
+        for _ in range(120):
+            mixed.step(0.01, 1000, 10)
+        summary = mixed.summary()
+    assert summary["familiar_steps"] == 0 and summary["unfamiliar_steps"] > 0
+    assert "not discs" in summary["unfamiliar"]
