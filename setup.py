@@ -4,8 +4,9 @@ deepcontact/_transfer.c is the inner loop of the particle/grid transfer
 (deepcontact.transfer); deepcontact/_kinematics.c the contact points' velocities
 and effective masses (deepcontact.kinematics); deepcontact/_admission.c the
 admission into the friction cones, its rounds and their factorization
-(deepcontact.admission); deepcontact/_faces.c a face's linear system and its dual's
-gram (deepcontact.faces). `pip install -e .` (run by `make setup`) builds them in
+(deepcontact.admission); deepcontact/_faces.c a face's linear system and its dual
+solve (deepcontact.faces); the last two share deepcontact/sparse_cholesky.h, a sparse
+Cholesky factorization and the orders that keep its factors sparse. `pip install -e .` (run by `make setup`) builds them in
 place. -ffp-contract=off: no fused multiply-adds, so the kernel weights and the
 point features are the same numbers on every x86-64 machine, whatever the
 compiler's defaults, and the features NumPy's to the bit.
@@ -17,7 +18,8 @@ FLAGS = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-Wall"]
 
 setup(
     ext_modules=[
-        Extension(f"deepcontact.{name}", [f"deepcontact/{name}.c"], extra_compile_args=FLAGS)
+        Extension(f"deepcontact.{name}", [f"deepcontact/{name}.c"], extra_compile_args=FLAGS,
+                  depends=["deepcontact/sparse_cholesky.h"])
         for name in ("_transfer", "_kinematics", "_admission", "_faces")
     ]
 )

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from deepcontact.kinematics import ContactFrame, contact_frame, contact_jacobian_sparse
+from deepcontact.kinematics import ContactFrame, contact_frame, jacobian_transpose_arrays
 
 try:
     from deepcontact import _admission as _compiled
@@ -73,8 +73,8 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     cone) it ends at the cones' point nearest the affine set. `until` (time.perf_counter() s;
     None: none) stops the rounds there, whatever they have reached (checked every 8 rounds; the
     first 8 always run): a served step's deadline. The answer is z:
-    inside the cones always. J^T J is factorized once (a Cholesky factor in the envelope
-    of a reverse Cuthill-McKee order of the bodies, admission_factors) and the rounds run
+    inside the cones always. J^T J is factorized once (a sparse Cholesky factor in a minimum
+    degree order of the bodies, admission_factors) and the rounds run
     compiled (deepcontact/_admission.c; tests/deepcontact/test_admission.py keeps the
     NumPy rounds as the reference): a few microseconds a round at 140 points, where NumPy's
     were about 0.1 ms.
@@ -89,25 +89,24 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
         # the rounds would end in the first, at c, after a factorization that costs more than they do.
         return c.copy()
     f = contact_frame(bodies, points) if frame is None else frame
-    jt, rows, factors, perms = admission_factors(f)
+    jt, rows, factor, position = admission_factors(f)
     z = np.empty(2 * len(points))
-    _compiled.admission_rounds(*jt, rows, *factors, *perms, np.ascontiguousarray(c.ravel()),
+    _compiled.admission_rounds(*jt, rows, *factor, position, np.ascontiguousarray(c.ravel()),
                                np.ascontiguousarray(mu, np.float64), keep, float(rho), int(iterations),
                                float(tolerance), _monotonic(until), z)
     return z.reshape(-1, 2)
 
 
-def admission_factors(frame: ContactFrame) -> tuple[list, int, list, list]:
+def admission_factors(frame: ContactFrame) -> tuple[list, int, list, np.ndarray]:
     """nearest_admissible's factorization of J^T J for a frame, as its compiled rounds take it:
-    (J^T's CSR arrays, its rows 3 D, the sparse L and U factors' CSC arrays, their row and column
-    permutations). It depends on the frame only, not on the impulses to admit: computed once per
-    frame and kept on it. The factor is Cholesky's, in C (_admission.envelope_cholesky), in the
-    envelope of a reverse Cuthill-McKee order of the bodies: about 0.4 against SciPy's SuperLU's
-    0.8-0.9 ms at the thesis world's largest steps (300 rows), most of that SciPy's building and
-    converting of sparse matrices; the envelope holds about twice SuperLU's entries, so the
-    rounds walk more (0.7 against 0.55 ms for 60). (Begun on a thread of its own while a
-    server's classifier ran, SuperLU's took nothing off the route on two cores: the GIL's share
-    of it was most of it.)"""
+    (J^T's CSR arrays, its rows 3 D, the Cholesky factor C's CSC arrays (lower, each column's
+    diagonal first), each row's place in the factor's order). It depends on the frame only, not
+    on the impulses to admit: computed once per frame and kept on it. The factor is a sparse
+    Cholesky's (_admission.gram_cholesky, deepcontact/sparse_cholesky.h) in a minimum degree
+    order of the bodies: about 0.1 ms at the thesis world's median step, and 3,100 entries at
+    its largest, where the envelope factor it replaced held 8,000 (each round walks the factor
+    twice); SciPy's SuperLU before that took 0.8-0.9 ms, most of it building and converting
+    sparse matrices."""
     cached = frame.__dict__.get("_admission_factors")
     if cached is None:
         cached = _admission_factors(frame)
@@ -115,40 +114,32 @@ def admission_factors(frame: ContactFrame) -> tuple[list, int, list, list]:
     return cached
 
 
-def _admission_factors(f: ContactFrame) -> tuple[list, int, list, list]:
-    jt = contact_jacobian_sparse(f)  # at most six entries a column
-    rows, cols = jt.shape
+def _admission_factors(f: ContactFrame) -> tuple[list, int, list, np.ndarray]:
+    jt_arrays = list(jacobian_transpose_arrays(f))  # at most six entries a column
+    rows, cols = len(jt_arrays[0]) - 1, 2 * len(f.n)
     i32 = np.int32
-    jt_arrays = [jt.indptr.astype(i32), jt.indices.astype(i32), np.ascontiguousarray(jt.data, np.float64)]
-    if not rows:  # no dynamic body: nothing to keep
-        return jt_arrays, rows, [np.zeros(1, i32), np.zeros(0, i32), np.zeros(0)] * 2, [np.zeros(0, i32)] * 2
-    # J^T J couples two bodies where a point touches both: ordered so (reverse Cuthill-McKee on
-    # the bodies) its Cholesky factor stays in a narrow envelope, which each round walks twice.
+    # J^T J couples two bodies where a point touches both: ordered so (minimum degree on the
+    # bodies) its Cholesky factor stays sparse. It is singular where a body's points cannot
+    # push it every way (one point, or none); a ridge far below its scale lets one factorization
+    # serve, and what it adds in those directions J takes away again.
     order = np.ascontiguousarray((3 * _body_order(f)[:, None] + np.arange(3)).ravel(), i32)
-    room = rows * (rows + 1) // 2
-    lp, up, inverse = np.empty(rows + 1, i32), np.empty(rows + 1, i32), np.empty(rows, i32)
-    li, ui, ld, ud = np.empty(room, i32), np.empty(room, i32), np.empty(room), np.empty(room)
-    # J^T J is singular where a body's points cannot push it every way (one point, or none);
-    # a ridge far below its scale lets one factorization serve, and what it adds in those
-    # directions J takes away again.
-    entries = _compiled.envelope_cholesky(*jt_arrays, rows, cols, order, 1e-9, lp, li, ld, up, ui, ud, inverse)
-    factors = [lp, li[:entries].copy(), ld[:entries].copy(), up, ui[:entries].copy(), ud[:entries].copy()]
-    return jt_arrays, rows, factors, [inverse, inverse]
+    lp, li, lx = _compiled.gram_cholesky(*jt_arrays, rows, cols, order, 1e-9)
+    position = np.empty(rows, i32)
+    position[order] = np.arange(rows, dtype=i32)
+    factor = [np.frombuffer(lp, i32), np.frombuffer(li, i32), np.frombuffer(lx, np.float64)]
+    return jt_arrays, rows, factor, position
 
 
 def _body_order(f: ContactFrame) -> np.ndarray:
-    """The dynamic bodies (as numbered by contact_jacobian's rows) in reverse Cuthill-McKee
-    order of the graph that joins two bodies where a point touches both."""
-    from scipy import sparse
-    from scipy.sparse.csgraph import reverse_cuthill_mckee
-
+    """The dynamic bodies (as numbered by contact_jacobian's rows) in a minimum degree order of
+    the graph that joins two bodies where a point touches both (compiled, _admission.body_order:
+    SciPy's reverse Cuthill-McKee, with the sparse graph it needs, took about 0.15 ms a step)."""
     n_dynamic = int(f.dynamic.sum())
-    row = np.full(len(f.dynamic), -1)
-    row[f.dynamic] = np.arange(n_dynamic)
-    a, b = row[f.a], row[f.b]
-    both = (a >= 0) & (b >= 0)
-    graph = sparse.csr_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n_dynamic, n_dynamic))
-    return reverse_cuthill_mckee(graph + graph.T, symmetric_mode=True).astype(np.int64)
+    row = np.full(len(f.dynamic), -1, np.int32)
+    row[f.dynamic] = np.arange(n_dynamic, dtype=np.int32)
+    order = np.empty(n_dynamic, np.int64)
+    _compiled.body_order(f.a.astype(np.int64), f.b.astype(np.int64), row, n_dynamic, order)
+    return order
 
 
 def _monotonic(until: float | None) -> float:

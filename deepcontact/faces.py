@@ -21,6 +21,8 @@ against NumPy's dense products.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from deepcontact.admission import nearest_admissible
@@ -132,13 +134,32 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     if len(pressing) == 0:
         return np.zeros((n_points, 2))
     velocity = contact_velocities(bodies, points, physics=physics).ravel()  # (2P,) m/s before any impulse
-    system, rows, slide = face_system(f, face, mu)
+    system, rows, slide = face_system_sparse(f, face, mu)
     x = _least_squares(system, -velocity[rows], damping, solver)
     out = np.zeros((n_points, 2))
     out[pressing, 0] = x[:len(pressing)]
     out[pressing, 1] = slide * x[:len(pressing)]
     out[sticking, 1] = x[len(pressing):]
     return out
+
+
+class SparseSystem(NamedTuple):
+    """A face's system S (m, m) as CSR: indptr int32 (m + 1,), indices int32 and data float64
+    (nnz,); about 3 % of its entries are not zero."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+
+    @property
+    def m(self) -> int:
+        return len(self.indptr) - 1
+
+    def dense(self) -> np.ndarray:
+        """(m, m) float64, the same numbers."""
+        out = np.zeros((self.m, self.m))
+        out[np.repeat(np.arange(self.m), np.diff(self.indptr)), self.indices] = self.data
+        return out
 
 
 def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -152,8 +173,15 @@ def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[
     unknowns' order. The same numbers as kinematics.contact_operator's rows and columns combined so, summed
     over the pairs of points that share a dynamic body (a few thousand) without the (2P, 2P)
     operator (at 160 points that one and its fancy indexing took about 2 ms, and the pairs in
-    NumPy about 1 ms), compiled (deepcontact/_faces.c).
-    """
+    NumPy about 1 ms), compiled (deepcontact/_faces.c). face_system_sparse gives it as CSR."""
+    system, rows, slide = face_system_sparse(frame, face, mu)
+    return system.dense(), rows, slide
+
+
+def face_system_sparse(frame: ContactFrame, face: np.ndarray, mu: np.ndarray
+                       ) -> tuple[SparseSystem, np.ndarray, np.ndarray]:
+    """face_system's (system, rows, slide) with the system as CSR (SparseSystem), as the compiled
+    sum makes it: each entry summed in the order a dense array summed in place would be."""
     face = np.asarray(face)
     n_points = len(face)
     pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
@@ -164,12 +192,13 @@ def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[
     index = np.full((n_points, 2), -1)
     index[pressing, 0] = np.arange(k)
     index[sticking, 1] = k + np.arange(len(sticking))
-    system = np.zeros((m, m))
     f, i64 = frame, np.int64
-    _compiled.face_system_sum(f.a.astype(i64), f.b.astype(i64), np.ascontiguousarray(f.dynamic, np.uint8),
-                              *(np.ascontiguousarray(x, np.float64) for x in (f.inv_mass, f.inv_inertia, f.n, f.t,
-                                                                              f.ra, f.rb)),
-                              index.astype(i64).ravel(), np.ascontiguousarray(slide_of), m, system)
+    indptr, indices, data = _compiled.face_system_sum(
+        f.a.astype(i64), f.b.astype(i64), np.ascontiguousarray(f.dynamic, np.uint8),
+        *(np.ascontiguousarray(x, np.float64) for x in (f.inv_mass, f.inv_inertia, f.n, f.t, f.ra, f.rb)),
+        index.astype(i64).ravel(), np.ascontiguousarray(slide_of), m)
+    system = SparseSystem(np.frombuffer(indptr, np.int32), np.frombuffer(indices, np.int32),
+                          np.frombuffer(data, np.float64))
     rows = np.concatenate([2 * pressing, 2 * sticking + 1])
     return system, rows, slide_of[pressing]
 
@@ -178,11 +207,19 @@ def face_system(frame: ContactFrame, face: np.ndarray, mu: np.ndarray) -> tuple[
 SOLVERS = ("gelsy", "dual")
 
 
-def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float, solver: str = "gelsy") -> np.ndarray:
+def _least_squares(sparse: SparseSystem, rhs: np.ndarray, damping: float, solver: str = "gelsy") -> np.ndarray:
     """solve_on_face's solve of system (m, m) x = rhs (m,): minimum-norm least squares
-    (damping 0, by `solver`) or damped, as solve_on_face says."""
+    (damping 0, by `solver`) or damped, as solve_on_face says. The dual solve reads the sparse
+    system; the rest its dense form."""
     import scipy.linalg
 
+    if solver not in SOLVERS:
+        raise ValueError(f"solver: one of {SOLVERS}, got {solver!r}")
+    if solver == "dual" and damping == 0:
+        x = minimum_norm_solve(sparse, rhs)
+        if x is not None:
+            return x
+    system = sparse.dense()
     if damping > 0:
         normal = system.T @ system
         normal.flat[::len(normal) + 1] += damping * float(np.abs(system).max()) ** 2
@@ -191,12 +228,8 @@ def _least_squares(system: np.ndarray, rhs: np.ndarray, damping: float, solver: 
                                           check_finite=False)
         except np.linalg.LinAlgError:  # a damping below the product's rounding: the exact route
             pass
-    if solver not in SOLVERS:
-        raise ValueError(f"solver: one of {SOLVERS}, got {solver!r}")
-    x = minimum_norm_solve(system, rhs) if solver == "dual" else None
-    if x is None:  # gelsy asked for, or a system far from consistent
-        x = scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
-    return x
+    # gelsy asked for, or a system far from consistent
+    return scipy.linalg.lstsq(system, rhs, lapack_driver="gelsy", check_finite=False)[0]
 
 
 #: minimum_norm_solve's ridge on S S^T, relative to its mean diagonal: far below the singular
@@ -215,11 +248,11 @@ DUAL_REFINEMENTS = 2
 DUAL_OPTIMALITY = 1e-6
 
 
-def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+def minimum_norm_solve(system: np.ndarray | SparseSystem, rhs: np.ndarray) -> np.ndarray | None:
     """The minimum-norm solution of a consistent, possibly singular, system S (m, m) x = b (m,),
     through its dual: x = S^T y with S S^T y = b, solved by Cholesky of S S^T + r I (r =
-    DUAL_RIDGE times the mean of its diagonal; gesv's LU where rounding leaves a pivot below
-    zero) and DUAL_REFINEMENTS rounds of iterative refinement. Whatever y picks up in S S^T's
+    DUAL_RIDGE times the mean of its diagonal) and DUAL_REFINEMENTS rounds of iterative
+    refinement. system: dense (m, m) or a SparseSystem (face_system_sparse's). Whatever y picks up in S S^T's
     null space S^T sends to 0, so a tiny ridge serves. A face's system is singular in every
     pile (more points than freedoms) and consistent where the face is the solution's.
 
@@ -227,18 +260,31 @@ def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None
     taken as zero: on the thesis world's faces it agrees with numpy's pinv at rcond 1e-10
     better than LAPACK's gelsy does, which keeps directions down to machine precision and on
     about 2 % of the large steps adds an answer along one that is rounding (`deepcontact bench
-    face-solve` prints both distances). S S^T is summed from S's nonzeros in C
-    (_faces.sparse_gram; S is about 3 % full); the whole is three to four times cheaper
-    than gelsy at 300 unknowns. None where the answer is not a least-squares solution to
-    DUAL_OPTIMALITY (a wrong face's inconsistent system, whose residual the ridge would blow
-    up through y): the caller solves it otherwise.
+    face-solve` prints both distances). It runs compiled on S's nonzeros (_faces.dual_solve:
+    S is about 3 % full and S S^T under 10 %, so its sparse Cholesky factor in a reverse
+    Cuthill-McKee order holds a fifth to a tenth of a dense factor's entries): about 0.28 ms at
+    the thesis world's largest steps (300 unknowns), where LAPACK's dense Cholesky of S S^T took
+    0.45-0.66 ms and gelsy three to four times that. Where rounding leaves a pivot below zero,
+    the dense factorization with gesv's LU. None where the answer is not a least-squares
+    solution to DUAL_OPTIMALITY (a wrong face's inconsistent system, whose residual the ridge
+    would blow up through y): the caller solves it otherwise.
     """
     from scipy.linalg import lapack
 
     m = len(rhs)
     if m == 0:
         return np.zeros(0)
-    system = np.ascontiguousarray(system, np.float64)
+    sparse = system if isinstance(system, SparseSystem) else _sparse(np.asarray(system, np.float64))
+    x = np.empty(m)
+    status = _compiled.dual_solve(sparse.indptr, sparse.indices, sparse.data, np.ascontiguousarray(rhs, np.float64),
+                                  DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, x)
+    if status == 0:
+        return x
+    if status == 2:  # not a least-squares answer: the system is far from consistent
+        return None
+    # Where the sparse factor meets a pivot below zero (rounding in S S^T's null space): the
+    # dense factorization, with its LU.
+    system = sparse.dense() if isinstance(system, SparseSystem) else np.ascontiguousarray(system, np.float64)
     gram = np.empty((m, m))
     _compiled.sparse_gram(system, m, gram)
     scale = float(np.trace(gram)) / m
@@ -273,6 +319,14 @@ def minimum_norm_solve(system: np.ndarray, rhs: np.ndarray) -> np.ndarray | None
         return None
     return x
 
+
+
+def _sparse(system: np.ndarray) -> SparseSystem:
+    """A dense (m, m) system as CSR."""
+    rows, cols = np.nonzero(system)
+    indptr = np.zeros(len(system) + 1, np.int32)
+    np.cumsum(np.bincount(rows, minlength=len(system)), out=indptr[1:])
+    return SparseSystem(indptr, cols.astype(np.int32), system[rows, cols].astype(np.float64))
 
 
 def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,

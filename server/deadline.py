@@ -28,7 +28,6 @@ from __future__ import annotations
 import collections
 import threading
 
-import numpy as np
 
 BUCKET_POINTS = 10
 WINDOW = 16
@@ -36,6 +35,15 @@ QUANTILE = 0.75
 PROBE_EVERY = 16
 TRIALS = 3
 OFFSET = 50
+
+def _quantile(ordered: list[float], q: float) -> float:
+    """numpy.quantile's default (linear) of a few sorted numbers, without its overhead (a served
+    step asks once)."""
+    at = q * (len(ordered) - 1)
+    low = int(at)
+    high = min(low + 1, len(ordered) - 1)
+    return ordered[low] + (ordered[high] - ordered[low]) * (at - low)
+
 
 class CostBySize:
     """Recent costs of a route by step size (points), seconds; thread-safe."""
@@ -64,9 +72,9 @@ class CostBySize:
             if not known:
                 return 0.0, 0.0
             b = max(known)
-            values = np.fromiter(self._seen[b], float, len(self._seen[b]))
+            values = sorted(self._seen[b])
         grow = 1.0 if b == k else ((k * BUCKET_POINTS + OFFSET) / (b * BUCKET_POINTS + OFFSET)) ** 2
-        return grow * float(np.quantile(values, QUANTILE)), grow * float(values.min())
+        return grow * _quantile(values, QUANTILE), grow * values[0]
 
     def fits(self, points: int, now: float, deadline: float | None) -> bool:
         """Whether a step of `points` points started along the route at `now` should take it

@@ -96,9 +96,9 @@ def test_the_compiled_admission_runs_numpys_rounds(rounds):
     np.testing.assert_allclose(compiled, reference, atol=1e-9)
 
 
-def test_the_admissions_factors_multiply_back_to_its_gram_in_their_order():
-    # Pr G Pc = L U, as admission_rounds reads SuperLU's factors: here a Cholesky factor in
-    # the envelope of a reverse Cuthill-McKee order, L unit lower and U = D L^T.
+def test_the_admissions_factor_multiplies_back_to_its_gram_in_its_order():
+    # P G P^T = C C^T: a sparse Cholesky factor in a minimum degree order of the bodies, each
+    # column's diagonal first, far sparser than G's dense factor.
     from scipy import sparse
 
     from deepcontact import _admission
@@ -107,23 +107,48 @@ def test_the_admissions_factors_multiply_back_to_its_gram_in_their_order():
 
     bodies, points, _, _ = sliding_pile()
     frame = contact_frame(bodies, points)
-    jt_arrays, rows, (lp, li, ld, up, ui, ud), (perm_r, perm_c) = admission_factors(frame)
+    jt_arrays, rows, (lp, li, lx), position = admission_factors(frame)
     jt = contact_jacobian_sparse(frame)
     gram = (jt @ jt.T).toarray()
     gram += 1e-9 * gram.diagonal().max() * np.eye(rows)
-    lower = sparse.csc_matrix((ld, li, lp), shape=(rows, rows)).toarray()
-    upper = sparse.csc_matrix((ud, ui, up), shape=(rows, rows)).toarray()
-    np.testing.assert_array_equal(np.diag(lower), 1.0)
-    assert not np.triu(lower, 1).any() and not np.tril(upper, -1).any()
-    np.testing.assert_allclose(lower @ upper, gram[np.argsort(perm_r)][:, np.argsort(perm_c)],
-                               atol=1e-10 * np.abs(gram).max())
-    args = [*jt_arrays, rows, 2 * len(points)]
-    out = [np.empty(rows + 1, np.int32), np.empty(rows * rows, np.int32), np.empty(rows * rows),
-           np.empty(rows + 1, np.int32), np.empty(rows * rows, np.int32), np.empty(rows * rows), np.empty(rows, np.int32)]
+    factor = sparse.csc_matrix((lx, li, lp), shape=(rows, rows)).toarray()
+    assert not np.triu(factor, 1).any() and (li[lp[:-1]] == np.arange(rows)).all()
+    order = np.argsort(position)
+    np.testing.assert_allclose(factor @ factor.T, gram[np.ix_(order, order)], atol=1e-10 * np.abs(gram).max())
+    assert len(lx) < 0.25 * rows * (rows + 1) / 2
     with pytest.raises(ValueError, match="not a permutation"):
-        _admission.envelope_cholesky(*args, np.zeros(rows, np.int32), 1e-9, *out)
+        _admission.gram_cholesky(*jt_arrays, rows, 2 * len(points), np.zeros(rows, np.int32), 1e-9)
     with pytest.raises(ValueError, match="wrong size"):
-        _admission.envelope_cholesky(*args, np.arange(rows - 1, dtype=np.int32), 1e-9, *out)
+        _admission.gram_cholesky(*jt_arrays, rows, 2 * len(points), np.arange(rows - 1, dtype=np.int32), 1e-9)
+
+
+def test_the_body_order_keeps_the_factor_sparser_than_reverse_cuthill_mckee():
+    """A minimum degree order of the bodies: the Cholesky factor of J^T J in it has fewer
+    entries than in SciPy's reverse Cuthill-McKee order."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    from deepcontact.admission import _body_order
+    from deepcontact.kinematics import contact_frame, contact_jacobian_sparse
+
+    bodies, points, _, _ = sliding_pile()
+    f = contact_frame(bodies, points)
+    row = np.full(len(f.dynamic), -1)
+    row[f.dynamic] = np.arange(int(f.dynamic.sum()))
+    a, b = row[f.a], row[f.b]
+    both = (a >= 0) & (b >= 0)
+    n = int(f.dynamic.sum())
+    graph = sparse.csr_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n, n))
+    jt = contact_jacobian_sparse(f)
+    gram = (jt @ jt.T).toarray() + 1e-9 * np.eye(3 * n)
+
+    def entries(body_order):
+        order = (3 * np.asarray(body_order)[:, None] + np.arange(3)).ravel()
+        return int((np.linalg.cholesky(gram[np.ix_(order, order)]) != 0).sum())
+
+    order = _body_order(f)
+    assert sorted(order.tolist()) == list(range(n))
+    assert entries(order) < entries(reverse_cuthill_mckee(graph + graph.T, symmetric_mode=True))
 
 
 def test_impulses_already_admissible_come_back_as_they_are():

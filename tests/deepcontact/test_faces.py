@@ -163,13 +163,14 @@ def test_the_compiled_face_system_refuses_arrays_that_do_not_fit():
     good = [f.a.astype(np.int64), f.b.astype(np.int64), f.dynamic.astype(np.uint8), f.inv_mass, f.inv_inertia,
             f.n.ravel(), f.t.ravel(), f.ra.ravel(), f.rb.ravel(), np.full(2 * n_points, -1, np.int64),
             np.zeros(n_points)]
-    _faces.face_system_sum(*good, 0, np.zeros(0))  # no unknowns: nothing to sum
+    indptr, indices, data = _faces.face_system_sum(*good, 0)  # no unknowns: nothing to sum
+    assert np.frombuffer(indptr, np.int32).tolist() == [0] and not indices and not data
     with pytest.raises(ValueError, match="wrong size"):
-        _faces.face_system_sum(*good, 2, np.zeros(3))
+        _faces.face_system_sum(*good[:-1], np.zeros(n_points + 1), 2)
     outside = list(good)
     outside[9] = np.full(2 * n_points, 5, np.int64)  # an unknown past the system's 2 columns
     with pytest.raises(ValueError, match="out of range"):
-        _faces.face_system_sum(*outside, 2, np.zeros(4))
+        _faces.face_system_sum(*outside, 2)
 
 
 def test_the_dual_solve_is_the_minimum_norm_solution_of_a_singular_consistent_system_and_declines_an_inconsistent_one():
@@ -248,3 +249,24 @@ def test_the_face_route_is_its_solve_then_its_admission():
         halves, halves_residual = admit_solved(bodies, points, read, solved, mu, Physics.thesis(), 200, frame)
         np.testing.assert_array_equal(halves, whole)
         assert halves_residual == residual
+
+
+def test_the_sparse_dual_solve_agrees_with_the_dense_one_on_a_piles_faces():
+    """The face route's solve on S's nonzeros (a sparse Cholesky of S S^T in a reverse
+    Cuthill-McKee order) gives the dense factorization's answer, and the face system as CSR
+    holds the dense sum's numbers to the bit."""
+    from deepcontact import faces
+    from deepcontact.faces import contact_face, face_system, face_system_sparse
+    from deepcontact.kinematics import contact_frame
+
+    bodies, points, exact, mu = sliding_pile()
+    f = contact_frame(bodies, points)
+    velocity = contact_velocities(bodies, points, physics=Physics.thesis()).ravel()
+    face = contact_face(exact, mu)  # the solution's own: a consistent system
+    sparse, rows, _ = face_system_sparse(f, face, mu)
+    dense, _, _ = face_system(f, face, mu)
+    np.testing.assert_array_equal(sparse.dense(), dense)
+    assert len(sparse.data) < 0.1 * dense.size  # a pile's system is mostly zeros
+    rhs = -velocity[rows]
+    reference = np.linalg.pinv(dense, rcond=1e-10) @ rhs
+    np.testing.assert_allclose(faces.minimum_norm_solve(sparse, rhs), reference, atol=1e-10 * np.abs(reference).max())
