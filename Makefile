@@ -34,7 +34,7 @@ $(VPY):
 
 # The editable install also compiles deepcontact/_transfer.c and _kinematics.c (setup.py) in place.
 $(DEPS): requirements.lock pyproject.toml setup.py deepcontact/_transfer.c deepcontact/_kinematics.c \
-         deepcontact/_admission.c deepcontact/_faces.c deepcontact/sparse_cholesky.h | $(VPY)
+         deepcontact/_admission.c deepcontact/_faces.c deepcontact/_route.c $(wildcard deepcontact/*.h) | $(VPY)
 	$(VPY) -m pip install --quiet --disable-pip-version-check -r requirements.lock
 	$(VPY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $@

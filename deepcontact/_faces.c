@@ -18,7 +18,7 @@
 #include <stdint.h>
 #include <string.h>
 
-#include "sparse_cholesky.h"
+#include "face_kernels.h"
 
 /* face_system's sum (deepcontact.faces documents the system): every ordered pair of a
  * dynamic body's pushes (i, j) adds the relative velocity along direction d at i's point that a
@@ -45,12 +45,6 @@ static PyObject *face_system_sum(PyObject *self, PyObject *args)
         return NULL;
     const int n_bufs = 11;
     PyObject *result = NULL;
-    Py_ssize_t *start = NULL;
-    double *push = NULL, *term_v = NULL, *out_v = NULL;
-    int64_t *owner = NULL;
-    int32_t *term_r = NULL, *term_c = NULL, *row_start = NULL, *sorted = NULL, *marker = NULL, *slot = NULL;
-    int32_t *out_p = NULL, *out_c = NULL;
-    Py_ssize_t nnz = 0;
     const Py_ssize_t n_points = b[0].len / (Py_ssize_t)sizeof(int64_t), n_bodies = b[2].len;
     const Py_ssize_t vec = 2 * n_points * (Py_ssize_t)sizeof(double);
     if (b[0].len != n_points * (Py_ssize_t)sizeof(int64_t) || b[1].len != b[0].len
@@ -61,159 +55,28 @@ static PyObject *face_system_sum(PyObject *self, PyObject *args)
         goto done;
     }
     const int64_t *pa = b[0].buf, *pb = b[1].buf, *index = b[9].buf;
-    const unsigned char *dynamic = b[2].buf;
-    const double *inv_mass = b[3].buf, *inv_inertia = b[4].buf, *n = b[5].buf, *t = b[6].buf, *ra = b[7].buf,
-                 *rb = b[8].buf, *slide = b[10].buf;
     for (Py_ssize_t i = 0; i < n_points; i++)
         if (pa[i] < 0 || pa[i] >= n_bodies || pb[i] < 0 || pb[i] >= n_bodies || index[2 * i] < -1
             || index[2 * i] >= m || index[2 * i + 1] < -1 || index[2 * i + 1] >= m) {
             PyErr_SetString(PyExc_ValueError, "_faces.face_system_sum: a body or an index out of range");
             goto done;
         }
-    int out_of_memory = 1;
+    int32_t *out_p = NULL, *out_c = NULL;
+    double *out_v = NULL;
+    int64_t nnz = 0;
+    int status;
     Py_BEGIN_ALLOW_THREADS
-    start = calloc((size_t)(n_bodies + 2), sizeof(Py_ssize_t));
-    push = malloc((size_t)(2 * n_points + 1) * 6 * sizeof(double));
-    owner = malloc((size_t)(2 * n_points + 1) * sizeof(int64_t));
-    row_start = calloc((size_t)(m + 2), sizeof(int32_t));
-    marker = malloc((size_t)(m + 1) * sizeof(int32_t));
-    slot = malloc((size_t)(m + 1) * sizeof(int32_t));
-    out_p = malloc((size_t)(m + 1) * sizeof(int32_t));
-    if (start == NULL || push == NULL || owner == NULL || row_start == NULL || marker == NULL || slot == NULL
-        || out_p == NULL)
-        goto out;
-    /* The pushes grouped by body (a counting sort): start[k] .. start[k + 1] are body k's. */
-    for (Py_ssize_t i = 0; i < n_points; i++) {
-        if (dynamic[pb[i]])
-            start[pb[i] + 2]++;
-        if (dynamic[pa[i]])
-            start[pa[i] + 2]++;
-    }
-    for (Py_ssize_t k = 0; k < n_bodies; k++)
-        start[k + 2] += start[k + 1];
-    for (Py_ssize_t i = 0; i < n_points; i++)
-        for (int side = 0; side < 2; side++) { /* body b pushed along +n, body a along -n */
-            const int64_t body = side == 0 ? pb[i] : pa[i];
-            if (!dynamic[body])
-                continue;
-            const double sign = side == 0 ? 1.0 : -1.0, *r = side == 0 ? rb + 2 * i : ra + 2 * i;
-            const Py_ssize_t at = start[body + 1]++;
-            double *g = push + 6 * at; /* (normal, tangent) x (x, y, angular) */
-            for (int d = 0; d < 2; d++) {
-                const double *dir = (d == 0 ? n : t) + 2 * i;
-                g[3 * d] = sign * dir[0];
-                g[3 * d + 1] = sign * dir[1];
-                g[3 * d + 2] = sign * (r[0] * dir[1] - r[1] * dir[0]);
-            }
-            owner[at] = i;
-        }
-    /* start[k + 1] now ends body k's pushes, start[k] begins them. The terms, at most four a
-     * pair of pushes, in the order the sum takes them. */
-    Py_ssize_t room = 0;
-    for (Py_ssize_t k = 0; k < n_bodies; k++)
-        room += 4 * (start[k + 1] - start[k]) * (start[k + 1] - start[k]);
-    if (room > INT32_MAX)
-        goto out;
-    term_r = malloc((size_t)(room + 1) * sizeof(int32_t));
-    term_c = malloc((size_t)(room + 1) * sizeof(int32_t));
-    term_v = malloc((size_t)(room + 1) * sizeof(double));
-    sorted = malloc((size_t)(room + 1) * sizeof(int32_t));
-    if (term_r == NULL || term_c == NULL || term_v == NULL || sorted == NULL)
-        goto out;
-    Py_ssize_t terms = 0;
-    for (Py_ssize_t k = 0; k < n_bodies; k++) {
-        const double w[3] = {inv_mass[k], inv_mass[k], inv_inertia[k]};
-        for (Py_ssize_t p = start[k]; p < start[k + 1]; p++) {
-            const double *gi = push + 6 * p;
-            const int64_t i = owner[p];
-            for (Py_ssize_t q = start[k]; q < start[k + 1]; q++) {
-                const double *gj = push + 6 * q;
-                const int64_t j = owner[q];
-                const int64_t pressing = index[2 * j], sticking = index[2 * j + 1];
-                for (int d = 0; d < 2; d++) {
-                    const int64_t row = index[2 * i + d];
-                    if (row < 0)
-                        continue;
-                    const double along_n = gi[3 * d] * w[0] * gj[0] + gi[3 * d + 1] * w[1] * gj[1]
-                                           + gi[3 * d + 2] * w[2] * gj[2];
-                    const double along_t = gi[3 * d] * w[0] * gj[3] + gi[3 * d + 1] * w[1] * gj[4]
-                                           + gi[3 * d + 2] * w[2] * gj[5];
-                    if (pressing >= 0) {
-                        term_r[terms] = (int32_t)row;
-                        term_c[terms] = (int32_t)pressing;
-                        term_v[terms++] = along_n + slide[j] * along_t;
-                    }
-                    if (sticking >= 0) {
-                        term_r[terms] = (int32_t)row;
-                        term_c[terms] = (int32_t)sticking;
-                        term_v[terms++] = along_t;
-                    }
-                }
-            }
-        }
-    }
-    /* The terms by row (a stable counting sort), then each row's repeats summed in their order. */
-    for (Py_ssize_t q = 0; q < terms; q++)
-        row_start[term_r[q] + 2]++;
-    for (Py_ssize_t r = 0; r < m; r++)
-        row_start[r + 2] += row_start[r + 1];
-    for (Py_ssize_t q = 0; q < terms; q++)
-        sorted[row_start[term_r[q] + 1]++] = (int32_t)q;
-    for (Py_ssize_t c = 0; c < m; c++)
-        marker[c] = -1;
-    out_p[0] = 0;
-    for (Py_ssize_t r = 0; r < m; r++) { /* row_start[r] .. row_start[r + 1]: row r's terms */
-        for (int32_t q = row_start[r]; q < row_start[r + 1]; q++) {
-            int32_t c = term_c[sorted[q]];
-            if (marker[c] != (int32_t)r) {
-                marker[c] = (int32_t)r;
-                nnz++;
-            }
-        }
-        out_p[r + 1] = (int32_t)nnz;
-    }
-    out_c = malloc((size_t)(nnz + 1) * sizeof(int32_t));
-    out_v = malloc((size_t)(nnz + 1) * sizeof(double));
-    if (out_c == NULL || out_v == NULL)
-        goto out;
-    for (Py_ssize_t c = 0; c < m; c++)
-        marker[c] = -1;
-    for (Py_ssize_t r = 0; r < m; r++) {
-        int32_t at = out_p[r];
-        for (int32_t q = row_start[r]; q < row_start[r + 1]; q++) {
-            int32_t c = term_c[sorted[q]];
-            if (marker[c] != (int32_t)r) { /* a new column: starts at 0.0, as a zeroed array does */
-                marker[c] = (int32_t)r;
-                slot[c] = at;
-                out_c[at] = c;
-                out_v[at++] = 0.0;
-            }
-            out_v[slot[c]] += term_v[sorted[q]];
-        }
-    }
-    out_of_memory = 0;
-out:
+    status = face_system_csr(n_points, n_bodies, pa, pb, b[2].buf, b[3].buf, b[4].buf, b[5].buf, b[6].buf, b[7].buf,
+                             b[8].buf, index, b[10].buf, m, &out_p, &out_c, &out_v, &nnz);
     Py_END_ALLOW_THREADS
-    if (out_of_memory)
+    if (status != 0)
         PyErr_NoMemory();
     else
         result = Py_BuildValue("(y#y#y#)", (const char *)out_p, (Py_ssize_t)((m + 1) * sizeof(int32_t)),
                                (const char *)out_c, (Py_ssize_t)(nnz * sizeof(int32_t)), (const char *)out_v,
                                (Py_ssize_t)(nnz * sizeof(double)));
+    free(out_p), free(out_c), free(out_v);
 done:
-    free(start);
-    free(push);
-    free(owner);
-    free(term_r);
-    free(term_c);
-    free(term_v);
-    free(sorted);
-    free(row_start);
-    free(marker);
-    free(slot);
-    free(out_p);
-    free(out_c);
-    free(out_v);
     for (int k = 0; k < n_bufs; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);
@@ -306,10 +169,6 @@ static PyObject *dual_solve(PyObject *self, PyObject *args)
         return NULL;
     PyObject *result = NULL;
     const Py_ssize_t m = b[3].len / (Py_ssize_t)sizeof(double), nnz = b[1].len / (Py_ssize_t)sizeof(int32_t);
-    int32_t *cp = NULL, *ci = NULL, *gp = NULL, *gi = NULL, *order = NULL, *inverse = NULL;
-    int32_t *up = NULL, *ui = NULL;
-    double *cx = NULL, *gx = NULL, *ux = NULL, *work = NULL;
-    spchol_factor_t factor = {0, NULL, NULL, NULL};
     if (b[3].len != m * (Py_ssize_t)sizeof(double) || b[0].len != (m + 1) * (Py_ssize_t)sizeof(int32_t)
         || b[2].len != nnz * (Py_ssize_t)sizeof(double) || b[4].len != b[3].len || refinements < 0
         || m > INT32_MAX / 4) {
@@ -333,98 +192,15 @@ static PyObject *dual_solve(PyObject *self, PyObject *args)
             PyErr_SetString(PyExc_ValueError, "_faces.dual_solve: a column out of range");
             goto done;
         }
-    int status = -1;
+    int status;
     Py_BEGIN_ALLOW_THREADS
-    {
-        /* S by columns too (CSC: cp, ci, cx), then G = S S^T. */
-        cp = calloc((size_t)(m + 2), sizeof(int32_t));
-        ci = malloc((size_t)(nnz + 1) * sizeof(int32_t));
-        cx = malloc((size_t)(nnz + 1) * sizeof(double));
-        work = malloc((size_t)(4 * m + 1) * sizeof(double));
-        if (cp == NULL || ci == NULL || cx == NULL || work == NULL)
-            goto out;
-        spchol_transpose((int32_t)m, (int32_t)m, sp, si, sx, cp, ci, cx);
-        double trace;
-        if (spchol_gram((int32_t)m, sp, si, sx, cp, ci, cx, &gp, &gi, &gx, &trace) != 0)
-            goto out;
-        const int32_t at = gp[m];
-        double scale = trace / (double)m;
-        if (!(scale > 0)) { /* S = 0: every x solves it, 0 the least */
-            memset(x, 0, (size_t)m * sizeof(double));
-            status = 0;
-            goto out;
-        }
-        order = malloc((size_t)(m + 1) * sizeof(int32_t));
-        inverse = malloc((size_t)(m + 1) * sizeof(int32_t));
-        up = malloc((size_t)(m + 1) * sizeof(int32_t));
-        ui = malloc((size_t)(at + 1) * sizeof(int32_t));
-        ux = malloc((size_t)(at + 1) * sizeof(double));
-        if (order == NULL || inverse == NULL || up == NULL || ui == NULL || ux == NULL
-            || spchol_rcm((int32_t)m, gp, gi, order) != 0
-            || spchol_permute_upper((int32_t)m, gp, gi, gx, order, inverse, up, ui, ux) != 0)
-            goto out;
-        int factored = spchol_factor((int32_t)m, up, ui, ux, ridge * scale, 0.0, &factor);
-        if (factored != 0) {
-            status = factored > 0 ? 1 : -1;
-            goto out;
-        }
-        /* y = G^-1 b, refined against S S^T (not the ridged G); y is kept in the new order. */
-        double *y = work, *r = work + m, *u = work + 2 * m, *v = work + 3 * m;
-        for (Py_ssize_t k = 0; k < m; k++)
-            y[inverse[k]] = rhs[k];
-        spchol_solve(&factor, y);
-        for (int round = 0; round < refinements; round++) {
-            for (Py_ssize_t c = 0; c < m; c++) { /* u = S^T y */
-                double s_ = 0.0;
-                for (int32_t q = cp[c]; q < cp[c + 1]; q++)
-                    s_ += cx[q] * y[inverse[ci[q]]];
-                u[c] = s_;
-            }
-            for (Py_ssize_t i = 0; i < m; i++) { /* r = b - S u, in the new order */
-                double s_ = 0.0;
-                for (int32_t p = sp[i]; p < sp[i + 1]; p++)
-                    s_ += sx[p] * u[si[p]];
-                r[inverse[i]] = rhs[i] - s_;
-            }
-            spchol_solve(&factor, r);
-            for (Py_ssize_t k = 0; k < m; k++)
-                y[k] += r[k];
-        }
-        for (Py_ssize_t c = 0; c < m; c++) { /* x = S^T y */
-            double s_ = 0.0;
-            for (int32_t q = cp[c]; q < cp[c + 1]; q++)
-                s_ += cx[q] * y[inverse[ci[q]]];
-            x[c] = s_;
-        }
-        /* The answer's test: |S^T (S x - b)| against |S^T b|. */
-        for (Py_ssize_t i = 0; i < m; i++) {
-            double s_ = 0.0;
-            for (int32_t p = sp[i]; p < sp[i + 1]; p++)
-                s_ += sx[p] * x[si[p]];
-            v[i] = s_ - rhs[i];
-        }
-        double gradient = 0.0, reach = 0.0;
-        for (Py_ssize_t c = 0; c < m; c++) {
-            double g_ = 0.0, h_ = 0.0;
-            for (int32_t q = cp[c]; q < cp[c + 1]; q++) {
-                g_ += cx[q] * v[ci[q]];
-                h_ += cx[q] * rhs[ci[q]];
-            }
-            gradient += g_ * g_;
-            reach += h_ * h_;
-        }
-        status = sqrt(gradient) <= optimality * sqrt(reach) ? 0 : 2;
-    }
-out:
+    status = face_dual_solve(m, sp, si, sx, rhs, ridge, refinements, optimality, x);
     Py_END_ALLOW_THREADS
     if (status < 0)
         PyErr_NoMemory();
     else
         result = PyLong_FromLong(status);
 done:
-    spchol_free(&factor);
-    free(cp), free(ci), free(cx), free(gp), free(gi), free(gx);
-    free(order), free(inverse), free(up), free(ui), free(ux), free(work);
     for (int k = 0; k < 5; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);

@@ -29,44 +29,10 @@
 #include <stdint.h>
 #include <string.h>
 
-/* BODY_DTYPE (48 bytes) and CONTACT_DTYPE (64 bytes): byte offsets of the fields read. */
-enum {
-    BODY_SIZE = 48,
-    BODY_TYPE = 4,
-    BODY_POSITION = 8,
-    BODY_VELOCITY = 20,
-    BODY_ANGULAR_VELOCITY = 28,
-    BODY_MASS = 32,
-    BODY_INERTIA = 36,
-    POINT_SIZE = 64,
-    POINT_BODY_A = 8,
-    POINT_BODY_B = 12,
-    POINT_POINT = 16,
-    POINT_NORMAL = 24,
-    POINT_BUILTIN = 36,
-};
-enum { BODY_DYNAMIC = 2 };
+#include "contact_jacobian.h"
+#include "contact_records.h"
+
 enum { WARM_NONE = 0, WARM_BUILTIN = 1, WARM_GIVEN = 2 };
-
-static inline double f32_at(const char *record, int offset)
-{
-    float x;
-    memcpy(&x, record + offset, sizeof x);
-    return (double)x;
-}
-
-static inline int32_t i32_at(const char *record, int offset)
-{
-    int32_t x;
-    memcpy(&x, record + offset, sizeof x);
-    return x;
-}
-
-/* 1/x where the body may take impulses and x > 0, else 0 (kinematics._inverse). */
-static inline double inverse_of(double x, int ok)
-{
-    return (ok && x > 0.0) ? 1.0 / x : 0.0;
-}
 
 /* Per-body scratch, grown as needed, never shrunk: 8 float64 a body. */
 static double *scratch = NULL;
@@ -84,41 +50,6 @@ static double *body_scratch(Py_ssize_t n_bodies)
         scratch_bodies = n_bodies;
     }
     return scratch;
-}
-
-/* One point's frame: the body rows, normal, tangent and lever arms (m). */
-struct frame {
-    Py_ssize_t a, b;
-    double n0, n1, t0, t1, ra0, ra1, rb0, rb1;
-};
-
-static inline void frame_of(const char *point, const char *bodies, struct frame *f)
-{
-    f->a = i32_at(point, POINT_BODY_A);
-    f->b = i32_at(point, POINT_BODY_B);
-    const double p0 = f32_at(point, POINT_POINT), p1 = f32_at(point, POINT_POINT + 4);
-    f->n0 = f32_at(point, POINT_NORMAL);
-    f->n1 = f32_at(point, POINT_NORMAL + 4);
-    f->t0 = f->n1;
-    f->t1 = -f->n0;
-    const char *ba = bodies + f->a * BODY_SIZE, *bb = bodies + f->b * BODY_SIZE;
-    f->ra0 = p0 - f32_at(ba, BODY_POSITION);
-    f->ra1 = p1 - f32_at(ba, BODY_POSITION + 4);
-    f->rb0 = p0 - f32_at(bb, BODY_POSITION);
-    f->rb1 = p1 - f32_at(bb, BODY_POSITION + 4);
-}
-
-/* Relative (normal, tangent) velocity at a point from the bodies' (vx, vy, w) rows. */
-static inline void relative_velocity(const struct frame *f, const double *vx, const double *vy, const double *w,
-                                     double *out)
-{
-    const double wa = w[f->a], wb = w[f->b];
-    double rel0 = vx[f->b] - vx[f->a];
-    double rel1 = vy[f->b] - vy[f->a];
-    rel0 += wa * f->ra1 - wb * f->rb1;
-    rel1 += wb * f->rb0 - wa * f->ra0;
-    out[0] = rel0 * f->n0 + rel1 * f->n1;
-    out[1] = rel0 * f->t0 + rel1 * f->t1;
 }
 
 /* point_kinematics(bodies, n_bodies, points, n_points, warm_mode, warm, dt, gx, gy,
@@ -157,13 +88,9 @@ static PyObject *point_kinematics(PyObject *self, PyObject *args)
         goto done;
     }
     const char *bodies = bodies_buf.buf, *points = points_buf.buf;
-    for (Py_ssize_t i = 0; i < n_points; i++) {
-        const char *p = points + i * POINT_SIZE;
-        const int32_t a = i32_at(p, POINT_BODY_A), b = i32_at(p, POINT_BODY_B);
-        if (a < 0 || b < 0 || a >= n_bodies || b >= n_bodies) {
-            PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
-            goto done;
-        }
+    if (!points_in_range(points, n_points, n_bodies)) {
+        PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
+        goto done;
     }
     double *s = body_scratch(n_bodies > 0 ? n_bodies : 1);
     if (s == NULL)
@@ -206,39 +133,10 @@ static PyObject *point_kinematics(PyObject *self, PyObject *args)
             }
         }
     }
-    if (warmed) {
-        /* The warm start's impulse summed on each body (N s, N m s), then its velocity after it. */
-        double *dvx = s + 5 * n_bodies, *dvy = s + 6 * n_bodies, *dw = s + 7 * n_bodies;
-        memset(dvx, 0, (size_t)n_bodies * 3 * sizeof(double));
-        const double *given = warm_mode == WARM_GIVEN ? warm_buf.buf : NULL;
-        for (int side = 0; side < 2; side++) { /* B's shares, then A's, as np.bincount(concat(b, a)) */
-            for (Py_ssize_t i = 0; i < n_points; i++) {
-                const char *p = points + i * POINT_SIZE;
-                frame_of(p, bodies, &f);
-                const double jn = given ? given[2 * i] : f32_at(p, POINT_BUILTIN);
-                const double jt = given ? given[2 * i + 1] : f32_at(p, POINT_BUILTIN + 4);
-                const double i0 = jn * f.n0 + jt * f.t0, i1 = jn * f.n1 + jt * f.t1;
-                if (side == 0) {
-                    dvx[f.b] += i0;
-                    dvy[f.b] += i1;
-                    dw[f.b] += f.rb0 * i1 - f.rb1 * i0;
-                } else {
-                    dvx[f.a] += -i0;
-                    dvy[f.a] += -i1;
-                    dw[f.a] += -(f.ra0 * i1 - f.ra1 * i0);
-                }
-            }
-        }
-        for (Py_ssize_t k = 0; k < n_bodies; k++) {
-            dvx[k] = vx[k] + dvx[k] * inv_m[k];
-            dvy[k] = vy[k] + dvy[k] * inv_m[k];
-            dw[k] = w[k] + dw[k] * inv_i[k];
-        }
-        for (Py_ssize_t i = 0; i < n_points; i++) {
-            frame_of(points + i * POINT_SIZE, bodies, &f);
-            relative_velocity(&f, dvx, dvy, dw, warmed + 2 * i);
-        }
-    }
+    if (warmed) /* the warm start's impulse summed on each body (N s, N m s), then the velocities after it */
+        velocities_after_impulses(bodies, points, n_points, n_bodies, vx, vy, w, inv_m, inv_i,
+                                  warm_mode == WARM_GIVEN ? warm_buf.buf : NULL, s + 5 * n_bodies, s + 6 * n_bodies,
+                                  s + 7 * n_bodies, warmed);
     result = Py_NewRef(Py_None);
 done:
     PyBuffer_Release(&bodies_buf);
@@ -250,13 +148,8 @@ done:
     return result;
 }
 
-/* J^T of a step's contact points as CSR (kinematics.contact_jacobian_sparse's matrix, the
- * admission's form): R = 3 D rows, three for each dynamic body (x, y, rotation), and 2 P
- * columns, the normal and tangent direction of each point. A point's direction d pushes its
- * body B by +d and its body A by -d: on B's rows (d_x, d_y, rb x d), on A's the negatives.
- * A point between two parts of one body sums both. Each row's columns come out in increasing
- * order. In SciPy (a COO matrix made CSR) it took about 0.17 ms at the thesis world's median
- * step, most of it SciPy's checks and conversions.
+/* jacobian_transpose(a, b, row, n, t, ra, rb, rows, indptr, indices, data) -> entries: J^T as
+ * CSR (contact_jacobian.h says what it holds), checked and written in place.
  *
  * Arguments: a, b int64 (P,) body indices; row int32 (B,) each body's dynamic row or -1;
  * n, t, ra, rb float64 (P, 2); rows (3 D); out: indptr int32 (rows + 1,), indices int32 and
@@ -291,62 +184,7 @@ static PyObject *jacobian_transpose(PyObject *self, PyObject *args)
             PyErr_SetString(PyExc_ValueError, "_admission.jacobian_transpose: a point names a body out of range");
             goto done;
         }
-    /* Entries a row: each of its body's points, two directions (one body counted once per point). */
-    memset(indptr, 0, (size_t)(rows + 1) * sizeof(int32_t));
-    for (Py_ssize_t i = 0; i < n_points; i++) {
-        int32_t ra_row = row[pa[i]], rb_row = row[pb[i]];
-        if (rb_row >= 0)
-            for (int k = 0; k < 3; k++)
-                indptr[3 * rb_row + k + 1] += 2;
-        if (ra_row >= 0 && ra_row != rb_row)
-            for (int k = 0; k < 3; k++)
-                indptr[3 * ra_row + k + 1] += 2;
-    }
-    for (Py_ssize_t r = 0; r < rows; r++)
-        indptr[r + 1] += indptr[r];
-    Py_ssize_t nnz = rows ? indptr[rows] : 0;
-    /* Filled point by point, so each row's columns increase; indptr[r] walks to row r's end. */
-    for (Py_ssize_t i = 0; i < n_points; i++) {
-        const double *dirs[2] = {&n[2 * i], &t[2 * i]};
-        int32_t ra_row = row[pa[i]], rb_row = row[pb[i]];
-        for (int k = 0; k < 2; k++) {
-            const double *d = dirs[k];
-            double on_b[3] = {0.0, 0.0, 0.0}, on_a[3] = {0.0, 0.0, 0.0};
-            if (rb_row >= 0) {
-                on_b[0] = d[0];
-                on_b[1] = d[1];
-                on_b[2] = rb[2 * i] * d[1] - rb[2 * i + 1] * d[0];
-            }
-            if (ra_row >= 0) {
-                on_a[0] = -d[0];
-                on_a[1] = -d[1];
-                on_a[2] = -(ra[2 * i] * d[1] - ra[2 * i + 1] * d[0]);
-            }
-            if (rb_row >= 0 && ra_row == rb_row) { /* both sides on one body: one entry, summed */
-                for (int q = 0; q < 3; q++) {
-                    int32_t at = indptr[3 * rb_row + q]++;
-                    indices[at] = (int32_t)(2 * i + k);
-                    data[at] = on_b[q] + on_a[q];
-                }
-                continue;
-            }
-            if (rb_row >= 0)
-                for (int q = 0; q < 3; q++) {
-                    int32_t at = indptr[3 * rb_row + q]++;
-                    indices[at] = (int32_t)(2 * i + k);
-                    data[at] = on_b[q];
-                }
-            if (ra_row >= 0)
-                for (int q = 0; q < 3; q++) {
-                    int32_t at = indptr[3 * ra_row + q]++;
-                    indices[at] = (int32_t)(2 * i + k);
-                    data[at] = on_a[q];
-                }
-        }
-    }
-    for (Py_ssize_t r = rows; r > 0; r--) /* each indptr[r] now holds row r's end: shift back */
-        indptr[r] = indptr[r - 1];
-    indptr[0] = 0;
+    Py_ssize_t nnz = jacobian_transpose_csr(n_points, pa, pb, row, n, t, ra, rb, rows, indptr, indices, data);
     result = PyLong_FromSsize_t(nnz);
 done:
     for (int k = 0; k < n_bufs; k++)
