@@ -32,49 +32,197 @@ enum { OPEN = 0, STICKS = 1, SLIDES_PLUS = 2, SLIDES_MINUS = 3 };
 /* solve_and_admit's outcomes. */
 enum { ROUTE_SERVED = 0, ROUTE_NOT_DEFINITE = 1, ROUTE_INCONSISTENT = 2 };
 
-/* What one step needs kept, all malloc'd at once. */
+/* What a step's geometry gives the route, whatever its labels: the contact frame
+ * (kinematics.contact_frame), the velocities before any impulse, and the admission's J^T, body
+ * order and factor of J^T J (admission.admission_factors). Built by prepare (on another thread,
+ * while the classifier runs) or by solve_and_admit itself; all malloc'd. */
+struct geometry {
+    int64_t P, B;
+    int32_t n_dyn, rows;
+    int64_t *pa, *pb;
+    int32_t *row, *jp, *ji, *order, *inverse;
+    unsigned char *dynamic;
+    double *inv_mass, *inv_inertia, *n, *t, *ra, *rb, *vx, *vy, *w, *before, *jd;
+    spchol_factor_t factor;
+    int factored;
+};
+
+static void geometry_free(struct geometry *g)
+{
+    free(g->pa), free(g->pb), free(g->row), free(g->jp), free(g->ji), free(g->order), free(g->inverse);
+    free(g->dynamic), free(g->inv_mass), free(g->inv_inertia), free(g->n), free(g->t), free(g->ra), free(g->rb);
+    free(g->vx), free(g->vy), free(g->w), free(g->before), free(g->jd);
+    spchol_free(&g->factor);
+    memset(g, 0, sizeof *g);
+}
+
+/* The frame and the velocities before any impulse, gravity added. Returns 0, or -1 (memory). */
+static int geometry_build(struct geometry *g, const char *bodies, const char *points, int64_t P, int64_t B, double dt,
+                          double gx, double gy)
+{
+    memset(g, 0, sizeof *g);
+    g->P = P, g->B = B;
+    const size_t p = (size_t)P + 1, b = (size_t)B + 1;
+    g->pa = malloc(p * sizeof(int64_t));
+    g->pb = malloc(p * sizeof(int64_t));
+    g->row = malloc(b * sizeof(int32_t));
+    g->dynamic = malloc(b);
+    double **per_body[] = {&g->inv_mass, &g->inv_inertia, &g->vx, &g->vy, &g->w};
+    for (size_t k = 0; k < sizeof per_body / sizeof per_body[0]; k++)
+        *per_body[k] = malloc(b * sizeof(double));
+    double **per_point[] = {&g->n, &g->t, &g->ra, &g->rb, &g->before};
+    for (size_t k = 0; k < sizeof per_point / sizeof per_point[0]; k++)
+        *per_point[k] = malloc(2 * p * sizeof(double));
+    if (!(g->pa && g->pb && g->row && g->dynamic && g->inv_mass && g->inv_inertia && g->vx && g->vy && g->w && g->n
+          && g->t && g->ra && g->rb && g->before))
+        return -1;
+    for (int64_t k = 0; k < B; k++) {
+        const char *body = bodies + k * BODY_SIZE;
+        const int dynamic = i32_at(body, BODY_TYPE) == BODY_DYNAMIC;
+        const double on = dynamic ? 1.0 : 0.0;
+        g->dynamic[k] = (unsigned char)dynamic;
+        g->row[k] = dynamic ? g->n_dyn++ : -1;
+        g->vx[k] = f32_at(body, BODY_VELOCITY) * on;
+        g->vy[k] = f32_at(body, BODY_VELOCITY + 4) * on;
+        g->w[k] = f32_at(body, BODY_ANGULAR_VELOCITY) * on;
+        if (dt != 0.0) {
+            g->vx[k] += (dt * gx) * on;
+            g->vy[k] += (dt * gy) * on;
+        }
+        g->inv_mass[k] = inverse_of(f32_at(body, BODY_MASS), dynamic);
+        g->inv_inertia[k] = inverse_of(f32_at(body, BODY_INERTIA), dynamic);
+    }
+    g->rows = 3 * g->n_dyn;
+    struct frame f;
+    for (int64_t i = 0; i < P; i++) {
+        frame_of(points + i * POINT_SIZE, bodies, &f);
+        g->pa[i] = f.a;
+        g->pb[i] = f.b;
+        g->n[2 * i] = f.n0, g->n[2 * i + 1] = f.n1, g->t[2 * i] = f.t0, g->t[2 * i + 1] = f.t1;
+        g->ra[2 * i] = f.ra0, g->ra[2 * i + 1] = f.ra1, g->rb[2 * i] = f.rb0, g->rb[2 * i + 1] = f.rb1;
+        relative_velocity(&f, g->vx, g->vy, g->w, g->before + 2 * i);
+    }
+    return 0;
+}
+
+/* The admission's J^T, its rows in a minimum degree order of the bodies, and J^T J's factor.
+ * Returns 0, -1 (memory) or 1 (a pivot). */
+static int geometry_factor(struct geometry *g)
+{
+    if (g->factored)
+        return 0;
+    const int32_t rows = g->rows;
+    const int64_t P = g->P;
+    g->jp = malloc(((size_t)rows + 1) * sizeof(int32_t));
+    g->ji = malloc(((size_t)12 * P + 1) * sizeof(int32_t));
+    g->jd = malloc(((size_t)12 * P + 1) * sizeof(double));
+    g->order = malloc(((size_t)rows + 1) * sizeof(int32_t));
+    g->inverse = malloc(((size_t)rows + 1) * sizeof(int32_t));
+    if (g->jp == NULL || g->ji == NULL || g->jd == NULL || g->order == NULL || g->inverse == NULL)
+        return -1;
+    jacobian_transpose_csr(P, g->pa, g->pb, g->row, g->n, g->t, g->ra, g->rb, rows, g->jp, g->ji, g->jd);
+    if (body_order_min_degree(P, g->pa, g->pb, g->row, g->n_dyn, g->order) != 0)
+        return -1;
+    for (int32_t q = g->n_dyn - 1; q >= 0; q--) /* each body's three rows, in its order */
+        for (int d = 2; d >= 0; d--)
+            g->order[3 * q + d] = 3 * g->order[q] + d;
+    int status = gram_factor(rows, (int32_t)(2 * P), g->jp, g->ji, g->jd, g->order, 1e-9, g->inverse, &g->factor);
+    g->factored = status == 0;
+    return status;
+}
+
+/* What one step's labels give the route, all malloc'd at once. */
 struct step {
-    int64_t *pa, *pb, *index;
-    int32_t *row;
-    unsigned char *dynamic, *face;
-    double *inv_mass, *inv_inertia, *n, *t, *ra, *rb, *vx, *vy, *w, *before, *slide, *rhs, *x, *keep, *after;
+    int64_t *index;
+    unsigned char *face;
+    double *slide, *rhs, *x, *keep, *after;
 };
 
 static void free_step(struct step *s)
 {
-    free(s->pa), free(s->pb), free(s->index), free(s->row), free(s->dynamic), free(s->face);
-    free(s->inv_mass), free(s->inv_inertia), free(s->n), free(s->t), free(s->ra), free(s->rb);
-    free(s->vx), free(s->vy), free(s->w), free(s->before), free(s->slide), free(s->rhs), free(s->x), free(s->keep);
-    free(s->after);
+    free(s->index), free(s->face), free(s->slide), free(s->rhs), free(s->x), free(s->keep), free(s->after);
 }
 
-static int alloc_step(struct step *s, int64_t P, int64_t B)
+static int alloc_step(struct step *s, int64_t P)
 {
     memset(s, 0, sizeof *s);
-    const size_t p = (size_t)P + 1, b = (size_t)B + 1;
-    s->pa = malloc(p * sizeof(int64_t));
-    s->pb = malloc(p * sizeof(int64_t));
+    const size_t p = (size_t)P + 1;
     s->index = malloc(2 * p * sizeof(int64_t));
-    s->row = malloc(b * sizeof(int32_t));
-    s->dynamic = malloc(b);
     s->face = malloc(p);
-    s->inv_mass = malloc(b * sizeof(double));
-    s->inv_inertia = malloc(b * sizeof(double));
-    s->vx = malloc(b * sizeof(double));
-    s->vy = malloc(b * sizeof(double));
-    s->w = malloc(b * sizeof(double));
-    double **per_point[] = {&s->n, &s->t, &s->ra, &s->rb, &s->before, &s->rhs, &s->x, &s->after};
-    for (size_t k = 0; k < sizeof per_point / sizeof per_point[0]; k++)
-        *per_point[k] = malloc(2 * p * sizeof(double));
     s->slide = malloc(p * sizeof(double));
     s->keep = malloc(p * sizeof(double));
-    return s->pa && s->pb && s->index && s->row && s->dynamic && s->face && s->inv_mass && s->inv_inertia && s->vx
-           && s->vy && s->w && s->n && s->t && s->ra && s->rb && s->before && s->rhs && s->x && s->after && s->slide
-           && s->keep;
+    s->rhs = malloc(2 * p * sizeof(double));
+    s->x = malloc(2 * p * sizeof(double));
+    s->after = malloc(2 * p * sizeof(double));
+    return s->index && s->face && s->slide && s->keep && s->rhs && s->x && s->after;
+}
+
+static const char GEOMETRY[] = "deepcontact._route.geometry";
+
+static void geometry_capsule_free(PyObject *capsule)
+{
+    struct geometry *g = PyCapsule_GetPointer(capsule, GEOMETRY);
+    if (g != NULL) {
+        geometry_free(g);
+        free(g);
+    }
+}
+
+/* prepare(bodies, n_bodies, points, n_points, dt, gx, gy) -> geometry
+ *
+ * A step's geometry (struct geometry), its admission's factor included, for solve_and_admit to
+ * take: built without the GIL, so that a server can build it on another core while its
+ * classifier runs on the same step (deepcontact.faces.prepare_route). An opaque capsule. */
+static PyObject *prepare(PyObject *self, PyObject *args)
+{
+    Py_buffer b[2];
+    Py_ssize_t n_bodies, n_points;
+    double dt, gx, gy;
+    memset(b, 0, sizeof b);
+    if (!PyArg_ParseTuple(args, "y*ny*nddd", &b[0], &n_bodies, &b[1], &n_points, &dt, &gx, &gy))
+        return NULL;
+    PyObject *result = NULL;
+    struct geometry *g = NULL;
+    if (n_bodies < 0 || n_points < 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
+        || b[1].len != n_points * POINT_SIZE) {
+        PyErr_SetString(PyExc_ValueError, "_route.prepare: arrays of the wrong size");
+        goto done;
+    }
+    if (!points_in_range(b[1].buf, n_points, n_bodies)) {
+        PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
+        goto done;
+    }
+    int status;
+    Py_BEGIN_ALLOW_THREADS
+    g = calloc(1, sizeof *g);
+    status = g == NULL ? -1 : geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy);
+    if (status == 0)
+        status = geometry_factor(g);
+    Py_END_ALLOW_THREADS
+    if (status != 0) {
+        if (g != NULL)
+            geometry_free(g);
+        free(g);
+        if (status < 0)
+            PyErr_NoMemory();
+        else
+            PyErr_SetString(PyExc_ArithmeticError, "_route.prepare: a pivot");
+        goto done;
+    }
+    result = PyCapsule_New(g, GEOMETRY, geometry_capsule_free);
+    if (result == NULL) {
+        geometry_free(g);
+        free(g);
+    }
+done:
+    for (int k = 0; k < 2; k++)
+        if (b[k].obj != NULL || b[k].buf != NULL)
+            PyBuffer_Release(&b[k]);
+    return result;
 }
 
 /* solve_and_admit(bodies, n_bodies, points, n_points, labels, mu, read_mu, dt, gx, gy, pressing,
- *                 share, rounds, until, ridge, refinements, optimality, impulses)
+ *                 share, rounds, until, ridge, refinements, optimality, impulses, geometry)
  *     -> (outcome, residual, solve_seconds, admit_seconds, admission_rounds)
  *
  * bodies, points: BODY_DTYPE and CONTACT_DTYPE records; labels float64 (P, 2), the classifier's
@@ -82,10 +230,11 @@ static int alloc_step(struct step *s, int64_t P, int64_t B)
  * sliding labels are read at (mu, or the card's label_friction everywhere); dt (s), gx, gy
  * (m/s^2); pressing (N s) and share: how the labels are read (faces.contact_face); rounds,
  * until (CLOCK_MONOTONIC s, 0: none): the admission's; ridge, refinements, optimality: the
- * dual solve's (faces.DUAL_*); impulses float64 (P, 2) out. outcome: ROUTE_SERVED (impulses
- * written, residual faces.face_residual of them), ROUTE_NOT_DEFINITE (the sparse factor met a
- * pivot below zero: the caller solves densely) or ROUTE_INCONSISTENT (the labels' system is
- * far from consistent: the caller solves it by least squares). */
+ * dual solve's (faces.DUAL_*); impulses float64 (P, 2) out; geometry: prepare's for these
+ * bodies and points, or None (built here). outcome: ROUTE_SERVED (impulses written, residual
+ * faces.face_residual of them), ROUTE_NOT_DEFINITE (the sparse factor met a pivot below zero:
+ * the caller solves densely) or ROUTE_INCONSISTENT (the labels' system is far from
+ * consistent). */
 static PyObject *solve_and_admit(PyObject *self, PyObject *args)
 {
     Py_buffer b[6];
@@ -93,15 +242,16 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     double dt, gx, gy, pressing, share, until, ridge, optimality;
     long rounds;
     int refinements;
+    PyObject *prepared;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddidw*", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3], &b[4],
+    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddidw*O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3], &b[4],
                           &dt, &gx, &gy, &pressing, &share, &rounds, &until, &ridge, &refinements, &optimality,
-                          &b[5]))
+                          &b[5], &prepared))
         return NULL;
     PyObject *result = NULL;
     const int64_t P = n_points, B = n_bodies;
     const Py_ssize_t vec = 2 * n_points * (Py_ssize_t)sizeof(double);
-    if (n_bodies < 0 || n_points < 0 || n_points > INT32_MAX / 8 || b[0].len != n_bodies * BODY_SIZE
+    if (n_bodies < 0 || n_points < 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
         || b[1].len != n_points * POINT_SIZE || b[2].len != vec || b[3].len != vec / 2 || b[4].len != vec / 2
         || b[5].len != vec || rounds < 0 || refinements < 0) {
         PyErr_SetString(PyExc_ValueError, "_route.solve_and_admit: arrays of the wrong size");
@@ -112,46 +262,30 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
         PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
         goto done;
     }
+    struct geometry own, *g = &own;
+    memset(&own, 0, sizeof own);
+    if (prepared != Py_None) {
+        g = PyCapsule_GetPointer(prepared, GEOMETRY);
+        if (g == NULL)
+            goto done;
+        if (g->P != P || g->B != B) {
+            PyErr_SetString(PyExc_ValueError, "_route.solve_and_admit: a geometry prepared for another step");
+            goto done;
+        }
+    }
     const double *labels = b[2].buf, *mu = b[3].buf, *read_mu = b[4].buf;
     double *impulses = b[5].buf;
     struct step s;
+    memset(&s, 0, sizeof s);
     int outcome = -1;
     long used = 0;
     double residual = 0.0, t0, t1, t2;
-    int32_t *sp = NULL, *si = NULL, *jp = NULL, *ji = NULL, *order = NULL, *inverse = NULL;
-    double *sx = NULL, *jd = NULL, *scratch = NULL;
-    spchol_factor_t factor = {0, NULL, NULL, NULL};
+    int32_t *sp = NULL, *si = NULL;
+    double *sx = NULL, *scratch = NULL;
     Py_BEGIN_ALLOW_THREADS
     t0 = monotonic_seconds();
-    if (!alloc_step(&s, P, B))
+    if (!alloc_step(&s, P) || (g == &own && geometry_build(g, bodies, points, P, B, dt, gx, gy) != 0))
         goto out;
-    /* The frame (kinematics.contact_frame) and the velocities before any impulse, gravity added. */
-    int32_t n_dyn = 0;
-    for (int64_t k = 0; k < B; k++) {
-        const char *body = bodies + k * BODY_SIZE;
-        const int dynamic = i32_at(body, BODY_TYPE) == BODY_DYNAMIC;
-        const double on = dynamic ? 1.0 : 0.0;
-        s.dynamic[k] = (unsigned char)dynamic;
-        s.row[k] = dynamic ? n_dyn++ : -1;
-        s.vx[k] = f32_at(body, BODY_VELOCITY) * on;
-        s.vy[k] = f32_at(body, BODY_VELOCITY + 4) * on;
-        s.w[k] = f32_at(body, BODY_ANGULAR_VELOCITY) * on;
-        if (dt != 0.0) {
-            s.vx[k] += (dt * gx) * on;
-            s.vy[k] += (dt * gy) * on;
-        }
-        s.inv_mass[k] = inverse_of(f32_at(body, BODY_MASS), dynamic);
-        s.inv_inertia[k] = inverse_of(f32_at(body, BODY_INERTIA), dynamic);
-    }
-    struct frame f;
-    for (int64_t i = 0; i < P; i++) {
-        frame_of(points + i * POINT_SIZE, bodies, &f);
-        s.pa[i] = f.a;
-        s.pb[i] = f.b;
-        s.n[2 * i] = f.n0, s.n[2 * i + 1] = f.n1, s.t[2 * i] = f.t0, s.t[2 * i + 1] = f.t1;
-        s.ra[2 * i] = f.ra0, s.ra[2 * i + 1] = f.ra1, s.rb[2 * i] = f.rb0, s.rb[2 * i + 1] = f.rb1;
-        relative_velocity(&f, s.vx, s.vy, s.w, s.before + 2 * i);
-    }
     /* The labels (faces.contact_face) and the system's unknowns: the pressing points' normal
      * impulses first, then the sticking points' tangent ones (faces.face_system_sparse). */
     int64_t k_press = 0, m = 0;
@@ -173,14 +307,14 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     memset(impulses, 0, (size_t)P * 2 * sizeof(double));
     if (m > 0) {
         int64_t nnz;
-        if (face_system_csr(P, B, s.pa, s.pb, s.dynamic, s.inv_mass, s.inv_inertia, s.n, s.t, s.ra, s.rb, s.index,
-                            s.slide, m, &sp, &si, &sx, &nnz) != 0)
+        if (face_system_csr(P, B, g->pa, g->pb, g->dynamic, g->inv_mass, g->inv_inertia, g->n, g->t, g->ra, g->rb,
+                            s.index, s.slide, m, &sp, &si, &sx, &nnz) != 0)
             goto out;
         for (int64_t i = 0; i < P; i++) { /* rhs = -velocity at each unknown's equation */
             if (s.index[2 * i] >= 0)
-                s.rhs[s.index[2 * i]] = -s.before[2 * i];
+                s.rhs[s.index[2 * i]] = -g->before[2 * i];
             if (s.index[2 * i + 1] >= 0)
-                s.rhs[s.index[2 * i + 1]] = -s.before[2 * i + 1];
+                s.rhs[s.index[2 * i + 1]] = -g->before[2 * i + 1];
         }
         int solved = face_dual_solve(m, sp, si, sx, s.rhs, ridge, refinements, optimality, s.x);
         if (solved != 0) {
@@ -204,26 +338,11 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     for (int64_t k = 0; k < 2 * P && admissible; k++)
         admissible = s.after[k] == impulses[k];
     if (!admissible) {
-        const int32_t rows = 3 * n_dyn;
-        jp = malloc(((size_t)rows + 1) * sizeof(int32_t));
-        ji = malloc(((size_t)12 * P + 1) * sizeof(int32_t));
-        jd = malloc(((size_t)12 * P + 1) * sizeof(double));
-        order = malloc(((size_t)rows + 1) * sizeof(int32_t));
-        inverse = malloc(((size_t)rows + 1) * sizeof(int32_t));
-        if (jp == NULL || ji == NULL || jd == NULL || order == NULL || inverse == NULL)
-            goto out;
-        jacobian_transpose_csr(P, s.pa, s.pb, s.row, s.n, s.t, s.ra, s.rb, rows, jp, ji, jd);
-        if (body_order_min_degree(P, s.pa, s.pb, s.row, n_dyn, order) != 0)
-            goto out;
-        for (int32_t q = n_dyn - 1; q >= 0; q--) /* each body's three rows, in its order */
-            for (int d = 2; d >= 0; d--)
-                order[3 * q + d] = 3 * order[q] + d;
-        int factored = gram_factor(rows, (int32_t)(2 * P), jp, ji, jd, order, 1e-9, inverse, &factor);
-        if (factored != 0)
+        if (geometry_factor(g) != 0)
             goto out;
         memcpy(s.rhs, impulses, (size_t)P * 2 * sizeof(double)); /* c, the solve's answer */
-        used = admission_rounds_run(rows, 2 * P, jp, ji, jd, &factor, inverse, s.rhs, mu, s.keep, 100.0, rounds, 1e-5,
-                                    until, impulses);
+        used = admission_rounds_run(g->rows, 2 * P, g->jp, g->ji, g->jd, &g->factor, g->inverse, s.rhs, mu, s.keep,
+                                    100.0, rounds, 1e-5, until, impulses);
         if (used < 0)
             goto out;
     }
@@ -233,13 +352,13 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     scratch = malloc(((size_t)3 * B + 1) * sizeof(double));
     if (scratch == NULL)
         goto out;
-    velocities_after_impulses(bodies, points, P, B, s.vx, s.vy, s.w, s.inv_mass, s.inv_inertia, impulses, scratch,
+    velocities_after_impulses(bodies, points, P, B, g->vx, g->vy, g->w, g->inv_mass, g->inv_inertia, impulses, scratch,
                               scratch + B, scratch + 2 * B, s.after);
     double left = 0.0, scale = 0.0;
     for (int64_t i = 0; i < P; i++) { /* in face_residual's order: pressing normals, sticking tangents, open */
         if (s.face[i] != OPEN)
             left += s.after[2 * i] * s.after[2 * i];
-        scale += s.before[2 * i] * s.before[2 * i] + s.before[2 * i + 1] * s.before[2 * i + 1];
+        scale += g->before[2 * i] * g->before[2 * i] + g->before[2 * i + 1] * g->before[2 * i + 1];
     }
     for (int64_t i = 0; i < P; i++)
         if (s.face[i] == STICKS)
@@ -252,8 +371,8 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
 out:
     t2 = monotonic_seconds();
     free_step(&s);
-    spchol_free(&factor);
-    free(sp), free(si), free(sx), free(jp), free(ji), free(jd), free(order), free(inverse), free(scratch);
+    geometry_free(&own);
+    free(sp), free(si), free(sx), free(scratch);
     Py_END_ALLOW_THREADS
     if (outcome < 0)
         PyErr_NoMemory();
@@ -270,6 +389,7 @@ done:
 static PyMethodDef methods[] = {
     {"solve_and_admit", solve_and_admit, METH_VARARGS,
      "The face route after its classifier: labels, solve, admission, residual (see the C source)."},
+    {"prepare", prepare, METH_VARARGS, "A step's geometry for solve_and_admit, built ahead (see the C source)."},
     {NULL, NULL, 0, NULL},
 };
 

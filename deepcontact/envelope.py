@@ -96,6 +96,32 @@ class Envelope:
                    friction=(min(friction), max(friction)), gravity=(min(gravity), max(gravity)), dt=(min(dt), max(dt)))
 
     # -- a step -----------------------------------------------------------------
+    def _inside(self, bodies, points, friction, physics, joints) -> bool:
+        """unfamiliar's test without its reasons: True where the step lies inside."""
+        if joints is not None and len(joints) and not self.joints:
+            return False
+        if physics.dt > 0 and not (_within(physics.dt, physics.dt, self.dt)
+                                   and _within(*(2 * [math.hypot(*physics.gravity)]), self.gravity)):
+            return False
+        if friction is not None and len(friction) and not _within(float(friction.min()), float(friction.max()),
+                                                                   self.friction):
+            return False
+        touched = np.zeros(len(bodies), bool)
+        touched[points["body_a"]] = touched[points["body_b"]] = True
+        touched[0] = False  # the walls
+        mass, inertia, radius = bodies["mass"][touched], bodies["inertia"][touched], bodies["radius"][touched]
+        if not len(mass):
+            return True
+        if (mass <= 0).any():
+            return False  # kinematic bodies: the detailed test decides
+        area = np.pi * radius.astype(np.float64) ** 2
+        disc = np.abs(inertia / (mass * radius * radius) - 0.5) <= DISC_TOLERANCE
+        if "other" not in self.shapes and not disc.all():
+            return False
+        density = mass[disc] / area[disc]
+        return _within(float(radius.min()), float(radius.max()), self.radius) and (
+            not len(density) or _within(float(density.min()), float(density.max()), self.density))
+
     def unfamiliar(self, bodies: np.ndarray, points: np.ndarray, friction: np.ndarray | None, physics,
                    joints: np.ndarray | None) -> str | None:
         """Why a step lies outside the envelope, in a few words, or None where it lies inside.
@@ -105,7 +131,10 @@ class Envelope:
         each point's coefficient, or None (not judged); physics: deepcontact.kinematics.Physics
         (dt s, gravity m/s^2; dt 0: not sent, not judged); joints: (J, 2) rows of bodies, or
         None. Only the bodies that touch a point are judged: a body far from every contact
-        changes nothing of the step's problem."""
+        changes nothing of the step's problem. A familiar step is told in a few array passes
+        (it is asked on every served step); the reasons are worked out only where it is not."""
+        if self._inside(bodies, points, friction, physics, joints):
+            return None
         reasons = []
         if joints is not None and len(joints) and not self.joints:
             reasons.append(f"{len(joints)} joints")
@@ -130,6 +159,12 @@ class Envelope:
             reasons += _outside("dt", np.array([physics.dt]), self.dt, "s")
             reasons += _outside("gravity", np.array([math.hypot(*physics.gravity)]), self.gravity, "m/s^2")
         return "; ".join(reasons) or None
+
+
+def _within(low: float, high: float, seen: tuple[float, float]) -> bool:
+    """Whether [low, high] lies inside `seen` widened by SLACK."""
+    margin = SLACK * seen[1]
+    return low >= seen[0] - margin and high <= seen[1] + margin
 
 
 def _outside(name: str, values: np.ndarray, seen: tuple[float, float], unit: str) -> list[str]:

@@ -384,16 +384,28 @@ class CompiledRoute(NamedTuple):
     rounds_run: int
 
 
+def prepare_route(bodies: np.ndarray, points: np.ndarray, physics: Physics = Physics()):
+    """route_compiled's work that does not depend on the labels, done ahead: the contact frame,
+    the velocities before any impulse and the admission's factorization (an opaque object for
+    route_compiled's `prepared`). It runs without the GIL, so a server can do it on another core
+    while its classifier answers the same step."""
+    bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
+    points = _records(np.asarray(points), CONTACT_DTYPE, "points")
+    gx, gy = physics.gravity
+    return _compiled_route.prepare(bodies, len(bodies), points, len(points), float(physics.dt), float(gx), float(gy))
+
+
 def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
                    physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                    label_friction: float | None = None, rounds: int = 1000,
-                   until: float | None = None) -> CompiledRoute | None:
+                   until: float | None = None, prepared=None) -> CompiledRoute | None:
     """solved_on_labels with solver "dual", no damping and no `close`, in one compiled call
     (deepcontact/_route.c, on the same kernels as the pieces here): the same numbers to rounding,
     without the NumPy calls between the pieces (about 0.15-0.25 ms of a served step). Arguments
-    as in solved_on_labels; bodies (B,) BODY_DTYPE and points (P,) CONTACT_DTYPE records. None
-    where the compiled dual solve declines the labels' system (a pivot below zero, or a system
-    far from consistent): solved_on_labels answers those."""
+    as in solved_on_labels; bodies (B,) BODY_DTYPE and points (P,) CONTACT_DTYPE records;
+    prepared: prepare_route's for the same bodies, points and physics, or None. None where the
+    compiled dual solve declines the labels' system (a pivot below zero, or a system far from
+    consistent): solved_on_labels answers those."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
     points = _records(np.asarray(points), CONTACT_DTYPE, "points")
     mu = np.ascontiguousarray(mu, np.float64)
@@ -403,7 +415,7 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
     outcome, residual, solve_s, admit_s, used = _compiled_route.solve_and_admit(
         bodies, len(bodies), points, len(points), np.ascontiguousarray(labels, np.float64), mu, read_at,
         float(physics.dt), float(gx), float(gy), float(pressing), float(share), int(rounds), _monotonic(until),
-        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, impulses)
+        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, impulses, prepared)
     if outcome != _compiled_route.SERVED:
         return None
     return CompiledRoute(impulses, residual, solve_s, admit_s, used)

@@ -65,3 +65,17 @@ def test_the_compiled_route_refuses_what_does_not_fit():
         route_compiled(bodies, broken, np.zeros((len(points), 2)), mu)
     none = route_compiled(bodies, points[:0], np.zeros((0, 2)), mu[:0])
     assert none is not None and none.impulses.shape == (0, 2) and _route.SERVED == 0
+
+
+def test_a_geometry_prepared_ahead_gives_the_same_route_and_fits_only_its_step():
+    from deepcontact.faces import prepare_route
+
+    bodies, points, exact, mu = sliding_pile()
+    labels = labels_of(exact, mu, np.random.default_rng(3), 0.1)
+    prepared = prepare_route(bodies, points, Physics.thesis())
+    alone = route_compiled(bodies, points, labels, mu, Physics.thesis(), 0.75, 1.0, None, 60)
+    ahead = route_compiled(bodies, points, labels, mu, Physics.thesis(), 0.75, 1.0, None, 60, prepared=prepared)
+    np.testing.assert_array_equal(ahead.impulses, alone.impulses)
+    assert ahead.residual == alone.residual
+    with pytest.raises(ValueError, match="another step"):
+        route_compiled(bodies, points[:-1], labels[:-1], mu[:-1], Physics.thesis(), prepared=prepared)
