@@ -3,14 +3,18 @@
     deepcontact bench load --model pressure --clients 1,4,16,64 --duration 20 --out bench/results/load
 
 For each concurrency level, that many streams send one simulation's steps back
-to back, each in lockstep (send, wait for the reply, send the next). Streams
+to back, each in lockstep (send, wait for the reply, send the next), or, with
+--rate HZ, at most HZ steps a second each, as simulations stepping in real time
+do. Streams
 run in worker processes (threads within them, at most --processes processes),
 so one GIL does not cap the load. Steps come from a recorded file
 (`--replay FILE.h5`, cheap to generate load from) or, by default, from live
 thesis simulations, one per stream.
 
 Per level: steps sent and answered (sent = answered + errors), steps per
-second, latency p50/p90/p99/p99.9 (HdrHistogram, µs resolution), errors by
+second, who answered them (the model's route, a face card's fallback, Box2D's
+own start where the server shed them), latency p50/p90/p99/p99.9
+(HdrHistogram, µs resolution), errors by
 reason (simclient.client.StepFailed: gRPC status code, WRONG_STEP, ...), the
 server's stage timings, and a check that no stream ever got a reply out of
 order or for another step. `deepcontact bench soak` runs one long level.
@@ -59,6 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--max-concurrent of the servers started here (default 64)")
     parser.add_argument("--deadline-ms", type=float, default=5000.0,
                         help="per-step deadline; a step past it counts as DEADLINE_EXCEEDED (default 5000)")
+    parser.add_argument("--rate", type=float, metavar="HZ",
+                        help="each stream sends at most this many steps a second, as a simulation running in real "
+                             "time does (default: back to back, in lockstep: each step sent as its reply comes)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     tls.add_client_arguments(parser)
 
@@ -110,7 +117,8 @@ def _steps_source(replay: str | None, stream_index: int, limit: int = 250):
                 engine.solve()
 
 
-def _stream_worker(target, model, source, stream_index, timing, deadline_s, out: dict, lock, credentials=None):
+def _stream_worker(target, model, source, stream_index, timing, deadline_s, out: dict, lock, credentials=None,
+                   rate: float | None = None):
     from hdrh.histogram import HdrHistogram
 
     from deepcontact import wire
@@ -121,7 +129,9 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
     server_total = HdrHistogram(1, HIGHEST_US, 3)
     server_inference = HdrHistogram(1, HIGHEST_US, 3)
     errors: dict[str, int] = {}
+    answered_by: dict[str, int] = {}  # who answered the steps answered: the model's route ("model") or served_by
     ok = wrong_order = 0
+    period = 1.0 / rate if rate else 0.0  # a paced stream sends a step every period s, a simulation in real time
     thesis = SceneSpec.thesis()  # the worlds these steps come from
     world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics)
     with WarmStartClient(target, world=world, credentials=credentials, backoff_s=(0.01, 0.2)) as client:
@@ -129,7 +139,10 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
         while time.time() < start_at:
             time.sleep(0.001)
         k = 0
+        next_at = time.perf_counter()
         while time.time() < stop_at:
+            if period:
+                next_at += period
             bodies, points, friction = next(source)
             request = wire.encode_step(k, model, bodies, points, builtin=points["builtin"], friction=friction)
             t0 = time.perf_counter()
@@ -141,6 +154,8 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
                     errors["WRONG_STEP"] = errors.get("WRONG_STEP", 0) + 1
                 else:
                     ok += 1
+                    by = reply.served_by or "model"
+                    answered_by[by] = answered_by.get(by, 0) + 1
                     latency.record_value(max(1, int(dt * 1e6)))
                     server_total.record_value(max(1, reply.timings.total_us))
                     server_inference.record_value(max(1, reply.timings.inference_us))
@@ -153,25 +168,29 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
                 errors[exc.reason] = errors.get(exc.reason, 0) + 1
                 time.sleep(0.002)  # do not spin on a refusing server
             k += 1  # sent: answered (ok) or counted in errors
+            if period:  # paced: wait for the step's turn (a stream that fell behind sends at once)
+                time.sleep(max(0.0, next_at - time.perf_counter()))
     with lock:
         out["sent"] += k
         out["ok"] += ok
         out["wrong_order"] += wrong_order
         for code, n in errors.items():
             out["errors"][code] = out["errors"].get(code, 0) + n
+        for by, n in answered_by.items():
+            out["answered_by"][by] = out["answered_by"].get(by, 0) + n
         for name, h in (("latency", latency), ("server_total", server_total), ("server_inference", server_inference)):
             out[name].add(h)
 
 
 def _process_worker(target, model, replay, stream_indices, deadline_s, ready, start_time, duration, result_path,
-                    client_tls=PLAINTEXT):
+                    client_tls=PLAINTEXT, rate=None):
     from hdrh.histogram import HdrHistogram
 
     from deepcontact.tls import client_credentials
 
     credentials = client_credentials(*client_tls)  # checked by the command before any process started
 
-    out = {"sent": 0, "ok": 0, "wrong_order": 0, "errors": {},
+    out = {"sent": 0, "ok": 0, "wrong_order": 0, "errors": {}, "answered_by": {},
            "latency": HdrHistogram(1, HIGHEST_US, 3), "server_total": HdrHistogram(1, HIGHEST_US, 3),
            "server_inference": HdrHistogram(1, HIGHEST_US, 3)}
     lock = threading.Lock()
@@ -188,7 +207,7 @@ def _process_worker(target, model, replay, stream_indices, deadline_s, ready, st
         return start_time.value, start_time.value + duration
 
     threads = [threading.Thread(target=_stream_worker, args=(target, model, sources[i], i, timing, deadline_s,
-                                                             out, lock, credentials)) for i in stream_indices]
+                                                             out, lock, credentials, rate)) for i in stream_indices]
     for t in threads:
         t.start()
     for t in threads:
@@ -200,9 +219,11 @@ def _process_worker(target, model, replay, stream_indices, deadline_s, ready, st
 
 
 def run_level(target: str, model: str, clients: int, duration: float, *, replay: Path | None,
-              max_processes: int, deadline_s: float, client_tls: TlsFiles = PLAINTEXT) -> dict:
+              max_processes: int, deadline_s: float, client_tls: TlsFiles = PLAINTEXT,
+              rate: float | None = None) -> dict:
     """`clients` concurrent streams for `duration` seconds against target; client_tls: the client's
-    (CA, certificate, key) files for a TLS target (tls_files), PLAINTEXT for none."""
+    (CA, certificate, key) files for a TLS target (tls_files), PLAINTEXT for none; rate: each
+    stream's steps a second at most (None: back to back, in lockstep)."""
     from hdrh.histogram import HdrHistogram
 
     ctx = mp.get_context("spawn")  # no gRPC state crosses a fork
@@ -213,7 +234,8 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
     with tempfile.TemporaryDirectory(prefix="deepcontact-load-") as tmp:
         paths = [Path(tmp) / f"w{i}.json" for i in range(n_proc)]
         procs = [ctx.Process(target=_process_worker, args=(target, model, str(replay) if replay else None, g,
-                                                           deadline_s, ready, start_time, duration, str(p), client_tls))
+                                                           deadline_s, ready, start_time, duration, str(p), client_tls,
+                                                           rate))
                  for g, p in zip(groups, paths)]
         for p in procs:
             p.start()
@@ -228,6 +250,7 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
         print(f"warning: {n_proc - len(parts)} load processes did not report", file=sys.stderr)
     hist = {name: HdrHistogram(1, HIGHEST_US, 3) for name in ("latency", "server_total", "server_inference")}
     errors: dict[str, int] = {}
+    answered_by: dict[str, int] = {}
     sent = ok = wrong = 0
     for part in parts:
         sent += part["sent"]
@@ -235,6 +258,8 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
         wrong += part["wrong_order"]
         for code, n in part["errors"].items():
             errors[code] = errors.get(code, 0) + n
+        for by, n in part["answered_by"].items():
+            answered_by[by] = answered_by.get(by, 0) + n
         for name, h in hist.items():
             h.decode_and_add(part[name].encode("ascii"))
 
@@ -248,7 +273,10 @@ def run_level(target: str, model: str, clients: int, duration: float, *, replay:
         "latency_ms": {"p50": pct(lat, 50), "p90": pct(lat, 90), "p99": pct(lat, 99), "p99.9": pct(lat, 99.9)},
         "server_ms": {"total_p50": pct(hist["server_total"], 50), "inference_p50": pct(hist["server_inference"], 50),
                       "total_p99": pct(hist["server_total"], 99)},
-        "errors": errors, "wrong_order_or_step": wrong,
+        "errors": errors, "wrong_order_or_step": wrong, "rate_per_stream": rate,
+        # who answered: "model" for the model's own route, else the reply's served_by (a face
+        # card's fallback, "builtin" where Box2D's start was served: a step shed or past every route)
+        "answered_by": answered_by,
     }
 
 
@@ -278,6 +306,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.duration <= 0:
         print("deepcontact bench load: --duration must be > 0", file=sys.stderr)
+        return 2
+    if args.rate is not None and not args.rate > 0:
+        print("deepcontact bench load: --rate must be > 0 steps a second", file=sys.stderr)
         return 2
     if args.replay is not None and not args.replay.exists():
         print(f"deepcontact bench load: {args.replay}: no such data file", file=sys.stderr)
@@ -349,13 +380,14 @@ def _run_configs(args, configs, levels, results: list[dict]) -> None:
             for clients in levels:
                 r = run_level(target, args.model, clients, args.duration, replay=args.replay,
                               max_processes=args.processes, deadline_s=args.deadline_ms / 1e3,
-                              client_tls=tls_files(args))
+                              client_tls=tls_files(args), rate=args.rate)
                 r["config"] = label
                 results.append(r)
                 lat = r["latency_ms"]
                 print(f"[{label}] {clients:3d} streams: {r['steps_per_s']:7.1f} steps/s, latency p50 "
                       f"{_fmt(lat['p50'])} p99 {_fmt(lat['p99'])} p99.9 {_fmt(lat['p99.9'])} ms, "
-                      f"errors {r['errors'] or 0}, out of order {r['wrong_order_or_step']}", flush=True)
+                      f"errors {r['errors'] or 0}, out of order {r['wrong_order_or_step']}, "
+                      f"answered by {_mix(r['answered_by'])}", flush=True)
         finally:
             for p in procs:
                 p.stop()
@@ -363,6 +395,12 @@ def _run_configs(args, configs, levels, results: list[dict]) -> None:
 
 def _fmt(x):
     return "-" if x is None else f"{x:.2f}"
+
+
+def _mix(answered_by: dict[str, int]) -> str:
+    """'model 71%, contact-graph 20%, builtin 9%': who answered the steps answered."""
+    total = sum(answered_by.values())
+    return ", ".join(f"{by} {n / total:.0%}" for by, n in sorted(answered_by.items(), key=lambda kv: -kv[1])) or "-"
 
 
 def _plot(results: list[dict], path: Path) -> None:

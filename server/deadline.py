@@ -16,7 +16,8 @@ Steps are grouped by size in buckets of BUCKET_POINTS points. A bucket with TRIA
 seen or more is estimated by the QUANTILE of its last WINDOW steps, so that steps that run
 long on a busy host (the reason for the deadline) count. A bucket with fewer is estimated from
 the nearest smaller one that has them, grown with the square of (size + OFFSET) (the route's
-fixed costs: the classifier, the set-up of the solve); with none such, the route fits. So a
+fixed costs: the classifier, the set-up of the solve); with none such, the route fits, unless
+the server is answering several steps at once (a slowdown above 1), when it is only probed. So a
 size a little larger than those known is tried and learned, one far larger is not tried until
 the sizes between are known, and one cold first call (planning, imports) decides nothing. A
 bucket turned away is tried again on every PROBE_EVERY-th step declined where its fastest
@@ -31,7 +32,7 @@ import threading
 
 BUCKET_POINTS = 10
 WINDOW = 16
-QUANTILE = 0.75
+QUANTILE = 0.9
 PROBE_EVERY = 16
 TRIALS = 3
 OFFSET = 50
@@ -76,12 +77,19 @@ class CostBySize:
         grow = 1.0 if b == k else ((k * BUCKET_POINTS + OFFSET) / (b * BUCKET_POINTS + OFFSET)) ** 2
         return grow * _quantile(values, QUANTILE), grow * values[0]
 
-    def fits(self, points: int, now: float, deadline: float | None) -> bool:
+    def fits(self, points: int, now: float, deadline: float | None, slowdown: float = 1.0) -> bool:
         """Whether a step of `points` points started along the route at `now` should take it
-        to end by `deadline` (both time.perf_counter() s; None: no deadline, it always fits)."""
+        to end by `deadline` (both time.perf_counter() s; None: no deadline, it always fits).
+        slowdown: how many times its own time the route's wall time is expected to take (the
+        requests the server is answering at once over its cores: they share them)."""
         if deadline is None:
             return True
         expected, fastest = self._estimate(points)
+        if expected == 0.0 and slowdown > 1.0:
+            # Nothing known at this size on a server answering several steps at once: a guess
+            # that ran late would make every step sharing the cores late too. Probed below.
+            expected = float("inf")
+        expected, fastest = expected * slowdown, fastest * slowdown
         if now + expected <= deadline:
             return True
         k = points // BUCKET_POINTS

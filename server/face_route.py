@@ -31,11 +31,14 @@ for Box2D's warm start).
 
 from __future__ import annotations
 
+import concurrent.futures
+import os
+import threading
 import time
 
 import numpy as np
 
-from deepcontact.faces import admit_solved, read_and_solve, route_compiled
+from deepcontact.faces import admit_solved, prepare_route, read_and_solve, route_compiled
 from deepcontact.kinematics import contact_frame
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
@@ -48,6 +51,9 @@ from server.predictors import Domain, GraphPredictor, Prediction, Predictor
 ROUTE_NEEDS = ("body_inertia", "physics", "point_friction", "builtin")
 #: served_by where Box2D's warm start is served in the route's place (no fallback card).
 BUILTIN = "builtin"
+#: The fewest points at which a step's geometry is built ahead, on another core: below, the
+#: hand-off costs about what it saves.
+AHEAD_POINTS = 60
 
 
 class FaceRoutePredictor(Predictor):
@@ -74,6 +80,15 @@ class FaceRoutePredictor(Predictor):
         self.requires = tuple(sorted(set(classifier.requires) | set(ROUTE_NEEDS) | set(gate_needs)
                                      | set(fallback.requires if fallback is not None else ())))
         self.cost = CostBySize()  # the route's seconds by step size, on this host
+        self.fallback_cost = CostBySize()  # the fallback card's
+        # A step with a budget runs the route only in a free lane, one a core: on a server
+        # answering several streams at once, routes that ran side by side stretched one another
+        # past their budgets (4 streams on one core: 2.5 % of steps late); the step that finds
+        # every lane busy is answered by the fallback at once.
+        cores = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+        self._lanes = threading.BoundedSemaphore(cores)
+        # A thread that builds a step's geometry while its classifier runs, where a core is spare.
+        self._helper = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="route-ahead") if cores > 1 else None
         # The route after the classifier in one compiled call where the card asks for nothing it
         # leaves out (deepcontact.faces.route_compiled): the dual solve, no damping, no
         # relabelling, no retries; the same numbers, without the NumPy calls between the pieces.
@@ -90,29 +105,50 @@ class FaceRoutePredictor(Predictor):
     def warm_up(self, domain: Domain) -> float:
         return self.fallback.warm_up(domain) if self.fallback is not None else 0.0
 
-    def predict(self, bodies, points, world, step, previous=None, friction=None, deadline=None) -> Prediction:
+    def predict(self, bodies, points, world, step, previous=None, friction=None, deadline=None,
+                slowdown: float = 1.0) -> Prediction:
         """As Predictor.predict; friction: (P,) each point's friction coefficient (the request's
         point_friction, required); deadline: time.perf_counter() s by which the answer is due
-        (None: none), see fits."""
-        started = time.perf_counter()
+        (None: none), see fits; slowdown: how many times its own time a step's work is expected
+        to take in wall time (the requests the server answers at once, over its cores)."""
+        started, cpu = time.perf_counter(), time.thread_time()
         if len(points) == 0:
             return Prediction(np.zeros((0, 2), np.float32))
         if friction is None:
             raise ValueError(f"{self.name} needs each point's friction")
-        if not self.fits(len(points), started, deadline):
-            # Too large a step to solve, or to solve in time: no labels asked for.
-            return self._fallback(bodies, points, world, step, previous, friction)
+        lane = self._lanes if deadline is not None else None  # a step with a budget takes a free lane or none
+        if not self.fits(len(points), started, deadline, slowdown) or (lane is not None
+                                                                      and not lane.acquire(blocking=False)):
+            # Too large a step to solve, or to solve in time, or every lane busy with another
+            # step's route: no labels asked for.
+            return self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown)
+        try:
+            return self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown)
+        finally:
+            if lane is not None:
+                lane.release()
+
+    def _route(self, bodies, points, world, step, previous, friction, deadline, cpu: float,
+               slowdown: float = 1.0) -> Prediction:
+        """predict's answer along the route (module docstring); cpu: the thread's CPU time when
+        the step began."""
+        # The route's geometry (the frame, the admission's factorization) does not depend on the
+        # labels: on a server with a core to spare it is built there while the classifier runs.
+        ahead = None
+        if self.compiled and self._helper is not None and slowdown <= 1.0 and len(points) >= AHEAD_POINTS:
+            ahead = self._helper.submit(prepare_route, bodies, points, world.physics)
         labels = self.classifier.predict(bodies, points, world, step, previous, friction=friction)
+        prepared = ahead.result() if ahead is not None else None
         stages = {"features": labels.stages["features"], "inference": labels.stages["inference"],
                   "solve": labels.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
-        impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages)
+        impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared)
         served_by = None
         if impulses is None:  # labels the limits would not let the solve meet
             fallback = self._fallback(bodies, points, world, step, previous, friction)
             impulses, served_by = fallback.impulses, fallback.served_by
             for name, seconds in fallback.stages.items():
                 stages[name] = stages.get(name, 0.0) + seconds
-        self.cost.observe(len(points), time.perf_counter() - started)
+        self.cost.observe(len(points), time.thread_time() - cpu)
         if self.gate is not None:
             t0 = time.perf_counter()
             if not self.gate.serves_model(step_features(bodies, points, impulses)):
@@ -120,19 +156,19 @@ class FaceRoutePredictor(Predictor):
             stages["admit"] += time.perf_counter() - t0
         return Prediction(np.asarray(impulses).astype(np.float32, copy=False), stages, served_by)
 
-    def fits(self, n_points: int, now: float, deadline: float | None) -> bool:
+    def fits(self, n_points: int, now: float, deadline: float | None, slowdown: float = 1.0) -> bool:
         """Whether the route serves a step of n_points points begun at `now`: not past the
         card's max_points, and, with a deadline (perf_counter() s), expected to end by it
-        (cost: the route's cost at each size, learned on this host). Where it does not, the
-        fallback answers, in a fraction of the time: the client gets the next best answer in
-        time rather than the best one too late (and then Box2D's own start)."""
+        (cost: the route's cost at each size, learned on this host, times the slowdown). Where
+        it does not, the fallback answers, in a fraction of the time: the client gets the next
+        best answer in time rather than the best one too late (and then Box2D's own start)."""
         most = self.settings["max_points"]
         if most is not None and n_points > most:
             return False
-        return self.cost.fits(n_points, now, deadline)
+        return self.cost.fits(n_points, now, deadline, slowdown)
 
     def _solved_on_labels(self, bodies, points, world, labels, friction, deadline,
-                          stages: dict[str, float]) -> np.ndarray | None:
+                          stages: dict[str, float], prepared=None) -> np.ndarray | None:
         """(P, 2) N s, the route's answer: the classifier's answer (labels, (P, 2) N s) read as
         each point's label, the step solved on them and admitted (deepcontact.faces, as
         solved_on_labels); where the admitted solve misses its labels by more than
@@ -144,14 +180,19 @@ class FaceRoutePredictor(Predictor):
         face = self.settings
         if self.compiled:
             answer = route_compiled(bodies, points, labels, friction, world.physics, face["pressing"], face["share"],
-                                    face["label_friction"], face["rounds"], deadline)
+                                    face["label_friction"], face["rounds"], deadline, prepared)
             if answer is not None:
                 stages["solve"] += answer.solve_seconds
                 stages["admit"] += answer.admit_seconds
                 served = face["max_residual"] is None or answer.residual <= face["max_residual"]
                 return answer.impulses if served else None
-            # The compiled dual declined the labels' system (about 2 % of the thesis world's steps):
-            # the route piece by piece, whose least squares answers it.
+            if face["max_residual"] is not None:
+                # The compiled dual declined the labels' system, far from consistent: labels that
+                # are not this step's. Solved by least squares piece by piece (3 ms at 160 points),
+                # 10 of 11 such steps of seeds 900-903 then missed max_residual: the fallback at once.
+                return None
+            # Without max_residual every reading is served: the route piece by piece, whose least
+            # squares answers it.
         t0 = time.perf_counter()
         frame = contact_frame(bodies, points)  # its factorizations are kept on it, for every reading
         labels, mu = labels.astype(np.float64), np.asarray(friction, np.float64)
@@ -172,11 +213,18 @@ class FaceRoutePredictor(Predictor):
                 return impulses
         return None
 
-    def _fallback(self, bodies, points, world, step, previous, friction) -> Prediction:
+    def _fallback(self, bodies, points, world, step, previous, friction, deadline=None,
+                  slowdown: float = 1.0) -> Prediction:
         """The answer where the route is not served: the fallback card's, else Box2D's warm start
-        (the request's builtin impulses), with served_by naming it."""
-        if self.fallback is None:
+        (the request's builtin impulses), with served_by naming it. With a deadline, Box2D's
+        also where the fallback is not expected to end by it either (a server answering more
+        requests at once than its cores keep up with): an answer in time that the client would
+        have used anyway, rather than a better one it cannot wait for."""
+        now = time.perf_counter()
+        if self.fallback is None or not self.fallback_cost.fits(len(points), now, deadline, slowdown):
             return Prediction(points["builtin"].astype(np.float32), served_by=BUILTIN)
         extra = {"friction": friction} if "point_friction" in self.fallback.requires else {}
+        cpu = time.thread_time()
         answer = self.fallback.predict(bodies, points, world, step, previous, **extra)
+        self.fallback_cost.observe(len(points), time.thread_time() - cpu)
         return Prediction(answer.impulses, answer.stages, self.fallback.name)

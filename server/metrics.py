@@ -20,6 +20,8 @@ STEPS = Counter("deepcontact_steps_total", "Steps answered", ["model"])
 ERRORS = Counter("deepcontact_errors_total", "Requests rejected, by gRPC status code", ["code"])
 SERVED_BY = Counter("deepcontact_served_by_total", "Steps a model answered with another card's answer",
                     ["model", "served_by"])
+SHED = Counter("deepcontact_shed_total", "Steps refused (RESOURCE_EXHAUSTED) because their budget was spent before any "
+               "work began", ["model"])
 IDLE_ENDED = Counter("deepcontact_idle_streams_ended", "Streams ended by the server after --stream-idle-s without a message")
 STAGE = Histogram(
     "deepcontact_stage_seconds", "Server-side time per stage of a step", ["stage"],

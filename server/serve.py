@@ -20,6 +20,7 @@ before. A second signal exits at once.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import os
@@ -240,6 +241,10 @@ def run(args: argparse.Namespace) -> int:
     except (ModelCardError, OSError, ValueError) as exc:
         print(f"deepcontact serve: {exc}", file=sys.stderr)
         return 2
+    # Everything loaded so far (the models, ONNX Runtime, NumPy, SciPy) lives as long as the
+    # server: kept out of the collector's full passes, which otherwise walk it every few
+    # thousand steps and hold a step for milliseconds.
+    gc.freeze()
     server.start()
     if args.metrics_port:
         metrics.serve_metrics(args.metrics_port, host=server.host)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 
@@ -37,7 +38,15 @@ _PREDICT, _STREAM = f"/{SERVICE_NAME}/Predict", f"/{SERVICE_NAME}/Stream"
 #: Of a request's budget_us, what the service leaves for the transport and the reply (s;
 #: `deepcontact serve --deadline-margin-ms`): a loopback round trip's share outside the
 #: handler is about 0.5 ms on an idle host, and several times that beside a simulation.
-DEADLINE_MARGIN_S = 2e-3
+DEADLINE_MARGIN_S = 3e-3
+#: Of a request's budget, what each other request the server is answering at the same time
+#: takes of it outside this one's handler (s): their parsing, hand-offs and replies share the
+#: cores with it. Measured on one core: 16 lockstep streams of thesis steps cost about 0.2 ms a
+#: step of the server's time beyond the handlers (docs/performance.md, "Under load").
+LOAD_SHARE_S = 2e-4
+#: The weight of each step in the moving averages of the wait before a handler begins and of
+#: the handler's CPU time (server.service.WarmStartService.queue).
+QUEUE_WEIGHT = 0.05
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,6 +116,15 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         # A request's budget counts from the client's sending; this much of it is left for what
         # happens outside the handler (the transport both ways, parsing before t0, the reply).
         self.deadline_margin_s = deadline_margin_s
+        # The requests inside a handler now, and the cores they share: a face card's route is
+        # taken only where it is expected to end inside its request's budget at that share.
+        self._in_flight = 0
+        self._flight = threading.Lock()
+        # Moving averages of how long recent steps from this host waited before their handler
+        # began, and of their handlers' CPU time (s): their ratio is about how many steps were
+        # ahead of each, the queue that a step's work is shared with.
+        self._wait, self._work = 0.0, 1e-3
+        self.cores = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
         self.limits = limits
         self.fault = fault
         self.idle = idle  # None: streams may stay open without sending for as long as they like
@@ -123,13 +141,14 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         try:
             if not request.HasField("world"):
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "world: required on every Predict request")
-            return self._step(request, self._world(request.world))[0]
+            return self._step(request, self._world(request.world), local=_same_host(context))[0]
         except _Reject as r:
             reject(context, r.code, r.message, rpc=_PREDICT)
 
     def Stream(self, request_iterator, context):
         # A stream is one simulation: its world, and its last step's points for temporal channels.
         world, steps = None, _StreamSteps()
+        local = _same_host(context)  # a client on this host: its steps' sending times are on this clock
         idle = self.idle
         token = idle.open(context) if idle is not None else None
         try:
@@ -143,7 +162,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                     elif world is None:
                         raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                                       "world: required on the first message of a stream")
-                    reply, points = self._step(request, world, steps.before(request.step))
+                    reply, points = self._step(request, world, steps.before(request.step), streamed=True, local=local)
                     steps.record(request.step, points)
                     yield reply
                 except _Reject as r:
@@ -187,10 +206,37 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                 "physics": world.physics.dt > 0}
         return [need for need in predictor.requires if not sent[need]]
 
-    def _step(self, request: pb.StepRequest, world: World, previous=None):
-        """(reply, the step's decoded points)."""
+    def _step(self, request: pb.StepRequest, world: World, previous=None, streamed: bool = False,
+              local: bool = False):
+        """(reply, the step's decoded points). streamed: the request is a stream's step (a shed
+        step is answered, not refused: a refusal would end the stream); local: its client is on
+        this host, so its sending time (sent_unix_us) is on this host's clock."""
         # From the start of parsing when gRPC parsed this request in this thread.
         t0 = _parse_started.__dict__.pop("t", None) or time.perf_counter()
+        with self._flight:
+            self._in_flight += 1
+            in_flight = self._in_flight
+        waited = 1e-6 * _waited_us(request, t0) if local else None
+        cpu = time.thread_time()
+        try:
+            return self._answer(request, world, previous, t0, in_flight, streamed, local)
+        finally:
+            cpu = time.thread_time() - cpu
+            with self._flight:
+                self._in_flight -= 1
+                if waited is not None:
+                    self._wait += QUEUE_WEIGHT * (waited - self._wait)
+                    self._work += QUEUE_WEIGHT * (cpu - self._work)
+
+    def queue(self) -> float:
+        """About how many steps share the cores with one now: 1 plus the recent steps' wait over
+        their handlers' CPU time (a step waited for about that many others ahead of it)."""
+        return 1.0 + self._wait / max(self._work, 1e-5)
+
+    def _answer(self, request: pb.StepRequest, world: World, previous, t0: float, in_flight: int, streamed: bool,
+                local: bool):
+        """_step's work, t0 when its parsing began, in_flight the requests in a handler now, this
+        one among them."""
         predictor = self.predictors.get(request.model)
         if predictor is None:
             raise _Reject(grpc.StatusCode.NOT_FOUND,
@@ -207,12 +253,34 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             friction, joints = wire.decode_friction(request), wire.decode_joints(request)
             # Only a predictor that asks for the friction gets it: the others' predict() takes none.
             extra = {"friction": friction} if "point_friction" in predictor.requires else {}
-            if predictor.takes_deadline and request.budget_us:
-                extra["deadline"] = t0 + 1e-6 * request.budget_us - self.deadline_margin_s
+            deadline = None
+            if request.budget_us:
+                # The steps in a handler share the cores now; with clients on this host, also the
+                # steps waiting to begin (queue()): a route's wall time is its CPU time that many
+                # over, and the reply's way back is that much longer.
+                load = max(in_flight, self.queue())
+                waited = _waited_us(request, t0) if local else 0
+                deadline = (t0 + 1e-6 * (request.budget_us - waited) - self.deadline_margin_s
+                            - (load - 1) * LOAD_SHARE_S)
+            if predictor.takes_deadline and deadline is not None:
+                extra["deadline"], extra["slowdown"] = deadline, max(1.0, load / self.cores)
             predictor.check_domain(world.domain)
         except (wire.WireError, GridMismatch) as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
         t1 = time.perf_counter()
+        if deadline is not None and t1 >= deadline and len(points):
+            # Its budget spent before any work (it waited in the server's sockets and for its
+            # cores): the work would reach the client too late and delay the steps behind it.
+            # Shed: a stream's step is answered at once with Box2D's own warm start (the stream
+            # goes on; the client starts there as it would after a miss), a single request refused.
+            metrics.SHED.labels(model=predictor.name).inc()
+            if not streamed:
+                raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                              f"the server is answering {in_flight} requests on {self.cores} cores and this "
+                              f"one's budget of {request.budget_us} us was spent before it began")
+            if len(request.builtin):
+                answer = Prediction(points["builtin"].astype(np.float32), served_by=SHED)
+                return self._reply(request, predictor, answer, t0, t1, bodies, points, friction, joints, world)
         try:
             if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
                 answer = Prediction(np.zeros((0, 2), np.float32))
@@ -228,6 +296,12 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             raise _Reject(grpc.StatusCode.INTERNAL, f"{predictor.name} failed: {exc}") from None
         if self.fault is not None and self.fault.applies(request.step):
             time.sleep(self.fault.seconds)
+        return self._reply(request, predictor, answer, t0, t1, bodies, points, friction, joints, world)
+
+    def _reply(self, request, predictor: Predictor, answer: Prediction, t0: float, t1: float, bodies, points, friction,
+               joints, world: World):
+        """(the reply to `request`, its points): answer's impulses, who answered, whether the
+        world is familiar, the stage timings from t0 (parsing began) and t1 (decoded)."""
         reply = wire.encode_impulses(request.step, predictor.name, answer.impulses)
         if len(points):
             unfamiliar = _unfamiliar(predictor, bodies, points, friction, joints, world)
@@ -250,6 +324,26 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         timings.total_us = _us(total)
         metrics.observe_step(predictor.name, t1 - t0, stages, total)
         return reply, points
+
+
+#: served_by of a step shed: its budget was spent before any work began, and Box2D's own warm
+#: start (the request's builtin impulses) answered it at once.
+SHED = "builtin"
+
+
+def _waited_us(request: pb.StepRequest, t0: float) -> int:
+    """How long a request from this host waited between its client's sending and t0
+    (perf_counter s), in us: 0 where it does not say when it was sent (sent_unix_us; an older
+    client) or says a time after t0."""
+    if not request.sent_unix_us:
+        return 0
+    return max(0, int((time.time() - (time.perf_counter() - t0)) * 1e6) - request.sent_unix_us)
+
+
+def _same_host(context) -> bool:
+    """Whether the RPC's peer is on this host (a Unix socket or loopback), whose clock is ours."""
+    peer = context.peer() or ""
+    return peer.startswith(("unix:", "ipv4:127.", "ipv6:[::1]"))
 
 
 #: Why a predictor's steps are all unfamiliar: its card records no training envelope, or no

@@ -8,12 +8,17 @@ reply before the next one, so the request iterator handed to gRPC is fed from
 a queue one message at a time (a plain generator would be drained eagerly and
 the round trips would include queueing). A step that does not come back in
 time, or a broken stream, raises `StepFailed`; the caller falls back for that
-step, and the next `step()` reopens the stream and resends the world. After
-a failure, reopening waits out an exponential backoff (50 ms doubling to 2 s
-by default; steps meanwhile fail at once, unsent), and the channel reconnects
-at least every 0.5 s, so a restarted server gets its learned warm starts
-back within about the backoff cap (+ 0.5 s) of coming up. A reply that
-misses its deadline is never used: its stream is dropped with it.
+step. A reply that misses its deadline is never used: the stream stays open, and
+the late reply, which comes before the next step's (replies keep the order of
+the steps), is dropped when it arrives; only where more than MAX_LATE replies
+are owed at once (a server that stopped answering) is the stream dropped, and
+the next `step()` reopens it and resends the world. After a broken stream,
+reopening waits out an exponential backoff (50 ms doubling to 2 s by default;
+steps meanwhile fail at once, unsent), and the channel reconnects at least
+every 0.5 s, so a restarted server gets its learned warm starts back within
+about the backoff cap (+ 0.5 s) of coming up. Each step carries when it was
+sent (sent_unix_us), so that a server on the same host counts its budget from
+there.
 A stream the server ended between steps (it ends streams idle for a minute,
 `deepcontact serve --stream-idle-s`) is replaced by a fresh one for the next
 step: a simulation paused for longer loses no step.
@@ -21,6 +26,7 @@ step: a simulation paused for longer loses no step.
 
 from __future__ import annotations
 
+import collections
 import queue
 import threading
 import time
@@ -33,6 +39,10 @@ from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 _END = object()
 # During an outage the channel tries to connect at least this often (a TCP connect, cheap).
 CHANNEL_RECONNECT_MAX_S = 0.5
+#: Late replies a stream may owe before it is taken for broken and dropped. Reopening a stream
+#: costs the server a new RPC and the world's declaration: under load, dropping a stream at
+#: every late reply turned a few late steps into a storm of reconnections.
+MAX_LATE = 4
 
 
 class StepFailed(RuntimeError):
@@ -95,6 +105,7 @@ class WarmStartClient:
         self._outbox: queue.Queue | None = None
         self._inbox: queue.Queue | None = None
         self._replies = None
+        self._late: collections.deque = collections.deque()  # (step, model) whose replies the stream still owes
         self._opened = False
         self.reconnects = 0  # streams reopened after the first
 
@@ -153,6 +164,7 @@ class WarmStartClient:
         deadline = time.monotonic() + timeout
         if not request.budget_us:
             request.budget_us = min(int(timeout * 1e6), 2**32 - 1)
+        request.sent_unix_us = time.time_ns() // 1000
         reused = self._replies is not None
         got = self._exchange(request, timeout)
         if reused and isinstance(got, grpc.RpcError) and got.code() == grpc.StatusCode.CANCELLED:
@@ -182,12 +194,22 @@ class WarmStartClient:
             if self.world is not None:
                 request.world.CopyFrom(self.world)
         self._outbox.put(request)
-        try:
-            return self._inbox.get(timeout=timeout)
-        except queue.Empty:
-            # A late reply would arrive out of turn: drop this stream, open a fresh one next step.
-            self._close_stream()
-            raise StepFailed(f"no reply within {timeout * 1e3:.1f} ms", grpc.StatusCode.DEADLINE_EXCEEDED) from None
+        until = time.monotonic() + timeout
+        while True:
+            try:
+                got = self._inbox.get(timeout=max(0.0, until - time.monotonic()))
+            except queue.Empty:
+                # Its reply will come before the next step's: owed, and dropped when it arrives.
+                self._late.append((request.step, request.model))
+                if len(self._late) > MAX_LATE:  # a server that stopped answering: a fresh stream next step
+                    self._close_stream()
+                raise StepFailed(f"no reply within {timeout * 1e3:.1f} ms",
+                                 grpc.StatusCode.DEADLINE_EXCEEDED) from None
+            if self._late and not isinstance(got, grpc.RpcError) and got is not _END \
+                    and (got.step, got.model) == self._late[0]:
+                self._late.popleft()  # a step that missed its deadline, answered late: not used
+                continue
+            return got
 
     def _open_stream(self) -> None:
         now = time.monotonic()
@@ -227,6 +249,7 @@ class WarmStartClient:
         if self._replies is not None:
             self._replies.cancel()
         self._outbox = self._inbox = self._replies = None
+        self._late.clear()
         if failed:
             self._backoff = min(self._backoff_max, max(self._backoff_min, 2 * self._backoff))
             self._retry_at = time.monotonic() + self._backoff
