@@ -17,7 +17,8 @@ seen or more is estimated by the QUANTILE of its last WINDOW steps, so that step
 long on a busy host (the reason for the deadline) count. A bucket with fewer is estimated from
 the nearest smaller one that has them, grown with the square of (size + OFFSET) (the route's
 fixed costs: the classifier, the set-up of the solve); with none such, the route fits, unless
-the server is answering several steps at once (a slowdown above 1), when it is only probed. So a
+the server is busy (a slowdown of BUSY or more: another step shares each core), when it is only
+probed. So a
 size a little larger than those known is tried and learned, one far larger is not tried until
 the sizes between are known, and one cold first call (planning, imports) decides nothing. A
 bucket turned away is tried again on every PROBE_EVERY-th step declined where its fastest
@@ -36,6 +37,8 @@ QUANTILE = 0.9
 PROBE_EVERY = 16
 TRIALS = 3
 OFFSET = 50
+#: A slowdown at which the server counts as busy: another step at least shares each core.
+BUSY = 2.0
 
 def _quantile(ordered: list[float], q: float) -> float:
     """numpy.quantile's default (linear) of a few sorted numbers, without its overhead (a served
@@ -85,7 +88,7 @@ class CostBySize:
         if deadline is None:
             return True
         expected, fastest = self._estimate(points)
-        if expected == 0.0 and slowdown > 1.0:
+        if expected == 0.0 and slowdown >= BUSY:
             # Nothing known at this size on a server answering several steps at once: a guess
             # that ran late would make every step sharing the cores late too. Probed below.
             expected = float("inf")
