@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"per-step deadline for server replies (default {DEFAULT_DEADLINE_MS:g})")
     parser.add_argument("--no-guard", action="store_true",
                         help="serve each server: warm start's answer on every step; by default a guard serves it only "
-                             "while it beats Box2D's own start on the simulation's steps (trial solves, at most 4 %% "
+                             "while it beats Box2D's own start on the simulation's steps (trial solves, under 5 %% "
                              "of Box2D's sweeps; docs/worlds.md)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     dispatch.add_arguments(parser, workers_default="1, this process")
@@ -226,7 +226,7 @@ def _candidates(name: str) -> list[str]:
 def guard_note(summaries: dict[str, dict], runs: dict[str, list[dict]]) -> str:
     """A line per guarded warm start: the steps it served the learned start on and Box2D's, its
     probes and switches, and what its trial solves cost against Builtin's own sweeps on the same
-    seeds (the guard's budget is 4 %); "" when no warm start ran under a guard."""
+    seeds (the guard keeps them under 5 %); "" when no warm start ran under a guard."""
     builtin = runs.get("builtin")
     reference = sum(int(np.sum(_iterations(r))) for r in builtin) if builtin else 0
     lines = []

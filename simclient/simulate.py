@@ -100,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-guard", action="store_true",
                         help="serve the server's answer on every step; by default a guard serves it only while it "
                              "beats Box2D's own warm start on this simulation's steps, priced by trial solves "
-                             "(at most 4 %% of Box2D's sweeps; docs/worlds.md)")
+                             "(under 5 %% of Box2D's sweeps; docs/worlds.md)")
     parser.add_argument("--out", type=Path, required=True, help="results file (JSON)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
