@@ -95,6 +95,36 @@ class Envelope:
         return cls(shapes=shapes, radius=(min(radius), max(radius + boxed)), density=(min(density), max(density)),
                    friction=(min(friction), max(friction)), gravity=(min(gravity), max(gravity)), dt=(min(dt), max(dt)))
 
+    @classmethod
+    def of_records(cls, bodies: np.ndarray, points: np.ndarray, physics: list, joints: bool) -> "Envelope":
+        """The envelope of recorded simulations of a user's world: bodies (B,) BODY_DTYPE (any
+        sample of the file's), points (P,) CONTACT_DTYPE, physics [(dt s, gx, gy m/s^2)] one per
+        simulation; joints whether its worlds have joints (the records do not say)."""
+        dynamic = bodies[bodies["type"] == 2]
+        if not len(dynamic) or not len(physics):
+            raise ValueError("an envelope of no bodies")
+        mass, inertia, radius = (dynamic[k].astype(np.float64) for k in ("mass", "inertia", "radius"))
+        disc = np.abs(inertia / (mass * radius * radius) - 0.5) <= DISC_TOLERANCE
+        density = mass[disc] / (np.pi * radius[disc] ** 2) if disc.any() else np.array([1.0])
+        friction = points["friction"].astype(np.float64) if len(points) else np.array([0.5])
+        p = np.asarray(physics, np.float64).reshape(-1, 3)
+        gravity = np.hypot(p[:, 1], p[:, 2])
+        return cls(shapes=tuple(s for s, seen in (("disc", disc.any()), ("other", (~disc).any())) if seen),
+                   radius=(float(radius.min()), float(radius.max())), density=(float(density.min()), float(density.max())),
+                   friction=(float(friction.min()), float(friction.max())), gravity=(float(gravity.min()), float(gravity.max())),
+                   dt=(float(p[:, 0].min()), float(p[:, 0].max())), joints=bool(joints),
+                   kinematic=bool((bodies["type"] == 1).any()))
+
+    def union(self, other: "Envelope") -> "Envelope":
+        """The envelope of both: every shape either saw, each range spanning both."""
+        def span(a, b):
+            return (min(a[0], b[0]), max(a[1], b[1]))
+
+        return Envelope(shapes=tuple(s for s in SHAPES if s in self.shapes or s in other.shapes),
+                        **{k: span(getattr(self, k), getattr(other, k)) for k in ("radius", "density", "friction",
+                                                                                  "gravity", "dt")},
+                        joints=self.joints or other.joints, kinematic=self.kinematic or other.kinematic)
+
     # -- a step -----------------------------------------------------------------
     def _inside(self, bodies, points, friction, physics, joints) -> bool:
         """unfamiliar's test without its reasons: True where the step lies inside."""

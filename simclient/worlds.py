@@ -1,7 +1,8 @@
 """Worlds to simulate: the project's scenes and the worlds users build.
 
-A user's world is a function of the seed that returns a patched `Box2D.b2World`,
-named on the command line as `PATH.py:FUNCTION` or `MODULE:FUNCTION`:
+A user's world is a function of the seed that returns a patched `Box2D.b2World` (or a
+`(world, dt)` pair, where the seed draws the time step too), named on the command line as
+`PATH.py:FUNCTION` or `MODULE:FUNCTION`:
 
     deepcontact bench iterations --world examples/pyramid.py:build --seeds 901-920 ...
 
@@ -99,24 +100,30 @@ def _module_from_file(path: Path, source: str):
     return module
 
 
-def build_user_world(source: str, seed: int) -> "Box2D.b2World":
-    """The world FUNCTION(seed) builds; ValueError when it raises or returns something else."""
+def build_user_world(source: str, seed: int) -> tuple["Box2D.b2World", float | None]:
+    """(the world FUNCTION(seed) builds, its time step or None): FUNCTION returns a world, or a
+    (world, dt) pair where the seed draws the time step too (simclient.zoo's classes). ValueError
+    when it raises or returns something else."""
     builder = load_builder(source)
     try:
-        world = builder(seed)
+        built = builder(seed)
     except Exception as exc:
         raise ValueError(f"--world {source}: {source.rpartition(':')[2]}({seed}) raised "
                          f"{type(exc).__name__}: {exc}") from None
-    if not isinstance(world, Box2D.b2World):
+    world, dt = built if isinstance(built, tuple) and len(built) == 2 else (built, None)
+    if not isinstance(world, Box2D.b2World) or not (dt is None or (isinstance(dt, (int, float))
+                                                                  and math.isfinite(dt) and dt > 0)):
         raise ValueError(f"--world {source}: {source.rpartition(':')[2]}({seed}) returned "
-                         f"{type(world).__name__}, not a Box2D.b2World")
-    return world
+                         f"{type(built).__name__}, not a Box2D.b2World or a (world, dt > 0) pair")
+    return world, None if dt is None else float(dt)
 
 
 def build(spec, seed: int) -> Engine:
-    """The Engine of (spec, seed): a project scene (SceneSpec) or a user's world (WorldSpec)."""
+    """The Engine of (spec, seed): a project scene (SceneSpec) or a user's world (WorldSpec; its
+    time step the builder's where it draws one, else the spec's)."""
     if isinstance(spec, WorldSpec):
-        return Engine(build_user_world(spec.source, seed), spec.solver)
+        world, dt = build_user_world(spec.source, seed)
+        return Engine(world, spec.solver if dt is None else dataclasses.replace(spec.solver, dt=dt))
     return scene.build_world(spec, seed)
 
 

@@ -192,7 +192,7 @@ def step_converged(path: str | os.PathLike, max_steps: int | None = None, seed: 
     """(S,) bool, in step_iterations' order: whether Box2D's solve ended under its cap on
     velocity iterations (the recorded scene's) at that step. Where it did not, the recorded
     impulses, and so the step's targets, are the solver's unconverged iterate."""
-    from simclient.scene import spec_from_dict
+    from simclient.worlds import spec_from_dict
 
     with open_dataset(path) as ds:
         cap = spec_from_dict(ds.scene).solver.velocity_iterations

@@ -13,7 +13,9 @@ Schema version 1 (docs/data.md has the full description):
 
 A step row holds offsets and counts into the three concatenated datasets, so
 one step, or a slice of steps, reads without loading the file. Root attributes:
-schema_version, scene (JSON), seeds, command, deepcontact_version.
+schema_version, scene (JSON), seeds, command, deepcontact_version, and physics (JSON: each
+seed's [dt s, gravity_x, gravity_y m/s^2], where the world drew them from its seed; files without
+it, and scenes, hold the scene's physics).
 """
 
 from __future__ import annotations
@@ -79,6 +81,7 @@ class Writer:
         self.compression = compression
         self.tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part")
         self._meta = {"scene": scene, "seeds": seeds, "command": command}
+        self._physics: dict[str, list[float]] = {}
         self.oracle = oracle
         self._file: h5py.File | None = None
 
@@ -103,11 +106,14 @@ class Writer:
         return self
 
     def append(self, steps: np.ndarray, bodies: np.ndarray, points: np.ndarray, trace: np.ndarray,
-               oracle: np.ndarray | None = None) -> None:
+               oracle: np.ndarray | None = None, physics: np.ndarray | None = None) -> None:
         """Append one simulation. Offsets in `steps` are relative to this
         simulation's arrays; they are shifted to file positions here. A file
-        made with oracle=True takes the points' oracle impulses (P, 2) too."""
+        made with oracle=True takes the points' oracle impulses (P, 2) too;
+        physics (3,) is the simulation's (dt s, gravity m/s^2)."""
         f = self._file
+        if physics is not None and len(steps):
+            self._physics[str(int(steps["seed"][0]))] = [float(v) for v in physics]
         if self.oracle != (oracle is not None):
             raise ValueError("this file records the oracle: every simulation needs it" if self.oracle
                              else "this file does not record the oracle")
@@ -127,6 +133,8 @@ class Writer:
             ds[start:] = rows
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None and self._physics:
+            self._file.attrs["physics"] = json.dumps(self._physics, sort_keys=True)
         self._file.close()
         if exc_type is None:
             os.replace(self.tmp, self.path)
@@ -158,6 +166,7 @@ class Dataset:
         self.path = path
         self.scene = json.loads(f.attrs["scene"])
         self.seeds = [int(s) for s in f.attrs["seeds"]]
+        self.physics = {int(k): v for k, v in json.loads(f.attrs.get("physics", "{}")).items()}
         self.steps = f["steps"][:]  # the index is small: (S,) rows of 64 bytes
         self.has_oracle = "oracle" in f
         if len(self.steps) == 0:
@@ -228,16 +237,39 @@ def differences(a: str | os.PathLike, b: str | os.PathLike) -> list[str]:
 
 
 def trained_on(paths) -> dict | None:
-    """The envelope (deepcontact.envelope.Envelope.to_dict) of the scenes the data files at
+    """The envelope (deepcontact.envelope.Envelope.to_dict) of the worlds the data files at
     `paths` were recorded from, a card's `trained_on`; None where one of them cannot say (not a
-    data file of this schema)."""
+    data file of this schema). A project scene's is read from its description; a user's world's
+    (`generate --world`) from its records: a sample of its bodies and points, every seed's physics,
+    and whether the world of its first seed has joints."""
     from deepcontact.envelope import Envelope
 
-    scenes = []
+    envelopes = []
     for path in paths:
         try:
             with Dataset(path) as ds:
-                scenes.append(ds.scene)
-        except (DatasetError, OSError, KeyError):
+                envelopes.append(Envelope.from_scenes([ds.scene]) if ds.scene.get("kind") != "world"
+                                 else _world_envelope(ds))
+        except (DatasetError, OSError, KeyError, ValueError):
             return None
-    return Envelope.from_scenes(scenes).to_dict() if scenes else None
+    if not envelopes:
+        return None
+    union = envelopes[0]
+    for e in envelopes[1:]:
+        union = union.union(e)
+    return union.to_dict()
+
+
+#: Rows of a world file's bodies and points its envelope reads (a strided sample of the file).
+ENVELOPE_SAMPLE = 200_000
+
+
+def _world_envelope(ds: "Dataset"):
+    from deepcontact.envelope import Envelope
+    from simclient import worlds
+
+    f = ds._file
+    sample = {name: f[name][::max(1, f[name].shape[0] // ENVELOPE_SAMPLE)] for name in ("bodies", "points")}
+    world, _ = worlds.build_user_world(ds.scene["source"], ds.seeds[0])
+    physics = list(ds.physics.values()) or [[ds.scene["solver"]["dt"], *world.gravity]]
+    return Envelope.of_records(sample["bodies"], sample["points"], physics, joints=bool(len(world.joints)))

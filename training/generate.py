@@ -1,6 +1,7 @@
 """`deepcontact generate`: record simulations into an HDF5 training file.
 
     deepcontact generate --scene thesis --seeds 1-100 --out data/train.h5
+    deepcontact generate --world simclient.zoo:pyramid --seeds 1-100 --out data/zoo-pyramid-1-100.h5
 
 One task per simulation, on worker processes (all cores by default) or on
 Ray (`--ray [ADDRESS]`, deepcontact.dispatch). Each task returns its
@@ -26,22 +27,27 @@ import numpy as np
 from deepcontact import dispatch
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 from simclient import seeds as seed_ranges
-from simclient.scene import SceneSpec, add_scene_arguments, build_world, spec_from_args, spec_from_dict, spec_to_dict
+from simclient import worlds
+from simclient.scene import SceneSpec
 from training.dataset import COMPRESSIONS, STEP_DTYPE, Writer
 
 
-def record_simulation(spec: SceneSpec, seed: int, record: bool = True, oracle: bool = False) -> dict[str, np.ndarray]:
-    """Run one simulation with Box2D's builtin warm start.
+def record_simulation(spec, seed: int, record: bool = True, oracle: bool = False) -> dict[str, np.ndarray]:
+    """Run one simulation of a scene (SceneSpec) or a user's world (simclient.worlds.WorldSpec,
+    e.g. a zoo class) with Box2D's builtin warm start.
 
-    Returns (when record) steps (S,) STEP_DTYPE with offsets into this
-    simulation's bodies (S*B,) BODY_DTYPE, points (P,) CONTACT_DTYPE and
+    Returns (when record) physics (3,) (dt s, gravity m/s^2), steps (S,) STEP_DTYPE with offsets
+    into this simulation's bodies (S*B,) BODY_DTYPE, points (P,) CONTACT_DTYPE and
     trace (T,) float32 N s; with oracle also oracle (P, 2) float32 N s, each
     step solved from zero to convergence before it is solved as usual (the
     world does not change; a point outside every awake island, which never
-    happens with sleeping off, keeps its final impulse). With record=False it
+    happens with sleeping off, keeps its final impulse). A point of a sleeping
+    body (a user's world may let bodies sleep) is not solved: Box2D keeps its
+    impulse, so its warm start and final impulse are recorded as that impulse
+    (Box2D's own warm start), not as NaN. With record=False it
     only runs the steps (the baseline of `deepcontact lab generate`).
     """
-    engine = build_world(spec, seed)
+    engine = worlds.build(spec, seed)
     if not record:
         for _ in range(spec.steps):
             engine.step()
@@ -55,6 +61,9 @@ def record_simulation(spec: SceneSpec, seed: int, record: bool = True, oracle: b
         solved = engine.oracle() if oracle else None
         stats = engine.solve()
         p = engine.contacts()
+        asleep = ~np.isfinite(p["impulse"]).all(axis=1)
+        if asleep.any():
+            p["impulse"][asleep] = p["warm_start"][asleep] = p["builtin"][asleep]
         if oracle:
             exact.append(np.where(np.isfinite(solved), solved, p["impulse"]).astype(np.float32))
         row = steps[k]
@@ -81,16 +90,18 @@ def record_simulation(spec: SceneSpec, seed: int, record: bool = True, oracle: b
     }
     if oracle:
         out["oracle"] = np.concatenate(exact) if exact else np.zeros((0, 2), np.float32)
+    # A user's world may draw its time step and gravity from the seed: the file keeps each seed's.
+    out["physics"] = np.array([engine.config.dt, *engine.world.gravity], np.float64)
     return out
 
 
 def simulate_seed(spec_dict: dict, seed: int, oracle: bool = False) -> dict[str, np.ndarray]:
-    """One task: record_simulation of (scene as spec_to_dict, seed)."""
-    return record_simulation(spec_from_dict(spec_dict), seed, oracle=oracle)
+    """One task: record_simulation of (scene or world as worlds.spec_to_dict, seed)."""
+    return record_simulation(worlds.spec_from_dict(spec_dict), seed, oracle=oracle)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_scene_arguments(parser)
+    worlds.add_world_arguments(parser)
     parser.add_argument("--seeds", required=True, help="seeds to simulate, e.g. 1-100 or 1-10,20 (training range 1-899)")
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write (e.g. data/train.h5)")
     dispatch.add_arguments(parser, workers_default="all cores")
@@ -110,7 +121,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        spec = spec_from_args(args)
+        spec = worlds.spec_from_args(args)
         seeds = seed_ranges.parse_seeds(args.seeds)
         dispatch.check_arguments(args)
     except ValueError as exc:
@@ -128,16 +139,17 @@ def run(args: argparse.Namespace) -> int:
 
     command = "deepcontact " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     workers = args.workers if args.ray else (args.workers or os.cpu_count() or 1)
-    tasks = [dispatch.Task(f"seed {s}", (spec_to_dict(spec), s, args.oracle)) for s in seeds]
+    tasks = [dispatch.Task(f"seed {s}", (worlds.spec_to_dict(spec), s, args.oracle)) for s in seeds]
     t0 = time.perf_counter()
     points = steps = 0
     try:
-        with Writer(args.out, scene=spec_to_dict(spec), seeds=seeds, command=command, oracle=args.oracle,
+        with Writer(args.out, scene=worlds.spec_to_dict(spec), seeds=seeds, command=command, oracle=args.oracle,
                     compression=args.compression) as writer, \
                 dispatch.Dispatcher(workers=workers, ray=args.ray) as dispatcher:
             # Results come in seed order: the file does not depend on which task finished first.
             for arrays in dispatcher.map(simulate_seed, tasks, progress=None if args.quiet else "generate"):
-                writer.append(arrays["steps"], arrays["bodies"], arrays["points"], arrays["trace"], arrays.get("oracle"))
+                writer.append(arrays["steps"], arrays["bodies"], arrays["points"], arrays["trace"], arrays.get("oracle"),
+                              physics=arrays["physics"])
                 steps += len(arrays["steps"])
                 points += len(arrays["points"])
             where = dispatcher.description

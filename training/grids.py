@@ -43,8 +43,10 @@ from deepcontact.channels import Step, channel_values, particle_positions
 from deepcontact.features import step_to_grids, targets_to_grids
 from deepcontact.gridspec import GridSpec
 from deepcontact.transfer import DOMAIN_TOLERANCE, g2p
+from deepcontact.kinematics import Physics
 from simclient.provider import point_friction
-from simclient.scene import body_friction, spec_from_dict
+from simclient.scene import body_friction
+from simclient.worlds import WorldSpec, spec_from_dict
 from training.dataset import Dataset, DatasetError
 
 CACHE_VERSION = 2
@@ -111,15 +113,17 @@ def iter_steps(path: str | os.PathLike, steps: np.ndarray, index: np.ndarray) ->
 
     ``step`` holds the bodies at collide time and the points after the solve,
     the previous step's points of the same simulation (None for its first
-    step), the scene's physics, the oracle's impulses when the file has
-    them, and each point's friction (the records carry none: the seed's scene
-    gives it, simclient.scene.body_friction). Reads one simulation's span at a
+    step), the simulation's physics (the seed's where the file keeps it, else
+    the scene's), the oracle's impulses when the file has them, and each
+    point's friction (a scene's seed gives it, simclient.scene.body_friction,
+    as the files of before the records held it; a user's world's points carry
+    their own). Reads one simulation's span at a
     time: per-step reads decompress a whole gzip chunk each (about 8 ms a step
     here), a span read once per seed.
     """
     with h5py.File(path, "r") as f:
         scene = spec_from_dict(json.loads(f.attrs["scene"]))
-        physics = scene.physics
+        per_seed = {int(k): Physics(v[0], (v[1], v[2])) for k, v in json.loads(f.attrs.get("physics", "{}")).items()}
         bodies_ds, points_ds, oracle_ds = f["bodies"], f["points"], f.get("oracle")
         seeds = steps["seed"][index]
         bounds = np.flatnonzero(np.diff(seeds)) + 1
@@ -134,8 +138,10 @@ def iter_steps(path: str | os.PathLike, steps: np.ndarray, index: np.ndarray) ->
             p1 = int((rows["point_offset"] + rows["point_count"]).max())
             bodies, points = bodies_ds[b0:b1], points_ds[p0:p1]
             oracle = oracle_ds[p0:p1] if oracle_ds is not None else None
-            # The records carry no friction; the seed's scene gives every body's.
-            mu = point_friction(body_friction(scene, int(steps["seed"][first])), points)
+            seed = int(steps["seed"][first])
+            physics = per_seed[seed] if seed in per_seed else scene.physics
+            mu = points["friction"].astype(np.float64) if isinstance(scene, WorldSpec) else \
+                point_friction(body_friction(scene, seed), points)
 
             def span(row, offset, count, base):
                 return slice(int(row[offset]) - base, int(row[offset]) - base + int(row[count]))

@@ -11,8 +11,7 @@ import Box2D
 from deepcontact.envelope import Envelope
 from deepcontact.kinematics import Physics
 from simclient.engine import Engine
-from simclient.scene import SceneSpec, settled_world
-from training.generate import spec_to_dict
+from simclient.scene import SceneSpec, settled_world, spec_to_dict
 
 THESIS = SceneSpec.thesis()
 FAMILY = dataclasses.replace(THESIS, radius=(0.3, 0.55), friction=(0.2, 0.8))

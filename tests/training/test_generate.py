@@ -158,3 +158,24 @@ def test_the_oracle_is_recorded_beside_the_points_and_trains_residual_models(tmp
     assert step.previous is not None and len(step.previous) == steps["point_count"][k - 1]
     correction = channel_values(["oracle_correction_normal"], step)[:, 0]
     np.testing.assert_allclose(correction, expected[:, 0] - step.contacts["builtin"][:, 0], rtol=1e-6)
+
+
+def test_a_zoo_world_is_recorded_with_each_seeds_physics_and_trains_the_contact_graph(tmp_path):
+    from deepcontact.envelope import Envelope
+    from simclient import zoo
+    from training.contact_graph import GRAPH_TARGETS, build_graph_set
+    from training.dataset import trained_on
+
+    out = tmp_path / "jointed.h5"
+    assert generate(out, "--world", "simclient.zoo:jointed") == 0
+    with Dataset(out) as ds:
+        assert ds.scene["kind"] == "world" and sorted(ds.physics) == [1, 2, 3]
+        for seed, (dt, gx, gy) in ds.physics.items():
+            world, drawn = zoo.jointed(seed)
+            assert dt == pytest.approx(drawn) and (gx, gy) == pytest.approx(tuple(world.gravity))
+    graphs = build_graph_set(out, inputs=("vn", "vt", "friction"), targets=GRAPH_TARGETS)
+    assert graphs.features.shape[1] == 3 and np.isfinite(graphs.features).all()
+    # The friction the points carry: the zoo draws one per world, so no point is at the thesis's 0.5.
+    assert not np.isclose(graphs.features[:, 2], 0.5).any()
+    envelope = Envelope.from_dict(trained_on([out]))
+    assert envelope.joints and "other" in envelope.shapes and envelope.dt[0] > 1 / 120 - 1e-9
