@@ -53,13 +53,30 @@ class Step:
     Derived arrays are computed once, when a channel first asks.
     """
 
-    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "friction", "_quantities", "_last_correction")
+    __slots__ = ("bodies", "contacts", "previous", "physics", "oracle", "friction", "_quantities", "_last_correction",
+                 "_scales")
 
     def __init__(self, bodies: np.ndarray | None, contacts: np.ndarray | None, previous: np.ndarray | None = None,
                  physics: Physics = Physics(), oracle: np.ndarray | None = None, friction: np.ndarray | None = None):
         self.bodies, self.contacts, self.previous = bodies, contacts, previous
         self.physics, self.oracle, self.friction = physics, oracle, friction
-        self._quantities = self._last_correction = None
+        self._quantities = self._last_correction = self._scales = None
+
+    def scales(self) -> tuple[float, float]:
+        """(M kg, V m/s): the step's own scale of mass and of velocity, which the *_scaled
+        channels divide by, so that a network reads a heavier, stronger-pulled or coarser-stepped
+        world as the same problem. M is the median mass of the dynamic bodies, V what gravity
+        adds to a velocity in one step (|g| dt); an impulse's scale is M V, what holds a body of
+        mass M up for one step. V is at least MIN_SCALE_VELOCITY (a world without gravity).
+        Per world, not per point: the median of the bodies is the same on every step of a
+        simulation, and on a batch of its steps (training.contact_graph.one_world)."""
+        if self._scales is None:
+            b = self._bodies("step scales")
+            mass = b["mass"][(b["type"] == BODY_DYNAMIC) & (b["mass"] > 0)]
+            m = float(np.median(mass)) if len(mass) else 1.0
+            v = max(float(np.hypot(*self.physics.gravity)) * float(self.physics.dt), MIN_SCALE_VELOCITY)
+            self._scales = (m, v)
+        return self._scales
 
     def velocities(self) -> np.ndarray:
         """(P, 2) m/s: relative (normal, tangent) velocity after gravity."""
@@ -194,6 +211,24 @@ def _asinh(method: str, component: int, scale: float) -> Callable[[np.ndarray, S
     return lambda a, step: np.arcsinh(getattr(step, method)()[:, component] / scale)
 
 
+#: The least velocity scale (m/s) of Step.scales: a world without gravity still has one.
+MIN_SCALE_VELOCITY = 1e-3
+
+
+def _scaled(channel: "Channel") -> "Channel":
+    """`channel` divided by the step's own scale of its unit (Step.scales): N s by M V, m/s by V,
+    kg by M; named NAME_scaled, unit 1."""
+    power = {"N s": (1, 1), "m/s": (0, 1), "kg": (1, 0)}[channel.unit]
+
+    def extract(a: np.ndarray, step: Step) -> np.ndarray:
+        m, v = step.scales()
+        return channel.extract(a, step) / (m ** power[0] * v ** power[1])
+    return dataclasses.replace(channel, name=f"{channel.name}_scaled", extract=extract, unit="1",
+                               description=f"{channel.name} over the step's own scale of {channel.unit} "
+                                           f"(Step.scales: mass M, velocity |g| dt)",
+                               needs=tuple(sorted(set(channel.needs) | {"physics"})))
+
+
 def _oracle_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
     return lambda a, step: step.oracle_impulses()[:, component] - a["builtin"][:, component]
 
@@ -204,18 +239,24 @@ def _oracle_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.nda
 FACE_FRICTION = 0.5
 
 
-def _face_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
+def _face_labels(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
     """The recorded solve's face (deepcontact.faces.contact_face at the step's friction, else
-    FACE_FRICTION) written as
-    impulses, a pressing point FACE_IMPULSE along its normal and a sliding one +-FACE_IMPULSE along
-    its tangent, minus the builtin warm start: served as a residual, a model's answer is its labels."""
+    FACE_FRICTION) written as impulses: FACE_IMPULSE along the normal where a point presses,
+    +-FACE_IMPULSE along the tangent where it slides that way. A network trained on these is
+    served as it answers (combine "replace"), whatever the world's scale of impulse."""
     def channel(a: np.ndarray, step: Step) -> np.ndarray:
         mu = np.full(len(a), FACE_FRICTION) if step.friction is None else np.asarray(step.friction, np.float64)
         face = contact_face(a["impulse"].astype(np.float64), mu)
         labels = ((face != OPEN).astype(np.float64) if component == 0 else
                   np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0)))
-        return FACE_IMPULSE * labels - a["builtin"][:, component]
+        return FACE_IMPULSE * labels
     return channel
+
+
+def _face_minus_builtin(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
+    """_face_labels minus the builtin warm start: served as a residual, a model's answer is its labels."""
+    labels = _face_labels(component)
+    return lambda a, step: labels(a, step) - a["builtin"][:, component]
 
 
 def _new_point(a: np.ndarray, step: Step) -> np.ndarray:
@@ -333,6 +374,17 @@ _DEFINITIONS = (
             "last step's builtin warm start (the impulse of two steps ago), normal", temporal=True),
     Channel("previous_builtin_tangent", "previous", _field("builtin", 1), "N s",
             "last step's builtin warm start, tangent", temporal=True, mirror=-1),
+)
+
+_BASE = {c.name: c for c in _DEFINITIONS}
+#: The contact-point channels in units of the step's own scales (Step.scales), and the face as labels.
+_DEFINITIONS += tuple(_scaled(_BASE[n]) for n in (
+    "builtin_normal", "builtin_tangent", "vn", "vt", "vn_builtin", "vt_builtin", "normal_mass", "tangent_mass",
+    "jacobi_normal", "jacobi_tangent")) + (
+    Channel("face_normal", "contacts", _face_labels(0), "N s",
+            "the recorded solve's face at the step's friction written as impulses: 1 N s where a point presses"),
+    Channel("face_tangent", "contacts", _face_labels(1), "N s",
+            "the same, tangent: +-1 N s where a point slides that way, 0 where it sticks", mirror=-1),
 )
 
 #: Every channel by name (read-only).

@@ -34,6 +34,9 @@ GRAPH_INPUTS = ("normal_x", "normal_y", "separation", "builtin_normal", "builtin
                 "vn", "vt", "vn_builtin", "vt_builtin", "normal_mass", "tangent_mass",
                 "jacobi_normal", "jacobi_tangent")
 GRAPH_TARGETS = ("correction_normal", "correction_tangent")
+#: GRAPH_INPUTS with every impulse, velocity and mass over the step's own scale (Step.scales):
+#: the inputs of a network that reads a heavier or faster world as the same problem.
+SCALED_GRAPH_INPUTS = tuple(n if CHANNELS[n].unit in ("1", "m") else f"{n}_scaled" for n in GRAPH_INPUTS)
 
 
 @dataclasses.dataclass
@@ -155,7 +158,9 @@ def build_graph_set(path: str | os.PathLike, inputs=GRAPH_INPUTS, targets=GRAPH_
     # Steps are read one by one and their channels computed many steps at a time (a Python
     # loop over steps costs more than their arithmetic), unless a channel reads the previous step.
     per_call = 1 if any(CHANNELS[n].temporal for n in (*inputs, *targets)) else STEPS_AT_ONCE
-    for chunk in _batches((step for _, step in iter_steps(path, steps, index)), per_call):
+    # A batch holds one simulation's steps: its world's physics and scales (Step.scales) are theirs.
+    for chunk in _batches((step for _, step in iter_steps(path, steps, index)), per_call,
+                          key=iter(steps["seed"][index])):
         world = one_world(chunk)
         c, b = world.contacts, world.bodies
         for out, value in zip((geometry, masses, inverse), contact_physics(b, c)):
@@ -203,13 +208,17 @@ def step_converged(path: str | os.PathLike, max_steps: int | None = None, seed: 
 STEPS_AT_ONCE = 256
 
 
-def _batches(items: Iterator, size: int) -> Iterator[list]:
-    batch = []
+def _batches(items: Iterator, size: int, key: Iterator | None = None) -> Iterator[list]:
+    """Lists of at most `size` items in order; with `key` (one value per item), a list also ends
+    where the key changes."""
+    batch, last = [], None
     for item in items:
-        batch.append(item)
-        if len(batch) == size:
+        k = next(key) if key is not None else None
+        if batch and (len(batch) == size or k != last):
             yield batch
             batch = []
+        batch.append(item)
+        last = k
     if batch:
         yield batch
 

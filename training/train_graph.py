@@ -39,7 +39,7 @@ from deepcontact.io import write_bytes_atomic
 from deepcontact.modelcard import ModelCard
 from training import dataset, machine
 from deepcontact.channels import CHANNELS, mirror_signs
-from training.contact_graph import (GRAPH_INPUTS, GRAPH_TARGETS, MIRROR_GEOMETRY, GraphSet, build_graph_set,
+from training.contact_graph import (GRAPH_INPUTS, GRAPH_TARGETS, SCALED_GRAPH_INPUTS, MIRROR_GEOMETRY, GraphSet, build_graph_set,
                                     step_converged, step_iterations)
 from training.grids import GridDataError
 from training.second_pass import SecondPassError, moved
@@ -53,7 +53,8 @@ from training.teacher import Teacher, taught
 # (`generate --oracle`), which the stopped solve misses by about half of a 0.1-0.3 N s
 # correction (docs/results.md, "Training on the converged solution").
 TARGETS = {"final": GRAPH_TARGETS, "oracle": ("oracle_correction_normal", "oracle_correction_tangent"),
-           "face": ("face_correction_normal", "face_correction_tangent")}
+           "face": ("face_correction_normal", "face_correction_tangent"),
+           "face-labels": ("face_normal", "face_tangent")}
 
 CACHE_VERSION = 4  # GraphSet fields (3: speed; 4: face targets read at each point's friction)
 RELATIVE_FLOOR = 0.05  # N s: the relative loss's floor, the noise a warm start can afford (docs/results.md)
@@ -119,9 +120,15 @@ def _data_arguments(parser) -> None:
 
 def _network_arguments(parser) -> None:
     """The network's shape and how its output is served."""
-    parser.add_argument("--combine", choices=("residual", "new-points"), default="residual",
+    parser.add_argument("--combine", choices=("residual", "new-points", "replace"), default="residual",
                         help="serve the correction at every point (residual, default) or at new points only; "
-                             "the solver loss then scores what is served: Box2D's warm start at persisting points")
+                             "the solver loss then scores what is served: Box2D's warm start at persisting points; "
+                             "replace: serve the answer itself (--targets face-labels)")
+    parser.add_argument("--inputs", dest="input_scale", choices=("absolute", "scaled"), default="absolute",
+                        help="absolute (default): the points' impulses, velocities and masses in N s, m/s and kg; "
+                             "scaled: each over the step's own scale (deepcontact.channels.Step.scales: the median "
+                             "body mass M, |g| dt, and M |g| dt for impulses), so that a heavier, stronger-pulled "
+                             "or coarser-stepped world reads as the same problem")
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s); with --init from a network with "
@@ -185,7 +192,8 @@ def _loss_arguments(parser) -> None:
                              "face: to the recorded solve's active set written as impulses (1 N s where a point "
                              "presses, +-1 N s along the tangent where it slides; friction read as the thesis "
                              "world's 0.5): a classifier of the points, read back with `lab faces --pressing 0.5 "
-                             "--share 1`")
+                             "--share 1`; face-labels: the same labels, not as a correction to Box2D's warm start "
+                             "(with --combine replace: an answer that does not depend on the world's scale of impulse)")
     parser.add_argument("--loss", choices=("mse", "relative", "mse-self-stress", "mse-sticking", "mse-moving",
                                            "relative-moving", "solver", "solver-log",
                                            "solver-projected", "solver-projected-max", "solver-projected-sweeps"),
@@ -338,7 +346,15 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     if bad or len(set(extra)) != len(extra):
         return (f"--extra-inputs takes contact-point channels not already read ({', '.join(GRAPH_INPUTS)}), "
                 f"each once; got {args.extra_inputs!r}")
-    args.inputs = GRAPH_INPUTS + extra
+    if (getattr(args, "targets", "final") == "face-labels") != (args.combine == "replace"):
+        return (f"--targets face-labels is served as it is answered, --combine replace, and only it; got "
+                f"--targets {getattr(args, 'targets', 'final')} with --combine {args.combine}")
+    scaled = getattr(args, "input_scale", "absolute")
+    if scaled == "scaled" and (args.loss.startswith("solver") or getattr(args, "passes", 1) > 1
+                               or getattr(args, "teacher", None) or getattr(args, "second_pass", None)):
+        return ("--inputs scaled trains with the losses on the points' targets (mse, relative, ...), one pass, "
+                "no teacher or second pass: those read the absolute inputs")
+    args.inputs = (SCALED_GRAPH_INPUTS if scaled == "scaled" else GRAPH_INPUTS) + extra
     passes = getattr(args, "passes", 1)
     if passes < 1 or (passes > 1 and args.combine != "residual"):
         return f"--passes must be >= 1, and above 1 only with --combine residual; got {passes}, {args.combine}"
@@ -543,8 +559,10 @@ class BatchLoss:
         self.mirror_in = mirror_signs(inputs)
         self.mirror_out = mirror_signs(targets)
         self.new_column = inputs.index("new_point")
-        self.builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")]
-        self.velocity_columns = [inputs.index("vn"), inputs.index("vt")]
+        # Read by the solver losses, which take absolute inputs only (--inputs scaled refuses them).
+        absolute = "builtin_normal" in inputs
+        self.builtin_columns = [inputs.index("builtin_normal"), inputs.index("builtin_tangent")] if absolute else None
+        self.velocity_columns = [inputs.index("vn"), inputs.index("vt")] if absolute else None
         if getattr(args, "passes", 1) > 1:  # which inputs move with the warm start, and how (second_pass)
             self.moves_with_warm, self.moves_with_velocity, self.moves_with_jacobi = (
                 tf.constant(m, tf.float32) for m in second_pass_moves(inputs))
@@ -1081,6 +1099,7 @@ class _CardParts:
                                                                    "max_steps_per_file",
                                                                    "max_val_steps")}
                                   | ({"extra_inputs": args.extra_inputs} if getattr(args, "extra_inputs", "") else {})
+                                  | ({"inputs": "scaled"} if getattr(args, "input_scale", "absolute") == "scaled" else {})
                                   | ({"layer_norm": True} if getattr(args, "layer_norm", False) else {})
                                   | ({"tied": True, "train_rounds": list(args.round_counts)}
                                      if getattr(args, "tied", False) else {})

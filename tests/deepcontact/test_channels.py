@@ -159,3 +159,31 @@ def test_each_channel_changes_sign_under_a_reflection_as_its_mirror_says():
         got, want = channel_values(names, mirror), channel_values(names, step) * mirror_signs(names)
         for i, name in enumerate(names):
             np.testing.assert_allclose(got[:, i], want[:, i], rtol=1e-6, atol=1e-9, err_msg=name)
+
+
+def test_the_scaled_channels_read_a_heavier_world_as_the_same_problem():
+    from deepcontact.kinematics import Physics
+
+    rng = np.random.default_rng(0)
+    bodies = np.zeros(3, BODY_DTYPE)
+    bodies["type"] = [0, 2, 2]
+    bodies["mass"], bodies["inertia"] = [0.0, 2.0, 3.0], [0.0, 0.5, 0.9]
+    bodies["position"] = [[0, 0], [0, 1], [1, 1]]
+    bodies["velocity"] = rng.normal(size=(3, 2)) * [[0], [1], [1]]
+    contacts = np.zeros(2, CONTACT_DTYPE)
+    contacts["body_a"], contacts["body_b"] = [0, 1], [1, 2]
+    contacts["point"], contacts["normal"] = [[0, 0.5], [0.5, 1]], [[0, 1], [1, 0]]
+    contacts["builtin"] = [[0.3, 0.01], [0.1, -0.02]]
+    physics = Physics(1 / 60, (0.0, -9.8))
+    names = ["builtin_normal_scaled", "vn_scaled", "vt_builtin_scaled", "normal_mass_scaled", "jacobi_normal_scaled"]
+    light = channel_values(names, Step(bodies, contacts, physics=physics))
+    heavy_bodies, heavy_contacts = bodies.copy(), contacts.copy()
+    heavy_bodies["mass"] *= 8.0
+    heavy_bodies["inertia"] *= 8.0
+    heavy_contacts["builtin"] *= 8.0  # every impulse of a world eight times as dense
+    heavy = channel_values(names, Step(heavy_bodies, heavy_contacts, physics=physics))
+    np.testing.assert_allclose(heavy, light, rtol=1e-5)
+    # The scales: the dynamic bodies' median mass, and the velocity gravity adds in a step.
+    assert Step(bodies, contacts, physics=physics).scales() == pytest.approx((2.5, 9.8 / 60))
+    vn = channel_values(["vn"], Step(bodies, contacts, physics=physics))[:, 0]
+    np.testing.assert_allclose(light[:, 1], vn / (9.8 / 60))

@@ -333,6 +333,27 @@ def test_face_targets_train_a_classifier_of_the_points_served_as_a_residual(data
     assert card["combine"] == "residual"  # Builtin + the model's answer: the labels, written as impulses
 
 
+def test_scaled_inputs_and_face_labels_train_a_classifier_served_as_it_answers(data, tmp_path, capsys):
+    from deepcontact.modelcard import ModelCard
+    from server.predictors import GraphPredictor
+    from training.contact_graph import SCALED_GRAPH_INPUTS
+
+    out = tmp_path / "labels.onnx"
+    common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
+              "--batch-size", "4", "--width", "8", "--rounds", "1", "--loss", "mse", "--cache", str(tmp_path / "cache"),
+              "--quiet", "--inputs", "scaled", "--targets", "face-labels"]
+    assert main(common + ["--out", str(tmp_path / "residual.onnx")]) == 2  # labels are not a correction
+    assert "--combine replace" in capsys.readouterr().err and not (tmp_path / "residual.onnx").exists()
+    assert main(common + ["--combine", "replace", "--out", str(out)]) == 0
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["gridspec"]["inputs"] == list(SCALED_GRAPH_INPUTS) and card["combine"] == "replace"
+    assert card["gridspec"]["targets"] == ["face_normal", "face_tangent"]
+    assert card["training"]["settings"]["inputs"] == "scaled"
+    # Served: the physics a request declares is read for the scales, and the answer is the labels'.
+    predictor = GraphPredictor(ModelCard.load(out.with_suffix(".json")), out)
+    assert "physics" in predictor.requires
+
+
 def test_a_run_goes_on_from_an_earlier_runs_weights(data, tmp_path, capsys):
     common = ["train-graph", "--train", str(data / "train.h5"), "--val", str(data / "val.h5"), "--epochs", "1",
               "--batch-size", "4", "--rounds", "1", "--loss", "mse", "--cache", str(tmp_path / "cache"), "--quiet"]
