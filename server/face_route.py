@@ -7,7 +7,8 @@ whole by server.predictors.load_model from three parts:
                 --targets face`): about 1 N s along the normal where a point presses, +-1 N s
                 along the tangent where it slides
     fallback    the predictor of the card its face names (`fallback`), served where the route
-                is not; None: Box2D's warm start, the request's builtin impulses
+                is not and the step lies inside the fallback's training envelope (its card's
+                trained_on); elsewhere, or None: Box2D's warm start, the request's builtin impulses
     settings    the card's `face` dict: how the labels are read, solved and admitted, and when
                 the route is not taken (max_points, max_residual, retry_pressing)
 
@@ -213,15 +214,25 @@ class FaceRoutePredictor(Predictor):
                 return impulses
         return None
 
+    def _fallback_knows(self, bodies, points, friction, world) -> bool:
+        """Whether the step lies inside the fallback card's training envelope (its trained_on;
+        a card without one is served everywhere). A network trained on one kind of world can
+        cost several times Box2D's iterations on another (a pile of discs' fallback on a
+        pyramid of boxes, docs/research/2026-12-06-a-zoo-of-worlds.md): outside it, Box2D's."""
+        envelope = self.fallback.envelope
+        return envelope is None or envelope.unfamiliar(bodies, points, friction, world.physics, None) is None
+
     def _fallback(self, bodies, points, world, step, previous, friction, deadline=None,
                   slowdown: float = 1.0) -> Prediction:
-        """The answer where the route is not served: the fallback card's, else Box2D's warm start
-        (the request's builtin impulses), with served_by naming it. With a deadline, Box2D's
+        """The answer where the route is not served: the fallback card's where the step lies in
+        what it was trained on, else Box2D's warm start (the request's builtin impulses), with
+        served_by naming it. With a deadline, Box2D's
         also where the fallback is not expected to end by it either (a server answering more
         requests at once than its cores keep up with): an answer in time that the client would
         have used anyway, rather than a better one it cannot wait for."""
         now = time.perf_counter()
-        if self.fallback is None or not self.fallback_cost.fits(len(points), now, deadline, slowdown):
+        if self.fallback is None or not self.fallback_cost.fits(len(points), now, deadline, slowdown) \
+                or not self._fallback_knows(bodies, points, friction, world):
             return Prediction(points["builtin"].astype(np.float32), served_by=BUILTIN)
         extra = {"friction": friction} if "point_friction" in self.fallback.requires else {}
         cpu = time.thread_time()

@@ -280,6 +280,20 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     np.testing.assert_array_equal(served("large", max_points=len(points) - 1, fallback=classifier), own)
     np.testing.assert_array_equal(served("large-builtin", max_points=len(points) - 1), points["builtin"])
     np.testing.assert_array_equal(served("small", max_points=len(points), fallback=classifier), served("plain"))
+    # A fallback is served only inside what it was trained on: on a world of another time step
+    # than its card's trained_on holds, Box2D's own start answers in its place.
+    from deepcontact.envelope import Envelope
+
+    card = json.loads((tmp_path / f"{classifier}.json").read_text())
+    card.update(name="thesis-only", trained_on=Envelope().to_dict())  # the thesis world's dt, 0.01 s
+    (tmp_path / "thesis-only.json").write_text(json.dumps(card))
+    np.testing.assert_array_equal(served("large-familiar", max_points=len(points) - 1, fallback="thesis-only"), own)
+    (tmp_path / "large-elsewhere.json").write_text(json.dumps({"name": "large-elsewhere", "alias_of": classifier,
+        "face": {"pressing": 0.75, "rounds": 200, "max_points": len(points) - 1, "fallback": "thesis-only"}}))
+    other = World(world.domain, dataclasses.replace(world.physics, dt=0.04))
+    elsewhere = load_model(tmp_path / "large-elsewhere.json").predict(bodies, points, other, 0, friction=mu)
+    np.testing.assert_array_equal(elsewhere.impulses, points["builtin"])
+    assert elsewhere.served_by == "builtin"
     # retry_pressing: where the first reading misses max_residual, the labels are read again at
     # each threshold in turn; the first reading that meets it is served, the fallback where none does.
     from deepcontact.faces import solved_on_labels
