@@ -63,9 +63,11 @@ uses each point's own either way), max_residual (default null: always served; a 
 step whose served impulses leave their labels' equations unmet by more than this share,
 faces.face_residual, the labels are taken for wrong and Box2D's warm start, the request's
 builtin impulses, is served instead), fallback (default null: Box2D's warm start; the name of
-another card beside this one, without a face of its own, whose answer is served in its place at
-those steps, at steps past max_points, and where the route would miss the request's budget_us,
-docs/server.md "Deadlines"), damping (default 0: the solve is the minimum-norm least-squares one; a
+another card beside this one whose answer is served in its place at those steps, at steps past
+max_points, at steps outside the classifier's trained_on, and where the route would miss the
+request's budget_us, docs/server.md "Deadlines"; served only inside its own trained_on, Box2D's
+warm start elsewhere; a card with a face of its own is another route, tried in turn, and a
+chain that comes back to a card on it is refused), damping (default 0: the solve is the minimum-norm least-squares one; a
 number: damped least squares, the singular values below about sqrt(damping) of the largest
 damped away, solve_on_face), solver (default "gelsy": the minimum-norm solution by LAPACK's
 gelsy; "dual": by faces.minimum_norm_solve, its dual by Cholesky with two rounds of

@@ -8,9 +8,17 @@ whole by server.predictors.load_model from three parts:
                 along the tangent where it slides
     fallback    the predictor of the card its face names (`fallback`), served where the route
                 is not and the step lies inside the fallback's training envelope (its card's
-                trained_on); elsewhere, or None: Box2D's warm start, the request's builtin impulses
+                trained_on); elsewhere, or None: Box2D's warm start, the request's builtin impulses.
+                It may be another face card, whose route is then tried in turn (the default
+                falls back to the route of a classifier trained on a zoo of worlds)
     settings    the card's `face` dict: how the labels are read, solved and admitted, and when
                 the route is not taken (max_points, max_residual, retry_pressing)
+
+The route answers only for the worlds its classifier was trained on (the card's trained_on;
+everywhere where it records none): on a stack of boxes a classifier trained on piles of discs
+labelled about one point in twenty wrong, and the solve on those labels cost 2.4x Builtin's
+iterations on the same states (docs/research/2026-12-06-a-zoo-of-worlds.md). Elsewhere the
+fallback answers.
 
 Per step, where the route fits (not past max_points, and expected to end by the request's
 deadline, learned per step size on this host: server.deadline.CostBySize), the classifier's
@@ -118,10 +126,10 @@ class FaceRoutePredictor(Predictor):
         if friction is None:
             raise ValueError(f"{self.name} needs each point's friction")
         lane = self._lanes if deadline is not None else None  # a step with a budget takes a free lane or none
-        if not self.fits(len(points), started, deadline, slowdown) or (lane is not None
-                                                                      and not lane.acquire(blocking=False)):
-            # Too large a step to solve, or to solve in time, or every lane busy with another
-            # step's route: no labels asked for.
+        if not self.knows(bodies, points, friction, world) or not self.fits(len(points), started, deadline, slowdown) \
+                or (lane is not None and not lane.acquire(blocking=False)):
+            # A world the classifier was not trained on, too large a step to solve, or to solve
+            # in time, or every lane busy with another step's route: no labels asked for.
             return self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown)
         try:
             return self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown)
@@ -145,7 +153,7 @@ class FaceRoutePredictor(Predictor):
         impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared)
         served_by = None
         if impulses is None:  # labels the limits would not let the solve meet
-            fallback = self._fallback(bodies, points, world, step, previous, friction)
+            fallback = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown)
             impulses, served_by = fallback.impulses, fallback.served_by
             for name, seconds in fallback.stages.items():
                 stages[name] = stages.get(name, 0.0) + seconds
@@ -214,6 +222,11 @@ class FaceRoutePredictor(Predictor):
                 return impulses
         return None
 
+    def knows(self, bodies, points, friction, world) -> bool:
+        """Whether the step lies inside what the classifier was trained on (the card's
+        trained_on; a card without one labels every world)."""
+        return self.envelope is None or self.envelope.unfamiliar(bodies, points, friction, world.physics, None) is None
+
     def _fallback_knows(self, bodies, points, friction, world) -> bool:
         """Whether the step lies inside the fallback card's training envelope (its trained_on;
         a card without one is served everywhere). A network trained on one kind of world can
@@ -235,7 +248,10 @@ class FaceRoutePredictor(Predictor):
                 or not self._fallback_knows(bodies, points, friction, world):
             return Prediction(points["builtin"].astype(np.float32), served_by=BUILTIN)
         extra = {"friction": friction} if "point_friction" in self.fallback.requires else {}
+        if getattr(self.fallback, "takes_deadline", False):  # another route: it keeps to the same deadline
+            extra.update(deadline=deadline, slowdown=slowdown)
         cpu = time.thread_time()
         answer = self.fallback.predict(bodies, points, world, step, previous, **extra)
         self.fallback_cost.observe(len(points), time.thread_time() - cpu)
-        return Prediction(answer.impulses, answer.stages, self.fallback.name)
+        # A route's own fallback, where it answered, is named rather than the route.
+        return Prediction(answer.impulses, answer.stages, answer.served_by or self.fallback.name)

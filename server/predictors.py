@@ -537,11 +537,13 @@ def load_models(folder: Path, *, intra_op_threads: int = 1, inter_op_threads: in
 
 
 def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: int = 1,
-               inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES) -> Predictor:
+               inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES,
+               _routes: tuple[str, ...] = ()) -> Predictor:
     """The predictor of one card (`card`: the card at `path`, when already read): a
     ModelPredictor for a grid model, a GraphPredictor for kind "graph", and for a graph card
     with `face` a server.face_route.FaceRoutePredictor, built with its classifier (a
-    GraphPredictor of the card's network) and its fallback card's predictor.
+    GraphPredictor of the card's network) and its fallback card's predictor (a route of its
+    own where that card has a face).
     ModelCardError naming the card for anything that keeps it from being served, also
     an ONNX file ONNX Runtime cannot load (its own errors name neither card nor flag)."""
     from server.model_folder import plain_name
@@ -570,15 +572,17 @@ def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: i
         return predictor
     from server.face_route import FaceRoutePredictor
 
-    fallback = _face_fallback(path, card, **threads, max_grid_nodes=max_grid_nodes)
+    fallback = _face_fallback(path, card, _routes, **threads, max_grid_nodes=max_grid_nodes)
     return FaceRoutePredictor(card, predictor, fallback)
 
 
-def _face_fallback(path: Path, card: ModelCard, **load) -> Predictor | None:
+def _face_fallback(path: Path, card: ModelCard, routes: tuple[str, ...] = (), **load) -> Predictor | None:
     """The predictor of the card a face card at `path` falls back to (served where its labels
-    look wrong, past max_points, or late: deepcontact.modelcard), None where it names none
-    (Box2D's warm start). ModelCardError for a name that is not a card beside it, or a card
-    with a face of its own."""
+    look wrong, past max_points, outside its classifier's training, or late:
+    deepcontact.modelcard), None where it names none (Box2D's warm start). A face card there is
+    another route, tried in turn; routes: the face cards already on the way here.
+    ModelCardError for a name that is not a card beside it, or a chain of routes that comes
+    back to one of its own."""
     from server.model_folder import plain_name
 
     fallback = card.face["fallback"]
@@ -586,9 +590,10 @@ def _face_fallback(path: Path, card: ModelCard, **load) -> Predictor | None:
         return None
     if not plain_name(f"{fallback}.json"):
         raise ModelCardError(f"{path}: its face falls back to {fallback!r}, not a card's name in {path.parent}")
+    routes = (*routes, card.name)
+    if fallback in routes:
+        raise ModelCardError(f"{path}: its face falls back in a circle ({' -> '.join([*routes, fallback])}); "
+                             f"end the chain at a card without a face")
     fallback_path = path.with_name(f"{fallback}.json")
     fallback_card = ModelCard.load(fallback_path)
-    if fallback_card.face is not None:
-        raise ModelCardError(f"{path}: its face falls back to {fallback!r}, which has a face of its own; "
-                             f"name a card without one")
-    return load_model(fallback_path, fallback_card, **load)
+    return load_model(fallback_path, fallback_card, _routes=routes, **load)

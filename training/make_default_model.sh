@@ -19,9 +19,16 @@
 #                         each point's friction as an input, 6 more on every step of both,
 #                         grown to twelve rounds for 5 and 5 more and 4 more
 #                         (graph-face-fr-r12-e15 in lab/models/, with every stage before it)
+#   models/contact-modes-zoo.onnx + .json
+#                         the same classifier trained on from contact-modes' weights on the zoo
+#                         of worlds (simclient/zoo.py) and the thesis and family worlds, its
+#                         inputs in the step's own units, 4 epochs (training/zoo_model.sh;
+#                         graph-labels-scaled-zoo-r12-e4 in lab/models/)
+#   models/zoo.json       the face route on contact-modes-zoo, falling back to contact-graph
 #   models/default.json   the face route: an alias of contact-modes whose labels the server
-#                         solves the step on and admits, falling back to contact-graph where the
-#                         admitted solve misses its labels or the step is large
+#                         solves the step on and admits, falling back to the zoo route where the
+#                         world is not one contact-modes was trained on, the admitted solve misses
+#                         its labels or the step is large, and from there to contact-graph
 #   models/pressure.onnx  + pressure.json   the thesis's kind of model (with pressure-new-points,
 #                         residual and residual-new-points in lab/models/)
 #
@@ -30,7 +37,8 @@
 #   GRID_ONLY=1 make default-model               the thesis's grid models alone (the default as shipped)
 #
 # The default comes first, so that it is rebuilt even if the thesis's models are not wanted
-# (DEFAULT_ONLY=1). On 2 cores about 6 h for the default: 6 min for its data (5 min 45 s
+# (DEFAULT_ONLY=1). On 2 cores about 6 h 30 min for the default (the zoo's data and classifier
+# about 35 min of it, training/zoo_model.sh): 6 min for its data (5 min 45 s
 # on 2 AMD AVX-512 cores, 2026-12-02), 2 h for its graph model (1 h 59 min on Intel AVX-512
 # cores on 2026-11-30; 2 h 17 min with AVX2 before train-graph traced its step once) and about
 # 3 h 50 min for its classifier (20, 19 and 17 min for its first three runs on 2 AMD AVX-512
@@ -74,9 +82,11 @@ FACE=$FACE_NET                                                # what the default
                                                               # until 2026-12-06, cost 0.27 ms a step for 1.3 % of the iterations)
 MODES_LINE="a contact-graph classifier (twelve rounds of message passing over the contact points): labels each point open, sticking or sliding which way; the default solves the step on its labels"
 GRAPH_LINE="a contact-graph network (eight rounds of message passing over the contact points, served with its mirror image): a correction to Box2D's warm start at each point; the default's fallback"
-DEFAULT_LINE="the face route: contact-modes labels each point, the server solves the step on the labels and admits the answer into the friction cones; contact-graph answers where that cannot serve (the solve misses its labels, over 300 points, or past the request's deadline)"
+DEFAULT_LINE="the face route: contact-modes labels each point, the server solves the step on the labels and admits the answer into the friction cones; on worlds contact-modes was not trained on, or where its solve misses its labels, the zoo route answers, then contact-graph inside what it was trained on, else Box2D's own start"
+ZOO_MODES_LINE="a contact-graph classifier like contact-modes, trained on a zoo of worlds (boxes, polygons, joints, terrain, kinematic bodies; gravity, time step and density drawn wide) on inputs in the step's own units"
+ZOO_LINE="the face route on contact-modes-zoo, for any world: the default's route where contact-modes does not know the world; contact-graph where its solve misses its labels, inside what contact-graph was trained on, else Box2D's own start"
 PRESSURE_LINE="the thesis's Pressure CNN: the step splatted onto SPH grids, a CNN, the impulses read back at the points (P2G, ONNX, G2P)"
-WHY="the face route: $FACE_NET's labels (twelve rounds, each point's friction an input), read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 50 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 300 points, the graph model $DEFAULT is served (docs/results.md, The solve refined, the classifier trained on); rebuilt by make default-model"
+WHY="the face route: $FACE_NET's labels (twelve rounds, each point's friction an input), read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 50 rounds; where the admitted solve leaves its labels' equations unmet by more than 0.3 of the step's velocities, or the step has more than 300 points, or the world is not one $FACE_NET was trained on, the zoo route (graph-labels-scaled-zoo-r12-e4's labels, the same route) answers, and where that cannot either the graph model $DEFAULT inside what it was trained on, else Box2D's own start (docs/results.md, The solve refined, the classifier trained on; docs/research/2026-12-06-a-zoo-of-worlds.md); rebuilt by make default-model"
 if [ "${GRID_ONLY:-0}" != 1 ]; then
 # The shipped files of the chain, kept before the runs overwrite them, so that each rebuild is
 # compared with what it replaced (below).
@@ -128,22 +138,39 @@ BOTH=(--train data/thesis-train-1-799.h5 --train data/family-train-1-799.h5
     --out $STORE/$FACE_NET.onnx --resume runs/resume/$FACE_NET.state.npz --epochs 4 --lr 3e-4 \
     --init runs/graph-cache/graph-face-fr-r12-e10.weights.npz --extra-inputs friction
 echo "$FACE trained after ${SECONDS} s"
+# The route for the worlds contact-modes was not trained on: a classifier of the same kind trained
+# on the zoo of worlds (simclient/zoo.py) in the step's own units (training/zoo_model.sh).
+INIT=runs/graph-cache/$FACE_NET.weights.npz bash training/zoo_model.sh
+ZOO_NET=graph-labels-scaled-zoo-r12-e4
 
+ROUTE='"pressing": 0.75, "rounds": 50, "max_residual": 0.3, "max_points": 300, "solver": "dual"'
+tmp=$STORE/.zoo.json.part
+printf '%s\n' "{" '  "name": "zoo",' "  \"alias_of\": \"$ZOO_NET\"," \
+    "  \"face\": {$ROUTE, \"fallback\": \"$DEFAULT\"}" "}" > "$tmp"
+mv "$tmp" $STORE/zoo.json
 tmp=$STORE/.default.json.part
 printf '%s\n' "{" '  "name": "default",' "  \"alias_of\": \"$FACE\"," \
     "  \"why\": \"$WHY\"," \
-    "  \"face\": {\"pressing\": 0.75, \"rounds\": 50, \"max_residual\": 0.3, \"max_points\": 300, \"solver\": \"dual\", \"fallback\": \"$DEFAULT\"}" \
+    "  \"face\": {$ROUTE, \"fallback\": \"zoo\"}" \
     "}" > "$tmp"
 mv "$tmp" $STORE/default.json
 # Shipped: the classifier as contact-modes, the graph model as contact-graph, and the default
 # card naming them.
 "$PY" -m training.ship "$STORE/$FACE.json" --as contact-modes --description "$MODES_LINE"
 "$PY" -m training.ship "$STORE/$DEFAULT.json" --as contact-graph --description "$GRAPH_LINE"
+"$PY" -m training.ship "$STORE/$ZOO_NET.json" --as contact-modes-zoo --description "$ZOO_MODES_LINE"
+tmp=models/.zoo.json.part
+printf '%s\n' "{" '  "name": "zoo",' '  "alias_of": "contact-modes-zoo",' \
+    "  \"description\": \"$ZOO_LINE\"," \
+    "  \"why\": \"contact-modes-zoo is $ZOO_NET of the research store ($STORE), chosen on the zoo's choosing seeds (docs/research/2026-12-06-a-zoo-of-worlds.md); rebuilt by make default-model\"," \
+    "  \"face\": {$ROUTE, \"fallback\": \"contact-graph\"}" \
+    "}" > "$tmp"
+mv "$tmp" models/zoo.json
 tmp=models/.default.json.part
 printf '%s\n' "{" '  "name": "default",' '  "alias_of": "contact-modes",' \
     "  \"description\": \"$DEFAULT_LINE\"," \
-    "  \"why\": \"contact-modes is $FACE and contact-graph $DEFAULT of the research store ($STORE); rebuilt by make default-model\"," \
-    '  "face": {"pressing": 0.75, "rounds": 50, "max_residual": 0.3, "max_points": 300, "solver": "dual", "fallback": "contact-graph"}' \
+    "  \"why\": \"contact-modes is $FACE, contact-modes-zoo $ZOO_NET and contact-graph $DEFAULT of the research store ($STORE); rebuilt by make default-model\"," \
+    "  \"face\": {$ROUTE, \"fallback\": \"zoo\"}" \
     "}" > "$tmp"
 mv "$tmp" models/default.json
 # What the default needs on the choosing seeds without the guard, recorded on its card: the server

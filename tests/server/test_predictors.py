@@ -219,9 +219,10 @@ def test_a_gated_model_serves_box2ds_warm_start_where_its_gate_says_and_its_own_
     from server.predictors import load_model
 
     shipped = Path(__file__).parents[2] / "lab" / "models"  # the research store
-    # the shipped default's network: its face fallback where the default is the face route
-    target = (ModelCard.load(shipped / "default.json").face or {}).get("fallback") \
-        or ModelCard.alias_target(shipped / "default.json")
+    # the shipped default's graph network: the end of its chain of face routes
+    target = "default"
+    while (face := ModelCard.load(shipped / f"{target}.json").face) is not None:
+        target = face["fallback"]
     for name in (f"{target}.json", f"{target}.onnx"):
         shutil.copy(shipped / name, tmp_path)
     f = len(FEATURES)  # a gate that answers the same at every step: its intercept alone decides
@@ -294,6 +295,15 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     elsewhere = load_model(tmp_path / "large-elsewhere.json").predict(bodies, points, other, 0, friction=mu)
     np.testing.assert_array_equal(elsewhere.impulses, points["builtin"])
     assert elsewhere.served_by == "builtin"
+    # The route itself answers only for the worlds its classifier was trained on; elsewhere its
+    # fallback does (here a route on a classifier that labels every world).
+    (tmp_path / "thesis-route.json").write_text(json.dumps({"name": "thesis-route", "alias_of": "thesis-only",
+        "face": {"pressing": 0.75, "rounds": 200, "fallback": "plain"}}))
+    route = load_model(tmp_path / "thesis-route.json")
+    inside = route.predict(bodies, points, world, 0, friction=mu)
+    np.testing.assert_array_equal(inside.impulses, served("plain"))
+    assert inside.served_by is None
+    assert route.predict(bodies, points, other, 0, friction=mu).served_by == "plain"
     # retry_pressing: where the first reading misses max_residual, the labels are read again at
     # each threshold in turn; the first reading that meets it is served, the fallback where none does.
     from deepcontact.faces import solved_on_labels
@@ -311,8 +321,15 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
         served("retries-without-a-gate", retry_pressing=[0.9])
     with pytest.raises(ModelCardError, match="retry_pressing"):
         served("retries-not-a-list", retry_pressing=0.9, max_residual=0.3)
-    with pytest.raises(ModelCardError, match="has a face of its own"):
-        served("chain", max_residual=0.3, fallback="plain")
+    # A fallback with a face of its own is a second route, tried in turn; a chain of routes
+    # that comes back to one of its own is refused.
+    np.testing.assert_array_equal(served("chain", max_points=len(points) - 1, fallback="plain"), served("plain"))
+    (tmp_path / "loop-a.json").write_text(json.dumps({"name": "loop-a", "alias_of": classifier,
+                                                      "face": {"pressing": 0.75, "fallback": "loop-b"}}))
+    (tmp_path / "loop-b.json").write_text(json.dumps({"name": "loop-b", "alias_of": classifier,
+                                                      "face": {"pressing": 0.75, "fallback": "loop-a"}}))
+    with pytest.raises(ModelCardError, match="in a circle"):
+        load_model(tmp_path / "loop-a.json")
     with pytest.raises(ModelCardError, match="no model card"):
         served("missing", max_residual=0.3, fallback="nowhere")
 

@@ -15,9 +15,13 @@ def test_the_served_folder_holds_the_shipped_models_only():
     files = sorted(p.name for p in SHIPPED.iterdir())
     assert len(files) <= 20
     cards = {p.stem: json.loads(p.read_text()) for p in SHIPPED.glob("*.json")}
-    assert {"default", "contact-modes", "contact-graph", "pressure"} <= set(cards)
+    assert {"default", "contact-modes", "contact-modes-zoo", "zoo", "contact-graph", "pressure"} <= set(cards)
+    # The default's route, then the zoo's route where contact-modes does not know the world or its
+    # solve misses its labels, then the graph network.
     assert cards["default"]["alias_of"] == "contact-modes"
-    assert cards["default"]["face"]["fallback"] == "contact-graph"
+    assert cards["default"]["face"]["fallback"] == "zoo"
+    assert cards["zoo"]["alias_of"] == "contact-modes-zoo"
+    assert cards["zoo"]["face"]["fallback"] == "contact-graph"
     for name, card in cards.items():
         assert card.get("description") and "\n" not in card["description"], name
 
@@ -25,6 +29,6 @@ def test_the_served_folder_holds_the_shipped_models_only():
 def test_serve_lists_each_shipped_model_with_its_line():
     with ServerProcess(SHIPPED, local_socket=True) as server, WarmStartClient(server.address) as client:
         models = {m.name: m for m in client.list_models()}
-    assert {"default", "contact-modes", "contact-graph", "pressure", "zero"} <= set(models)
+    assert {"default", "zoo", "contact-modes", "contact-modes-zoo", "contact-graph", "pressure", "zero"} <= set(models)
     assert models["default"].description.startswith("the face route")
     assert all(m.description for m in models.values())
