@@ -324,6 +324,9 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     # A fallback with a face of its own is a second route, tried in turn; a chain of routes
     # that comes back to one of its own is refused.
     np.testing.assert_array_equal(served("chain", max_points=len(points) - 1, fallback="plain"), served("plain"))
+    # Where its own route ran and missed its labels, not a second route on the same step: that
+    # route's own fallback answers (here none: Box2D's start).
+    np.testing.assert_array_equal(served("missed", max_residual=1e-12, fallback="plain"), points["builtin"])
     (tmp_path / "loop-a.json").write_text(json.dumps({"name": "loop-a", "alias_of": classifier,
                                                       "face": {"pressing": 0.75, "fallback": "loop-b"}}))
     (tmp_path / "loop-b.json").write_text(json.dumps({"name": "loop-b", "alias_of": classifier,
