@@ -21,7 +21,7 @@ all: setup
 help:
 	@echo "make test          set up on first use, then run the test suite"
 	@echo "make demo          set up on first use, then run the main job"
-	@echo "make default-model data, training and export of the default and the thesis's models (DEFAULT_ONLY=1, the default alone: about 6 h on 2 cores: its graph model 1 h 59 min with AVX-512 on 2026-11-30, 2 h 17 min with AVX2 before train-graph traced its step once, its classifier about 3 h 50 min more; GRID_ONLY=1, the grid models alone: 57 min on 2 AVX2 cores; docs/models.md)"
+	@echo "make default-model data, training and export of the default and the thesis's models (DEFAULT_ONLY=1, the default alone: about 6 h 30 min on 2 cores: its graph model 1 h 59 min with AVX-512 on 2026-11-30, 2 h 17 min with AVX2 before train-graph traced its step once, its classifier about 3 h 50 min more, the zoo's data and classifier about 20 min; GRID_ONLY=1, the grid models alone: 57 min on 2 AVX2 cores; docs/models.md)"
 	@echo "make box2d         build and install the patched pybox2d only"
 	@echo "make proto         regenerate the gRPC stubs from proto/ (committed; a test checks them)"
 	@echo "make bench-engine  engine benchmark -> bench/results/engine.json"

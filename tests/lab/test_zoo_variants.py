@@ -1,0 +1,22 @@
+"""lab.zoo_variants: the shipped models with the zoo's variants beside them, all servable."""
+
+from __future__ import annotations
+
+from lab.zoo_variants import main
+from server.predictors import load_models
+
+
+def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path):
+    out = tmp_path / "variants"
+    (out).mkdir()
+    (out / "stale.json").write_text("{}")  # a folder already there is replaced
+    assert main([str(out)]) == 0
+    served = {p.name: p for p in load_models(out)}
+    assert {"default", "zoo", "default-bf", "default-graph", "zoo-first", "zoo-bf", "zoo-always",
+            "default-first"} <= set(served)
+    assert not (out / "stale.json").exists() and not out.with_name("variants.part").exists()
+    # The default falls back to the zoo route; the variant falls back to the graph network directly.
+    assert served["default"].fallback.name == "zoo"
+    assert served["default-graph"].fallback.name == "contact-graph"
+    assert served["default-bf"].fallback is None
+    assert served["zoo-always"].settings["max_residual"] is None
