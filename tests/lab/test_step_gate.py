@@ -18,10 +18,18 @@ from deepcontact.step_gate import FEATURES
 SHIPPED = Path(__file__).parents[2] / "models"
 
 
-#: The shipped graph model that answers impulses: the default's fallback where the default
-#: solves on a classifier's labels (a face card, which a gate does not serve), else its target.
-GRAPH = (ModelCard.load(SHIPPED / "default.json").face or {}).get("fallback") \
-    or ModelCard.alias_target(SHIPPED / "default.json")
+
+
+def _graph_model() -> str:
+    """The shipped graph model that answers impulses: the end of the default's chain of face
+    routes (a face card is not what a gate serves), else the default's target."""
+    name = "default"
+    while (face := ModelCard.load(SHIPPED / f"{name}.json").face) is not None and face.get("fallback"):
+        name = face["fallback"]
+    return ModelCard.alias_target(SHIPPED / f"{name}.json") or name
+
+
+GRAPH = _graph_model()
 
 
 def _shipped_default(tmp_path: Path) -> Path:
