@@ -48,28 +48,28 @@ static void release(Py_buffer *b, int n)
 }
 
 /* admission_rounds(jp, ji, jd, rows, Lp, Li, Lx, position, c, mu, keep, rho, iterations,
- *                  tolerance, until, z) -> rounds run
+ *                  tolerance, relax, until, z) -> rounds run
  *
  * jt as CSR (indptr int32 (R + 1,), indices int32, data float64: R = 3 D rows, 2 P columns),
  * C as CSC (Lp int32 (R + 1,), Li int32, Lx float64; each column's diagonal first),
  * position int32 (R,) (row -> its place in the factor's order), c float64 (2 P,), mu and keep
- * float64 (P,), rho, iterations, tolerance, until (seconds of CLOCK_MONOTONIC, Python's
- * time.monotonic(), after which no round starts; 0: none) and z float64 (2 P,) out. R = 0: no
- * dynamic body, same_motion is the identity. */
+ * float64 (P,), rho, iterations, tolerance, relax (the over-relaxation, admission_kernels.h),
+ * until (seconds of CLOCK_MONOTONIC, Python's time.monotonic(), after which no round starts; 0:
+ * none) and z float64 (2 P,) out. R = 0: no dynamic body, same_motion is the identity. */
 static PyObject *admission_rounds(PyObject *self, PyObject *args)
 {
     Py_buffer b[11];
     Py_ssize_t rows;
-    double rho, tolerance, until;
+    double rho, tolerance, relax, until;
     long iterations;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*y*y*ny*y*y*y*y*y*y*dlddw*", &b[0], &b[1], &b[2], &rows, &b[3], &b[4], &b[5],
-                          &b[6], &b[7], &b[8], &b[9], &rho, &iterations, &tolerance, &until, &b[10]))
+    if (!PyArg_ParseTuple(args, "y*y*y*ny*y*y*y*y*y*y*dldddw*", &b[0], &b[1], &b[2], &rows, &b[3], &b[4], &b[5],
+                          &b[6], &b[7], &b[8], &b[9], &rho, &iterations, &tolerance, &relax, &until, &b[10]))
         return NULL;
     PyObject *result = NULL;
     const Py_ssize_t n2 = b[7].len / (Py_ssize_t)sizeof(double), n_points = n2 / 2;
     if (b[7].len != n2 * (Py_ssize_t)sizeof(double) || n2 % 2 || b[8].len != n_points * (Py_ssize_t)sizeof(double)
-        || b[9].len != b[8].len || b[10].len != b[7].len || rows < 0 || rows > INT32_MAX / 4
+        || b[9].len != b[8].len || b[10].len != b[7].len || !(relax > 0.0 && relax < 2.0) || rows < 0 || rows > INT32_MAX / 4
         || !valid_sparse(&b[0], &b[1], &b[2], rows, n2)
         || (rows && (!valid_sparse(&b[3], &b[4], &b[5], rows, rows)
                      || b[6].len != rows * (Py_ssize_t)sizeof(int32_t)))) {
@@ -88,7 +88,7 @@ static PyObject *admission_rounds(PyObject *self, PyObject *args)
     long rounds;
     Py_BEGIN_ALLOW_THREADS
     rounds = admission_rounds_run((int32_t)rows, n2, b[0].buf, b[1].buf, b[2].buf, &factor, position, b[7].buf,
-                                  b[8].buf, b[9].buf, rho, iterations, tolerance, until, b[10].buf);
+                                  b[8].buf, b[9].buf, rho, iterations, tolerance, relax, until, b[10].buf);
     Py_END_ALLOW_THREADS
     if (rounds < 0)
         PyErr_NoMemory();

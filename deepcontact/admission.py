@@ -52,7 +52,7 @@ def project_to_cones(impulses: np.ndarray, mu: np.ndarray) -> np.ndarray:
 def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu: np.ndarray,
                        open_points: np.ndarray | None = None, iterations: int = 1000, tolerance: float = 1e-5,
                        rho: float = 100.0, frame: ContactFrame | None = None,
-                       until: float | None = None) -> np.ndarray:
+                       until: float | None = None, relax: float = 1.0) -> np.ndarray:
     """The impulses nearest `impulses` that move the bodies as they do and that every
     point's limits admit, (P, 2) N s.
 
@@ -68,7 +68,9 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     stopping when x and z agree, and z moved, by under `tolerance` N s at every
     point. `rho` is ADMM's penalty: large, because the distance to c only picks
     among the admissible points and reaching the set is what counts (on a settled
-    pile rho = 100 converges in a few hundred rounds, rho = 1 in thousands).
+    pile rho = 100 converges in a few hundred rounds, rho = 1 in thousands). `relax` is the
+    rounds' over-relaxation (1: plain ADMM; between 1 and 2 each round's affine step is pushed
+    past its point, deepcontact/admission_kernels.h).
     Where no such impulses exist (a body held at one point whose push leaves the
     cone) it ends at the cones' point nearest the affine set. `until` (time.perf_counter() s;
     None: none) stops the rounds there, whatever they have reached (checked every 8 rounds; the
@@ -93,7 +95,7 @@ def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
     z = np.empty(2 * len(points))
     _compiled.admission_rounds(*jt, rows, *factor, position, np.ascontiguousarray(c.ravel()),
                                np.ascontiguousarray(mu, np.float64), keep, float(rho), int(iterations),
-                               float(tolerance), _monotonic(until), z)
+                               float(tolerance), float(relax), _monotonic(until), z)
     return z.reshape(-1, 2)
 
 

@@ -82,7 +82,9 @@ turn and the first reading whose solve meets it is served, the fallback only whe
 the step's factorizations are shared, so a retry costs its solve and admission rounds), close
 (default null: off; a speed in m/s: the points labelled open that the solve on the labels leaves
 closing faster than that are labelled pressing and the step solved again before the admission,
-faces.solved_on_labels).
+faces.solved_on_labels), relax (default 1: the admission's rounds plain ADMM; a number between 0
+and 2: their over-relaxation, deepcontact/admission_kernels.h, above 1 fewer rounds to the same
+answer where the rounds crawl along the cones).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -129,7 +131,8 @@ ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face", "descrip
 ALIAS_OVERRIDES = ("step_gate", "face", "description", "measured")
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
-                 "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None}
+                 "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
+                 "relax": 1.0}
 
 
 class ModelCardError(ValueError):
@@ -306,15 +309,16 @@ def _face_settings(face: Any, kind: str) -> dict:
             or out["rounds"] < 1 or any(out[k] is not None and not out[k] > 0 for k in optional) \
             or not out["damping"] >= 0 or not (fallback is None or isinstance(fallback, str) and fallback) \
             or not (most is None or isinstance(most, int) and most >= 1) or out["solver"] not in SOLVERS \
-            or not retries_ok:
-        raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, "
+            or not retries_ok or not 0 < out["relax"] < 2:
+        raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
+                             f"between 0 and 2, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
-            "retry_pressing": [float(r) for r in retries]}
+            "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"])}
 
 
 def _measured(m: Any) -> dict:

@@ -57,8 +57,9 @@ def test_the_nearest_admissible_impulses_move_the_bodies_alike_and_keep_every_li
     assert nearest_admissible(bodies, points[:0], exact[:0], mu[:0]).shape == (0, 2)
 
 
-def admission_in_numpy(bodies, points, impulses, mu, open_points, iterations, tolerance=1e-5, rho=100.0):
-    """nearest_admissible's rounds in NumPy, the reference the compiled rounds follow."""
+def admission_in_numpy(bodies, points, impulses, mu, open_points, iterations, tolerance=1e-5, rho=100.0, relax=1.0):
+    """nearest_admissible's rounds in NumPy, the reference the compiled rounds follow (relax:
+    over-relaxed ADMM, the affine step taken to relax x + (1 - relax) z)."""
     from scipy import sparse
     from scipy.sparse.linalg import factorized
 
@@ -76,24 +77,41 @@ def admission_in_numpy(bodies, points, impulses, mu, open_points, iterations, to
     for _ in range(iterations):
         x = (flat + rho * (z - scaled)) / (1.0 + rho)
         x = x - jt.T @ solve(jt @ (x - flat))  # onto J^T x = J^T c
-        previous, z = z, cones(x + scaled)
-        scaled += x - z
+        pushed = relax * x + (1.0 - relax) * z
+        previous, z = z, cones(pushed + scaled)
+        scaled += pushed - z
         if max(np.max(np.abs(x - z)), np.max(np.abs(z - previous))) < tolerance:
             break
     return z.reshape(-1, 2)
 
 
-@pytest.mark.parametrize("rounds", [1, 50, 1000])
-def test_the_compiled_admission_runs_numpys_rounds(rounds):
+@pytest.mark.parametrize("rounds, relax", [(1, 1.0), (50, 1.0), (1000, 1.0), (50, 1.6)])
+def test_the_compiled_admission_runs_numpys_rounds(rounds, relax):
     from deepcontact.admission import nearest_admissible
     from deepcontact.faces import OPEN, contact_face, solve_on_face
 
     bodies, points, exact, mu = sliding_pile()
     face = contact_face(exact, mu)
     solved = solve_on_face(bodies, points, face, mu, Physics.thesis())
-    compiled = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds)
-    reference = admission_in_numpy(bodies, points, solved, mu, face == OPEN, rounds)
+    compiled = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, relax=relax)
+    reference = admission_in_numpy(bodies, points, solved, mu, face == OPEN, rounds, relax=relax)
     np.testing.assert_allclose(compiled, reference, atol=1e-9)
+
+
+def test_over_relaxed_rounds_reach_the_same_admissible_impulses_sooner():
+    # Over-relaxation changes the path, not the problem: both end at the one nearest admissible
+    # point; pushed past each affine step, a round of rounds gets closer to it.
+    from deepcontact.admission import nearest_admissible
+    from deepcontact.faces import OPEN, contact_face, solve_on_face
+
+    bodies, points, exact, mu = sliding_pile()
+    face = contact_face(exact, mu)
+    solved = solve_on_face(bodies, points, face, mu, Physics.thesis())
+    admit = lambda rounds, relax: nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN,  # noqa: E731
+                                                     iterations=rounds, tolerance=1e-12, relax=relax)
+    converged = admit(20000, 1.0)
+    np.testing.assert_allclose(admit(20000, 1.6), converged, atol=1e-6)
+    assert np.abs(admit(30, 1.6) - converged).max() < np.abs(admit(30, 1.0) - converged).max()
 
 
 def test_the_admissions_factor_multiplies_back_to_its_gram_in_its_order():
