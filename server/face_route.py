@@ -128,16 +128,21 @@ class FaceRoutePredictor(Predictor):
         if friction is None:
             raise ValueError(f"{self.name} needs each point's friction")
         lane = self._lanes if deadline is not None else None  # a step with a budget takes a free lane or none
-        if not self.knows(bodies, points, friction, world) or not self.fits(len(points), started, deadline, slowdown) \
+        verdict = self.unfamiliar(bodies, points, friction, world)
+        if verdict is not None or not self.fits(len(points), started, deadline, slowdown) \
                 or (lane is not None and not lane.acquire(blocking=False)):
             # A world the classifier was not trained on, too large a step to solve, or to solve
             # in time, or every lane busy with another step's route: no labels asked for.
-            return self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown)
-        try:
-            return self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown)
-        finally:
-            if lane is not None:
-                lane.release()
+            answer = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown)
+        else:
+            try:
+                answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown)
+            finally:
+                if lane is not None:
+                    lane.release()
+        # The verdict goes with the answer: the reply says whether the step is familiar without
+        # judging it again (the same envelope, about 15 us a step).
+        return Prediction(answer.impulses, answer.stages, answer.served_by, verdict)
 
     def _route(self, bodies, points, world, step, previous, friction, deadline, cpu: float,
                slowdown: float = 1.0) -> Prediction:
@@ -194,7 +199,7 @@ class FaceRoutePredictor(Predictor):
         face = self.settings
         if self.compiled:
             answer = route_compiled(bodies, points, labels, friction, world.physics, face["pressing"], face["share"],
-                                    face["label_friction"], face["rounds"], deadline, prepared)
+                                    face["label_friction"], face["rounds"], deadline, prepared, face["relax"])
             if answer is not None:
                 stages["solve"] += answer.solve_seconds
                 stages["admit"] += answer.admit_seconds
@@ -218,7 +223,7 @@ class FaceRoutePredictor(Predictor):
                                           face["close"])
             t1 = time.perf_counter()
             impulses, residual = admit_solved(bodies, points, read, solved, mu, world.physics, face["rounds"], frame,
-                                              deadline)
+                                              deadline, face["relax"])
             t2 = time.perf_counter()
             stages["solve"] += t1 - t0
             stages["admit"] += t2 - t1
@@ -227,10 +232,11 @@ class FaceRoutePredictor(Predictor):
                 return impulses
         return None
 
-    def knows(self, bodies, points, friction, world) -> bool:
-        """Whether the step lies inside what the classifier was trained on (the card's
-        trained_on; a card without one labels every world)."""
-        return self.envelope is None or self.envelope.unfamiliar(bodies, points, friction, world.physics, None) is None
+    def unfamiliar(self, bodies, points, friction, world) -> str | None:
+        """Why the step lies outside what the classifier was trained on (the card's trained_on;
+        joints not judged), or None where it lies inside (and everywhere for a card without one:
+        it labels every world)."""
+        return None if self.envelope is None else self.envelope.unfamiliar(bodies, points, friction, world.physics, None)
 
     def _fallback_knows(self, bodies, points, friction, world) -> bool:
         """Whether the step lies inside the fallback card's training envelope (its trained_on;

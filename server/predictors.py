@@ -78,6 +78,10 @@ class GridMismatch(ValueError):
 STAGES = ("p2g", "features", "inference", "g2p", "solve", "admit")
 
 
+#: Prediction.unfamiliar where the predictor did not judge the step against its envelope.
+NOT_JUDGED = object()
+
+
 @dataclasses.dataclass(frozen=True)
 class Prediction:
     """A predictor's answer to one step.
@@ -87,11 +91,15 @@ class Prediction:
     served_by: None where the predictor's own answer is served; else what answered in its place,
         a fallback card's name or "builtin" (Box2D's warm start, the request's builtin impulses),
         which the service puts on the reply (Impulses.served_by).
+    unfamiliar: where the predictor judged the step against its own envelope (joints not
+        judged), Envelope.unfamiliar's verdict: None inside, else why; NOT_JUDGED elsewhere. The
+        service's reply says the same (Impulses.familiar) without judging the step again.
     """
 
     impulses: np.ndarray
     stages: dict[str, float] = dataclasses.field(default_factory=dict)
     served_by: str | None = None
+    unfamiliar: object = NOT_JUDGED
 
 
 class Predictor:

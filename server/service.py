@@ -29,7 +29,7 @@ from server.batching import QueueFull
 from server.idle import IdleStreams
 from server.joints import predict_around_joints
 from deepcontact.channels import NEEDS
-from server.predictors import MAX_GRID_NODES, GridMismatch, Prediction, Predictor, World
+from server.predictors import MAX_GRID_NODES, NOT_JUDGED, GridMismatch, Prediction, Predictor, World
 from server.rejects import reject
 
 log = logging.getLogger("deepcontact.server")
@@ -304,7 +304,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         world is familiar, the stage timings from t0 (parsing began) and t1 (decoded)."""
         reply = wire.encode_impulses(request.step, predictor.name, answer.impulses)
         if len(points):
-            unfamiliar = _unfamiliar(predictor, bodies, points, friction, joints, world)
+            unfamiliar = _unfamiliar(predictor, bodies, points, friction, joints, world, answer.unfamiliar)
             reply.familiar = unfamiliar is None
             reply.unfamiliar = unfamiliar or ""
         if answer.served_by:
@@ -352,13 +352,18 @@ NO_ENVELOPE = "the card records no trained_on"
 NO_GAIN = "the card records no measured gain over Box2D's start where it was trained"
 
 
-def _unfamiliar(predictor: Predictor, bodies, points, friction, joints, world: World) -> str | None:
+def _unfamiliar(predictor: Predictor, bodies, points, friction, joints, world: World,
+                judged=NOT_JUDGED) -> str | None:
     """Why the step is not one the predictor's card vouches for, or None where it is: inside what
-    the model was trained on (deepcontact.envelope) and measured to win there."""
+    the model was trained on (deepcontact.envelope) and measured to win there. judged: the
+    predictor's own verdict on the step against its envelope (Prediction.unfamiliar), taken as
+    it is where the step has no joints (which the predictor does not judge)."""
     if predictor.envelope is None:
         return NO_ENVELOPE
     if not predictor.wins_where_trained:
         return NO_GAIN
+    if judged is not NOT_JUDGED and joints is None:
+        return judged
     return predictor.envelope.unfamiliar(bodies, points, friction, world.physics, joints)
 
 

@@ -303,7 +303,10 @@ def test_a_face_card_falls_back_to_the_card_it_names_where_its_labels_look_wrong
     inside = route.predict(bodies, points, world, 0, friction=mu)
     np.testing.assert_array_equal(inside.impulses, served("plain"))
     assert inside.served_by is None
-    assert route.predict(bodies, points, other, 0, friction=mu).served_by == "plain"
+    outside = route.predict(bodies, points, other, 0, friction=mu)
+    assert outside.served_by == "plain"
+    # Its answer carries that verdict, for the reply to say without judging the step again.
+    assert inside.unfamiliar is None and outside.unfamiliar.startswith("dt 0.04")
     # retry_pressing: where the first reading misses max_residual, the labels are read again at
     # each threshold in turn; the first reading that meets it is served, the fallback where none does.
     from deepcontact.faces import solved_on_labels
