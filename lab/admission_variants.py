@@ -1,0 +1,50 @@
+"""A model folder with the admission's variants beside the shipped models, for pricing them on the
+same states (docs/research/2026-12-06-over-relaxed-admission.md):
+
+    python -m lab.admission_variants runs/admission-variants
+    deepcontact lab iterations --seeds 850-899 --deadline-ms 1000 --models runs/admission-variants \
+        --warm-starts builtin,price:server:default-r50-x10+server:default-r50-x15+server:default-r40-x16+...
+
+Beside models/ it writes alias cards over the shipped classifiers, each with the shipped card's
+`face` but the admission's rounds and over-relaxation changed:
+
+    default-rR-xX   the default's route, R rounds over-relaxed by X / 10 (x10: plain ADMM, as the
+                    default's route was until its 40 rounds at 1.6); for (R, X) in VARIANTS
+    zoo-r40-x16     the zoo route with the default's setting (the zoo keeps 50 plain rounds)
+
+Written to a temporary folder and renamed; an existing folder is replaced.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from lab.variants import card, write_folder
+from lab.variants import main as variants_main
+
+#: (rounds, relax x 10) of the default's route variants.
+VARIANTS = ((50, 10), (50, 15), (40, 16), (30, 15), (30, 17), (25, 18), (20, 18))
+
+
+def _fill(tmp: Path) -> None:
+    default = json.loads((tmp / "default.json").read_text())
+    zoo = json.loads((tmp / "zoo.json").read_text())
+    for rounds, relax in VARIANTS:
+        card(tmp, f"default-r{rounds}-x{relax}", alias_of=default["alias_of"],
+             face={**default["face"], "rounds": rounds, "relax": relax / 10})
+    card(tmp, "zoo-r40-x16", alias_of=zoo["alias_of"], face={**zoo["face"], "rounds": 40, "relax": 1.6})
+
+
+def build(out: Path) -> None:
+    """Write the folder the module docstring describes at `out`."""
+    write_folder(out, _fill)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return variants_main(argv, "python -m lab.admission_variants", __doc__, build)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

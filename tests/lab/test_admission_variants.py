@@ -1,0 +1,25 @@
+"""lab.admission_variants: the shipped models with the admission's variants beside them, all servable."""
+
+from __future__ import annotations
+
+from lab.admission_variants import VARIANTS, main
+from server.predictors import load_models
+
+
+def test_the_variants_folder_serves_the_shipped_models_and_each_admission_setting(tmp_path):
+    out = tmp_path / "variants"
+    out.mkdir()
+    (out / "stale.json").write_text("{}")  # a folder already there is replaced
+    assert main([str(out)]) == 0
+    served = {p.name: p for p in load_models(out)}
+    names = {f"default-r{rounds}-x{relax}" for rounds, relax in VARIANTS}
+    assert names | {"default", "zoo", "zoo-r40-x16"} <= set(served)
+    assert not (out / "stale.json").exists() and not out.with_name("variants.part").exists()
+    # Each variant is the default's route with only the admission changed: the same classifier
+    # and fallback chain, its rounds and over-relaxation as named.
+    plain = served["default-r50-x10"].settings
+    assert (plain["rounds"], plain["relax"]) == (50, 1.0)
+    assert {k: v for k, v in plain.items() if k not in ("rounds", "relax")} == \
+        {k: v for k, v in served["default"].settings.items() if k not in ("rounds", "relax")}
+    assert served["default-r50-x10"].fallback.name == "zoo"
+    assert (served["zoo-r40-x16"].settings["rounds"], served["zoo-r40-x16"].settings["relax"]) == (40, 1.6)
