@@ -3,8 +3,9 @@
     deepcontact bench walltime --sizes thesis,100,400,1600 --seeds 901-903 --out bench/results/walltime
 
 For each world size, simulates the same seeds with `builtin` and with a served
-model (`server:MODEL`, one `deepcontact serve` process started here, on loopback
-TCP or, with `--bind unix:PATH`, on a Unix socket) and times every step's parts (simclient.simulate.StepRecord):
+model (`server:MODEL`, one `deepcontact serve` process started here, on a Unix socket of its own
+as `bench iterations` starts one, or where `--bind` says: loopback TCP with `127.0.0.1:0`) and times
+every step's parts (simclient.simulate.StepRecord):
 
     builtin:     collide + solve                                 (what Box2D alone does)
     learned:     collide + export + round trip + inject + solve  (the round trip includes
@@ -67,9 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also simulate with the model called in this process, no gRPC (default on)")
     parser.add_argument("--out", type=Path, default=Path("bench/results/walltime"),
                         help="output folder (default bench/results/walltime)")
-    parser.add_argument("--bind", default="127.0.0.1:0",
-                        help="where the server started here listens (default %(default)s, a free loopback port; "
-                             "unix:PATH for a Unix socket)")
+    parser.add_argument("--bind", default="local",
+                        help="where the server started here listens: 'local' (default), a Unix socket in a "
+                             "folder of its own, what a simulation and its server on one host use; "
+                             "127.0.0.1:0 a free loopback port; unix:PATH a Unix socket there")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -178,7 +180,8 @@ def run(args: argparse.Namespace) -> int:
         print("deepcontact bench walltime: give at least one size and --steps >= 1", file=sys.stderr)
         return 2
     try:
-        server = ServerProcess(args.models, bind=args.bind).start()
+        local = args.bind == "local"
+        server = ServerProcess(args.models, local_socket=local, **({} if local else {"bind": args.bind})).start()
     except (RuntimeError, TimeoutError) as exc:
         print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
         return 2
