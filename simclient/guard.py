@@ -49,9 +49,10 @@ BUILTIN = "builtin"
 
 @dataclasses.dataclass(frozen=True)
 class GuardSettings:
-    """budget: trial sweeps per sweep of Box2D's own start that scheduled probes may spend (0.035:
-        3.5 %; the first probes and the rechecks of alarms come on top: in a quiet world, a stack
-        of twelve boxes, they brought 4 % to 5.1 % of Box2D's sweeps, which 3.5 % keeps under 5).
+    """budget: trial sweeps per sweep of Box2D's own start that scheduled probes may spend (0.03:
+        3 %; the first probes and the rechecks of alarms come on top: on Box2D's Pyramid, where
+        the learned start and Box2D's are even and probing never stops, 3.5 % came to 5.1 % of
+        Box2D's sweeps and 3 % to 4.8 %, docs/research/2026-12-06-the-guards-budget.md).
     window: the last paired probes a decision reads.
     enter, leave: the learned start is served from a paired ratio (its cost over
         Box2D's, summed over the window) at most `enter`, and left above `leave`.
@@ -86,7 +87,7 @@ class GuardSettings:
         sum and in the median probe (robust to one busy step at the solver's cap), or a full
         `window` lost by more than `leave`."""
 
-    budget: float = 0.035
+    budget: float = 0.03
     window: int = 8
     enter: float = 0.9
     leave: float = 1.2
