@@ -14,6 +14,9 @@ network of the research store (lab/models):
     zoo-bf          the zoo route with Box2D's start in place of its fallback
     zoo-always      the zoo route on every step: no max_residual, max_points 5,000
     default-first   the default falling back to zoo-first
+    zoo500          the zoo route on the zoo's recipe trained on 500 simulations of each class in
+                    place of 200 (zoo500-modes: graph-labels-scaled-zoo500-r12-e4)
+    default-zoo500  the default falling back to zoo500
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -30,15 +33,17 @@ from lab.variants import main as variants_main
 
 STORE = ROOT / "lab" / "models"
 FIRST = "graph-labels-scaled-zoo-first-r12-e4"
+WIDER = "graph-labels-scaled-zoo500-r12-e4"
 
 
 def _fill(tmp: Path) -> None:
     face = json.loads((tmp / "default.json").read_text())["face"]
     zoo_face = json.loads((tmp / "zoo.json").read_text())["face"]
-    first = json.loads((STORE / f"{FIRST}.json").read_text())
-    first.update(name="zoo-first-modes", onnx_file="zoo-first-modes.onnx", measured=None)
-    shutil.copy(STORE / f"{FIRST}.onnx", tmp / "zoo-first-modes.onnx")
-    (tmp / "zoo-first-modes.json").write_text(json.dumps(first, indent=1) + "\n")
+    for store_name, name in ((FIRST, "zoo-first-modes"), (WIDER, "zoo500-modes")):
+        network = json.loads((STORE / f"{store_name}.json").read_text())
+        network.update(name=name, onnx_file=f"{name}.onnx", measured=None)
+        shutil.copy(STORE / f"{store_name}.onnx", tmp / f"{name}.onnx")
+        (tmp / f"{name}.json").write_text(json.dumps(network, indent=1) + "\n")
     no_fallback = {k: v for k, v in face.items() if k != "fallback"}
     card(tmp, "default-bf", alias_of="contact-modes", face=no_fallback)
     card(tmp, "default-graph", alias_of="contact-modes", face={**face, "fallback": "contact-graph"})
@@ -47,6 +52,8 @@ def _fill(tmp: Path) -> None:
     card(tmp, "zoo-always", alias_of="contact-modes-zoo",
          face={**{k: v for k, v in zoo_face.items() if k != "fallback"}, "max_points": 5000, "max_residual": None})
     card(tmp, "default-first", alias_of="contact-modes", face={**face, "fallback": "zoo-first"})
+    card(tmp, "zoo500", alias_of="zoo500-modes", face=zoo_face)
+    card(tmp, "default-zoo500", alias_of="contact-modes", face={**face, "fallback": "zoo500"})
 
 
 def build(out: Path) -> None:

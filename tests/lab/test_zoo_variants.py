@@ -13,7 +13,7 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path
     assert main([str(out)]) == 0
     served = {p.name: p for p in load_models(out)}
     assert {"default", "zoo", "default-bf", "default-graph", "zoo-first", "zoo-bf", "zoo-always",
-            "default-first"} <= set(served)
+            "default-first", "zoo500", "default-zoo500"} <= set(served)
     assert not (out / "stale.json").exists() and not out.with_name("variants.part").exists()
     # The default falls back to the zoo route; the variant falls back to the graph network directly.
     assert served["default"].fallback.name == "zoo"
