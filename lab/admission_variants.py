@@ -1,5 +1,6 @@
-"""A model folder with the admission's variants beside the shipped models, for pricing them on the
-same states (docs/research/2026-12-06-over-relaxed-admission.md):
+"""A model folder with the default's route variants (its admission, its classifier's mirror image)
+beside the shipped models, for pricing them on the same states
+(docs/research/2026-12-06-over-relaxed-admission.md):
 
     python -m lab.admission_variants runs/admission-variants
     deepcontact lab iterations --seeds 850-899 --deadline-ms 1000 --models runs/admission-variants \
@@ -11,6 +12,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-rR-xX   the default's route, R rounds over-relaxed by X / 10 (x10: plain ADMM, as the
                     default's route was until its 40 rounds at 1.6); for (R, X) in VARIANTS
     zoo-r40-x16     the zoo route with the default's setting (the zoo keeps 50 plain rounds)
+    default-mirror  the default's route as shipped on its classifier served with its mirror image
+                    (modes-mirror: graph-face-fr-r12-e15-mirror of the research store, with
+                    contact-modes' trained_on and measured), as until 2026-12-06
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -18,14 +22,17 @@ Written to a temporary folder and renamed; an existing folder is replaced.
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
-from lab.variants import card, write_folder
+from lab.variants import ROOT, card, write_folder
 from lab.variants import main as variants_main
 
 #: (rounds, relax x 10) of the default's route variants.
 VARIANTS = ((50, 10), (50, 15), (40, 16), (30, 15), (30, 17), (25, 18), (20, 18))
+#: The default's classifier with its mirror image, in the research store.
+MIRROR = "graph-face-fr-r12-e15-mirror"
 
 
 def _fill(tmp: Path) -> None:
@@ -35,6 +42,13 @@ def _fill(tmp: Path) -> None:
         card(tmp, f"default-r{rounds}-x{relax}", alias_of=default["alias_of"],
              face={**default["face"], "rounds": rounds, "relax": relax / 10})
     card(tmp, "zoo-r40-x16", alias_of=zoo["alias_of"], face={**zoo["face"], "rounds": 40, "relax": 1.6})
+    modes = json.loads((tmp / "contact-modes.json").read_text())
+    mirror = json.loads((ROOT / "lab" / "models" / f"{MIRROR}.json").read_text())
+    mirror.update(name="modes-mirror", onnx_file="modes-mirror.onnx", trained_on=modes.get("trained_on"),
+                  measured=modes.get("measured"))
+    shutil.copy(ROOT / "lab" / "models" / f"{MIRROR}.onnx", tmp / "modes-mirror.onnx")
+    (tmp / "modes-mirror.json").write_text(json.dumps(mirror, indent=1) + "\n")
+    card(tmp, "default-mirror", alias_of="modes-mirror", face=default["face"], measured=default.get("measured"))
 
 
 def build(out: Path) -> None:

@@ -23,3 +23,7 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
         {k: v for k, v in served["default"].settings.items() if k not in ("rounds", "relax")}
     assert served["default-r50-x10"].fallback.name == "zoo"
     assert (served["zoo-r40-x16"].settings["rounds"], served["zoo-r40-x16"].settings["relax"]) == (40, 1.6)
+    # The mirrored classifier under the default's route, trusted where contact-modes is.
+    assert served["default-mirror"].settings == served["default"].settings
+    assert served["default-mirror"].envelope == served["default"].envelope
+    assert served["default-mirror"].wins_where_trained
