@@ -102,6 +102,15 @@ iterations over Builtin's, "interval": [low, high] its 95 % bootstrap interval o
 inside trained_on and the whole interval lies below 1: a model trained on a world but not
 measured to win there (the thesis's Pressure CNN) is held to Box2D's start like any other.
 
+`mirror` (graph models; in a full card or an alias card, which then serves its target so;
+default false) serves the network with its mirror image: it answers the step and the step
+reflected left to right (x -> -x, each channel times its sign under the reflection,
+deepcontact.channels Channel.mirror), and the mean of its answer and the reflected answer
+reflected back is served, as `python -m training.ensemble --mirror` builds into one ONNX graph.
+The worlds are symmetric under the reflection and the networks are not built to be; the mean
+errs less than either half. The server runs the two halves as two calls, the reflected one on
+a spare core where it has one (server.mirror_image.MirroredGraphPredictor).
+
 `step_gate` (graph models with combine "residual"; in a full card or an alias card, which
 then serves its target gated) holds a per-step gate (deepcontact.step_gate.StepGate.to_dict):
 at a step where it predicts that the model's warm start loses to Box2D's, the server serves
@@ -126,9 +135,9 @@ from deepcontact.step_gate import StepGate
 
 CARD_VERSION = 1
 COMBINE = ("replace", "residual", "new-points", "persisting", "moving")
-ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face", "description", "measured"})
+ALIAS_KEYS = frozenset({"name", "alias_of", "why", "step_gate", "face", "mirror", "description", "measured"})
 #: What an alias card may set for the card it names (the rest is the target's).
-ALIAS_OVERRIDES = ("step_gate", "face", "description", "measured")
+ALIAS_OVERRIDES = ("step_gate", "face", "mirror", "description", "measured")
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
@@ -173,6 +182,7 @@ class ModelCard:
     passes: int = 1  # graph "residual" models: the network run this many times, each from the last one's warm start
     step_gate: dict | None = None  # graph "residual" models: Box2D's warm start served at the steps it picks (see above)
     face: dict | None = None  # graph models: the step solved on the answer read as labels (see above)
+    mirror: bool = False  # graph models: served with the network's mirror image (see above)
     parameters: int = 0
     architecture: dict = dataclasses.field(default_factory=dict)
     training: dict = dataclasses.field(default_factory=dict)  # scene, seeds, epochs, ...
@@ -235,6 +245,11 @@ class ModelCard:
                 raise ModelCardError(f"model card step_gate: {exc}") from None
         if d.get("face") is not None:
             d["face"] = _face_settings(d["face"], d["kind"])
+        mirror = d.get("mirror", False)
+        if not isinstance(mirror, bool):
+            raise ModelCardError(f"model card mirror {mirror!r}: true or false")
+        if mirror and d["kind"] != "graph":
+            raise ModelCardError("model card mirror: only a graph model is served with its mirror image")
         if d.get("trained_on") is not None:
             try:
                 d["trained_on"] = Envelope.from_dict(d["trained_on"]).to_dict()
@@ -261,7 +276,7 @@ class ModelCard:
             unknown = set(data) - ALIAS_KEYS
             if unknown or not isinstance(data.get("name"), str) or not isinstance(data["alias_of"], str):
                 raise ModelCardError(f"{path}: an alias card holds a name and alias_of (strings) and "
-                                     f"optionally why, description, step_gate, face and measured; got keys "
+                                     f"optionally why, description, step_gate, face, mirror and measured; got keys "
                                      f"{sorted(data)}")
             target_path = path.with_name(f"{data['alias_of']}.json")
             target = _read_card(target_path)

@@ -15,6 +15,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-mirror  the default's route as shipped on its classifier served with its mirror image
                     (modes-mirror: graph-face-fr-r12-e15-mirror of the research store, with
                     contact-modes' trained_on and measured), as until 2026-12-06
+    default-mirrored the same answers (to float32 rounding) from the shipped classifier with the
+                    card's `mirror`: the reflected half as a second call on the spare core
+                    (server.mirror_image), where default-mirror runs both in one
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -49,6 +52,8 @@ def _fill(tmp: Path) -> None:
     shutil.copy(ROOT / "lab" / "models" / f"{MIRROR}.onnx", tmp / "modes-mirror.onnx")
     (tmp / "modes-mirror.json").write_text(json.dumps(mirror, indent=1) + "\n")
     card(tmp, "default-mirror", alias_of="modes-mirror", face=default["face"], measured=default.get("measured"))
+    card(tmp, "default-mirrored", alias_of=default["alias_of"], face=default["face"], mirror=True,
+         measured=default.get("measured"))
 
 
 def build(out: Path) -> None:

@@ -5,7 +5,10 @@ whole by server.predictors.load_model from three parts:
 
     classifier  a GraphPredictor trained on the recorded solve's labels (`train-graph
                 --targets face`): about 1 N s along the normal where a point presses, +-1 N s
-                along the tangent where it slides
+                along the tangent where it slides; with the card's `mirror`, a
+                server.mirror_image.MirroredGraphPredictor, whose reflected half runs on the
+                spare core beside the step's (the plain network's half alone on a busy server
+                or a host of one core)
     fallback    the predictor of the card its face names (`fallback`), served where the route
                 is not and the step lies inside the fallback's training envelope (its card's
                 trained_on); elsewhere, or None: Box2D's warm start, the request's builtin impulses.
@@ -32,7 +35,8 @@ after the deadline), and the fallback answers where no reading meets it. Its Pre
 stages:
 
     features   the classifier's point channels
-    inference  the classifier's network
+    inference  the classifier's network (with a mirrored classifier also the route's geometry,
+               built here while the reflected half runs on the spare core)
     solve      its output read as labels (denormalized, combined) and the step solved on them
     admit      the admission into the cones and the labels' residual (and a step gate's verdict)
 
@@ -54,6 +58,7 @@ from deepcontact.kinematics import contact_frame
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
 from server.deadline import CostBySize
+from server.mirror_image import MirroredGraphPredictor
 from server.predictors import Domain, GraphPredictor, Prediction, Predictor
 
 #: What the route reads beyond its classifier's inputs: it solves the step's contact problem,
@@ -150,11 +155,21 @@ class FaceRoutePredictor(Predictor):
         the step began."""
         # The route's geometry (the frame, the admission's factorization) does not depend on the
         # labels: on a server with a core to spare it is built there while the classifier runs.
-        ahead = None
-        if self.compiled and self._helper is not None and slowdown <= 1.0 and len(points) >= AHEAD_POINTS:
+        ahead, mirror, prepared = None, {}, None
+        free = self._helper is not None and slowdown <= 1.0
+        if isinstance(self.classifier, MirroredGraphPredictor):
+            # The reflected half on the spare core while the step's half runs here, and the
+            # geometry here after it, filling the wait. Without a free core the step's half
+            # alone: in turn the reflection would add the network's time again to the step.
+            later = _Later(prepare_route, bodies, points, world.physics) if self.compiled and free else None
+            mirror = {"spare": self._helper, "reflected": free, "meanwhile": later}
+        elif self.compiled and free and len(points) >= AHEAD_POINTS:
             ahead = self._helper.submit(prepare_route, bodies, points, world.physics)
-        labels = self.classifier.predict(bodies, points, world, step, previous, friction=friction)
-        prepared = ahead.result() if ahead is not None else None
+        labels = self.classifier.predict(bodies, points, world, step, previous, friction=friction, **mirror)
+        if ahead is not None:
+            prepared = ahead.result()
+        elif mirror.get("meanwhile") is not None:
+            prepared = mirror["meanwhile"].value
         stages = {"features": labels.stages["features"], "inference": labels.stages["inference"],
                   "solve": labels.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
         impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared)
@@ -271,3 +286,13 @@ class FaceRoutePredictor(Predictor):
         self.fallback_cost.observe(len(points), time.thread_time() - cpu)
         # A route's own fallback, where it answered, is named rather than the route.
         return Prediction(answer.impulses, answer.stages, answer.served_by or self.fallback.name)
+
+
+class _Later:
+    """fn(*args), run when called (by whoever has the time), its value kept: None until then."""
+
+    def __init__(self, fn, *args):
+        self.fn, self.args, self.value = fn, args, None
+
+    def __call__(self) -> None:
+        self.value = self.fn(*self.args)

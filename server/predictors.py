@@ -362,6 +362,10 @@ class GraphPredictor(Predictor):
         verdict), each summed over the card's passes. friction: (P,) each point's friction
         coefficient, which a network reading the friction channel needs (the request's
         point_friction)."""
+        return self._predict(bodies, points, world, step, previous, friction, self.infer)
+
+    def _predict(self, bodies, points, world, step, previous, friction, infer) -> Prediction:
+        """predict's answer with `infer` (as run_session) answering the network's part."""
         t0 = time.perf_counter()
         if len(points) == 0:
             return Prediction(np.zeros((0, 2), np.float32))
@@ -383,7 +387,7 @@ class GraphPredictor(Predictor):
             x -= self.in_mean
             x /= self.in_std
             t1 = time.perf_counter()
-            y = self.infer(x, ends, dynamic, *physics)
+            y = infer(x, ends, dynamic, *physics)
             t2 = time.perf_counter()
             out = y * self.out_std + self.out_mean
             impulses = combine(self.card.combine, out, warm["builtin"], self.card.correction_scale,
@@ -548,7 +552,8 @@ def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: i
                inter_op_threads: int = 1, max_grid_nodes: int = MAX_GRID_NODES,
                _routes: tuple[str, ...] = ()) -> Predictor:
     """The predictor of one card (`card`: the card at `path`, when already read): a
-    ModelPredictor for a grid model, a GraphPredictor for kind "graph", and for a graph card
+    ModelPredictor for a grid model, a GraphPredictor for kind "graph" (a
+    server.mirror_image.MirroredGraphPredictor where the card says mirror), and for a graph card
     with `face` a server.face_route.FaceRoutePredictor, built with its classifier (a
     GraphPredictor of the card's network) and its fallback card's predictor (a route of its
     own where that card has a face).
@@ -563,7 +568,10 @@ def load_model(path: Path, card: ModelCard | None = None, *, intra_op_threads: i
     onnx_path = card.onnx_path(path)
     if not onnx_path.is_file():
         raise ModelCardError(f"{path}: names {card.onnx_file}, which is not in {path.parent}")
-    cls = GraphPredictor if card.kind == "graph" else ModelPredictor
+    if card.kind == "graph" and card.mirror:
+        from server.mirror_image import MirroredGraphPredictor as cls
+    else:
+        cls = GraphPredictor if card.kind == "graph" else ModelPredictor
     # A face card's network is its classifier: the card without the route (and without a gate,
     # which judges the route's answer, not the labels).
     network = card if card.face is None else dataclasses.replace(card, face=None, step_gate=None)

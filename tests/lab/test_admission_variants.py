@@ -27,3 +27,8 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     assert served["default-mirror"].settings == served["default"].settings
     assert served["default-mirror"].envelope == served["default"].envelope
     assert served["default-mirror"].wins_where_trained
+    # The same mirror image as two calls, the reflected one on the spare core.
+    from server.mirror_image import MirroredGraphPredictor
+
+    assert isinstance(served["default-mirrored"].classifier, MirroredGraphPredictor)
+    assert served["default-mirrored"].settings == served["default"].settings
