@@ -1,4 +1,5 @@
-"""A model folder with the default's route variants (its admission, its classifier's mirror image)
+"""A model folder with the default's route variants (its admission, its classifier's mirror image,
+its classifier trained on reflected steps)
 beside the shipped models, for pricing them on the same states
 (docs/research/2026-12-06-over-relaxed-admission.md):
 
@@ -18,6 +19,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-mirrored the same answers (to float32 rounding) from the shipped classifier with the
                     card's `mirror`: the reflected half as a second call on the spare core
                     (server.mirror_image), where default-mirror runs both in one
+    default-aug     the default's route as shipped on its classifier trained two more epochs with
+                    half the steps reflected (modes-aug: graph-face-fr-r12-e15-aug of the
+                    research store, with contact-modes' trained_on and measured)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -34,8 +38,8 @@ from lab.variants import main as variants_main
 
 #: (rounds, relax x 10) of the default's route variants.
 VARIANTS = ((50, 10), (50, 15), (40, 16), (30, 15), (30, 17), (25, 18), (20, 18))
-#: The default's classifier with its mirror image, in the research store.
-MIRROR = "graph-face-fr-r12-e15-mirror"
+#: The default's classifier with its mirror image, and trained on reflected steps, in the research store.
+MIRROR, AUGMENTED = "graph-face-fr-r12-e15-mirror", "graph-face-fr-r12-e15-aug"
 
 
 def _fill(tmp: Path) -> None:
@@ -46,12 +50,14 @@ def _fill(tmp: Path) -> None:
              face={**default["face"], "rounds": rounds, "relax": relax / 10})
     card(tmp, "zoo-r40-x16", alias_of=zoo["alias_of"], face={**zoo["face"], "rounds": 40, "relax": 1.6})
     modes = json.loads((tmp / "contact-modes.json").read_text())
-    mirror = json.loads((ROOT / "lab" / "models" / f"{MIRROR}.json").read_text())
-    mirror.update(name="modes-mirror", onnx_file="modes-mirror.onnx", trained_on=modes.get("trained_on"),
-                  measured=modes.get("measured"))
-    shutil.copy(ROOT / "lab" / "models" / f"{MIRROR}.onnx", tmp / "modes-mirror.onnx")
-    (tmp / "modes-mirror.json").write_text(json.dumps(mirror, indent=1) + "\n")
+    for store_name, name in ((MIRROR, "modes-mirror"), (AUGMENTED, "modes-aug")):
+        network = json.loads((ROOT / "lab" / "models" / f"{store_name}.json").read_text())
+        network.update(name=name, onnx_file=f"{name}.onnx", trained_on=modes.get("trained_on"),
+                       measured=modes.get("measured"))
+        shutil.copy(ROOT / "lab" / "models" / f"{store_name}.onnx", tmp / f"{name}.onnx")
+        (tmp / f"{name}.json").write_text(json.dumps(network, indent=1) + "\n")
     card(tmp, "default-mirror", alias_of="modes-mirror", face=default["face"], measured=default.get("measured"))
+    card(tmp, "default-aug", alias_of="modes-aug", face=default["face"], measured=default.get("measured"))
     card(tmp, "default-mirrored", alias_of=default["alias_of"], face=default["face"], mirror=True,
          measured=default.get("measured"))
 

@@ -32,3 +32,6 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
 
     assert isinstance(served["default-mirrored"].classifier, MirroredGraphPredictor)
     assert served["default-mirrored"].settings == served["default"].settings
+    # The classifier trained on reflected steps under the default's route.
+    assert served["default-aug"].settings == served["default"].settings
+    assert served["default-aug"].classifier.card.onnx_file == "modes-aug.onnx"
