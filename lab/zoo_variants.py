@@ -17,6 +17,9 @@ network of the research store (lab/models):
     zoo500          the zoo route on the zoo's recipe trained on 500 simulations of each class in
                     place of 200 (zoo500-modes: graph-labels-scaled-zoo500-r12-e4)
     default-zoo500  the default falling back to zoo500
+    zoo-unchecked   the zoo route without against_builtin: its answer served without comparing it
+                    with Box2D's start, as until 2026-12-06
+    default-unchecked the default falling back to zoo-unchecked
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -54,6 +57,8 @@ def _fill(tmp: Path) -> None:
     card(tmp, "default-first", alias_of="contact-modes", face={**face, "fallback": "zoo-first"})
     card(tmp, "zoo500", alias_of="zoo500-modes", face=zoo_face)
     card(tmp, "default-zoo500", alias_of="contact-modes", face={**face, "fallback": "zoo500"})
+    card(tmp, "zoo-unchecked", alias_of="contact-modes-zoo", face={**zoo_face, "against_builtin": False})
+    card(tmp, "default-unchecked", alias_of="contact-modes", face={**face, "fallback": "zoo-unchecked"})
 
 
 def build(out: Path) -> None:

@@ -31,14 +31,17 @@ answer is read as labels, the step solved on them (deepcontact.faces.read_and_so
 result admitted (deepcontact.faces.admit_solved, admission.nearest_admissible's rounds, none
 begun after the deadline); where the admitted solve misses its labels by more than
 max_residual, the labels are read again at each of retry_pressing's thresholds (none begun
-after the deadline), and the fallback answers where no reading meets it. Its Prediction's
-stages:
+after the deadline), and the fallback answers where no reading meets it. With the card's
+against_builtin, an answer that one projected Jacobi step would change more than it would change
+Box2D's warm start (deepcontact.kinematics.jacobi_change) is not served: Box2D's is
+("builtin"). Its Prediction's stages:
 
     features   the classifier's point channels
     inference  the classifier's network (with a mirrored classifier also the route's geometry,
                built here while the reflected half runs on the spare core)
     solve      its output read as labels (denormalized, combined) and the step solved on them
-    admit      the admission into the cones and the labels' residual (and a step gate's verdict)
+    admit      the admission into the cones and the labels' residual (and a step gate's verdict,
+               and with against_builtin the comparison with Box2D's start)
 
 Where the fallback answers, its own stages are added in and `served_by` names it ("builtin"
 for Box2D's warm start).
@@ -54,7 +57,7 @@ import time
 import numpy as np
 
 from deepcontact.faces import admit_solved, prepare_route, read_and_solve, route_compiled
-from deepcontact.kinematics import contact_frame
+from deepcontact.kinematics import contact_frame, effective_masses, jacobi_change
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
 from server.deadline import CostBySize
@@ -174,6 +177,11 @@ class FaceRoutePredictor(Predictor):
                   "solve": labels.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
         impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared)
         served_by = None
+        if impulses is not None and self.settings["against_builtin"]:
+            t0 = time.perf_counter()
+            if not self._beats_builtin(bodies, points, impulses, friction, world):
+                impulses, served_by = points["builtin"].copy(), BUILTIN
+            stages["admit"] += time.perf_counter() - t0
         if impulses is None:  # labels the limits would not let the solve meet
             # Not a second route after this one: on the thesis world it would double a fifth of
             # the steps' cost (round trip p99 5.5 ms against 2.3) for 0.7 % of the iterations.
@@ -189,6 +197,19 @@ class FaceRoutePredictor(Predictor):
                 impulses = points["builtin"].copy()  # Box2D's own warm start: the gate expects the route to lose here
             stages["admit"] += time.perf_counter() - t0
         return Prediction(np.asarray(impulses).astype(np.float32, copy=False), stages, served_by)
+
+    @staticmethod
+    def _beats_builtin(bodies, points, impulses, friction, world) -> bool:
+        """Whether one projected Jacobi step from the route's answer ((P, 2) N s) would change the
+        impulses less than one from Box2D's warm start (the request's builtin): the card's
+        against_builtin. On worlds the classifier was not trained on, labels it reads as right
+        can still leave the solver further from its end than Box2D's start, which at rest is
+        nearly there (at a time step of 1/30 s the zoo route alone cost 1.42x Builtin's
+        iterations on Builtin's states of 850-854; checked so, 0.97x)."""
+        masses = effective_masses(bodies, points)
+        mu = np.asarray(friction, np.float64)
+        route = jacobi_change(bodies, points, impulses, mu, world.physics, masses)
+        return route < jacobi_change(bodies, points, points["builtin"], mu, world.physics, masses)
 
     def fits(self, n_points: int, now: float, deadline: float | None, slowdown: float = 1.0) -> bool:
         """Whether the route serves a step of n_points points begun at `now`: not past the

@@ -29,6 +29,25 @@ def test_the_oracles_impulses_leave_no_normal_velocity_at_touching_points():
     assert after[:, 0].min() > -1e-4  # nothing left approaching
 
 
+def test_one_jacobi_step_from_the_oracles_impulses_changes_next_to_nothing():
+    # The converged solution is a fixed point of each point's projected update, so one Jacobi
+    # step from it changes nothing beyond the oracle's tolerance; from no warm start, or from
+    # Box2D's, the same step changes the loaded points by whole impulses.
+    from deepcontact.kinematics import effective_masses, jacobi_change
+
+    engine = settled_world(SceneSpec.thesis(), 901, 200)
+    engine.collide()
+    bodies, points, exact = engine.bodies(), engine.contacts(), engine.oracle()
+    mu = np.full(len(points), 0.5)
+    masses = effective_masses(bodies, points)
+    at_solution = jacobi_change(bodies, points, exact, mu, Physics.thesis(), masses)
+    from_zero = jacobi_change(bodies, points, np.zeros((len(points), 2)), mu, Physics.thesis())
+    from_builtin = jacobi_change(bodies, points, points["builtin"], mu, Physics.thesis(), masses)
+    assert at_solution < 1e-4 < 0.1 < from_zero
+    assert at_solution < from_builtin
+    assert jacobi_change(bodies, points[:0], np.zeros((0, 2)), mu[:0]) == 0.0
+
+
 def test_no_points_and_bad_body_indices():
     engine = settled_world(SceneSpec.thesis(), 901, 1)
     engine.collide()

@@ -543,6 +543,31 @@ def test_a_face_routes_step_reports_its_features_inference_solve_and_admission(t
     assert set(answer.stages) == {"features", "inference", "solve", "admit", "g2p"}
 
 
+def test_a_route_against_builtin_serves_its_answer_only_where_it_beats_box2ds_start(tmp_path, thesis_steps):
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = thesis_world(world_msg)
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5, np.float32)
+    checked = load_model(face_card(tmp_path, "checked", classifier, against_builtin=True))
+    plain = load_model(face_card(tmp_path, "plain", classifier))
+    assert checked.settings["against_builtin"] and not plain.settings["against_builtin"]
+    # Box2D's start where the solver ended (the recorded final impulses): nothing beats it.
+    solved = points.copy()
+    solved["builtin"] = points["impulse"]
+    answer = checked.predict(bodies, solved, world, 0, friction=mu)
+    assert answer.served_by == "builtin" and "admit" in answer.stages
+    np.testing.assert_array_equal(answer.impulses, solved["builtin"])
+    # No warm start at all: the route's answer beats it, and is the unchecked route's.
+    cold = points.copy()
+    cold["builtin"] = 0.0
+    answer = checked.predict(bodies, cold, world, 0, friction=mu)
+    assert answer.served_by is None
+    np.testing.assert_array_equal(answer.impulses, plain.predict(bodies, cold, world, 0, friction=mu).impulses)
+
+
 def test_a_step_declined_whole_for_its_joints_is_served_box2ds_start_by_builtin(thesis_steps):
     from server.joints import ALL_JOINTED, predict_around_joints
     from server.predictors import ConstantPredictor, Prediction
