@@ -1,7 +1,7 @@
 """A served model called in the simulation's own process: the server's work on a step
 without gRPC, the request's encoding or the reply's decoding.
 
-    provider = InProcess.load(Path("models"), "default", spec)   # spec: simclient.scene.SceneSpec
+    provider = InProcess.load(Path("models"), "default", spec)   # a SceneSpec or a user's WorldSpec
     run_simulation(spec, seed, provider)                          # no server, no client
 
 The simulation serves every step with the same predictor the server would load for
@@ -27,15 +27,16 @@ import numpy as np
 from deepcontact import wire
 from deepcontact.modelcard import unknown_model
 from server.predictors import Predictor, World, load_model
+from simclient import worlds
 from simclient.provider import Provider, as_warm_start, point_friction
-from simclient.scene import SceneSpec
 
 
 class InProcess(Provider):
     """The predictor of one model card, asked in process at every step with points."""
 
-    def __init__(self, predictor: Predictor, world: World):
-        self.predictor, self.world = predictor, world
+    def __init__(self, predictor: Predictor, spec):
+        self.predictor, self.spec = predictor, spec
+        self.world: World | None = None  # as the simulation's stream would declare it, set in prepare
         self.name = f"in-process:{predictor.name}"
         self._points: np.ndarray | None = None  # the last step with points: temporal channels' previous
         #: per step with points, the predictor's stage times (s), named as in the server's
@@ -43,21 +44,24 @@ class InProcess(Provider):
         self.stages: list[dict[str, float]] = []
 
     @classmethod
-    def load(cls, models: Path, model: str, spec: SceneSpec) -> "InProcess":
-        """The card `models/MODEL.json` (an alias card serves its target) for the world of `spec`.
-        FileNotFoundError names the models there when there is no such card."""
+    def load(cls, models: Path, model: str, spec) -> "InProcess":
+        """The card `models/MODEL.json` (an alias card serves its target) for the worlds of `spec`
+        (a simclient.scene.SceneSpec or a user's simclient.worlds.WorldSpec). FileNotFoundError
+        names the models there when there is no such card."""
         path = Path(models) / f"{model}.json"
         if not path.exists():
             raise FileNotFoundError(f"{models}: {unknown_model(model, [p.stem for p in Path(models).glob('*.json')])}")
-        # The world as a stream declares it: the wire carries the step's time and gravity as
-        # float32, and the server's channels see them so.
-        declared = wire.encode_world(*spec.domain, spec.walls(), spec.physics)
-        lower, upper, _edges = wire.decode_world(declared)
-        return cls(load_model(path), World((lower, upper), wire.decode_physics(declared)))
+        return cls(load_model(path), spec)
 
     def prepare(self, engine) -> None:
         super().prepare(engine)
         self._points, self.stages = None, []
+        # The world as this simulation's stream declares it (a user's world is read from the
+        # engine): the wire carries the step's time and gravity as float32, and the server's
+        # channels see them so.
+        declared = worlds.world_message(self.spec, engine)
+        lower, upper, _edges = wire.decode_world(declared)
+        self.world = World((tuple(map(float, lower)), tuple(map(float, upper))), wire.decode_physics(declared))
         self.predictor.warm_up(self.world.domain)  # as the server does when a stream declares its world
 
     def warm_start(self, engine, bodies: np.ndarray, points: np.ndarray, step: int):

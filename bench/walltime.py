@@ -1,8 +1,10 @@
 """`deepcontact bench walltime`: does a learned warm start make the whole step faster?
 
     deepcontact bench walltime --sizes thesis,100,400,1600 --seeds 901-903 --out bench/results/walltime
+    deepcontact bench walltime --world bench/stack_wall.py:build --tolerance 1e-6 --out bench/results/wall
 
-For each world size, simulates the same seeds with `builtin` and with a served
+For each world size (or a user's world, `--world`, built as `bench iterations` builds one;
+`--tolerance`, `--max-iterations` and `--dt` set the solver for every world), simulates the same seeds with `builtin` and with a served
 model (`server:MODEL`, one `deepcontact serve` process started here, on a Unix socket of its own
 as `bench iterations` starts one, or where `--bind` says: loopback TCP with `127.0.0.1:0`) and times
 every step's parts (simclient.simulate.StepRecord):
@@ -13,7 +15,8 @@ every step's parts (simclient.simulate.StepRecord):
     in-process:  collide + export + predict + inject + solve     (the same model called in
                                                                   this process, bench.inprocess)
 
-over steps with contacts (medians over all seeds' steps, ms). The break-even
+over steps with contacts (medians over all seeds' steps, ms; the whole step also as its mean,
+and the learned mean over Builtin's, the ratio a user's simulation would see). The break-even
 is what the learned warm start costs per step beyond Box2D's own work
 (export + round trip + inject, median) divided by what one velocity
 iteration costs at that size (median over builtin's steps of solve time /
@@ -49,15 +52,27 @@ import numpy as np
 from bench.figures import save_figure
 from deepcontact.io import write_json_atomic
 from simclient import seeds as seed_ranges
+from simclient import worlds
+from simclient.engine import Box2D, SolverConfig
 from simclient.scene import SceneSpec
+from simclient.worlds import WorldSpec
 
 FAMILY_RADIUS = (0.3, 0.55)
 FAMILY_FRICTION = (0.2, 0.8)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", default="thesis,100,400,1600",
+    parser.add_argument("--sizes", default=None,
                         help="worlds: 'thesis' and/or body counts of the scene family (default thesis,100,400,1600)")
+    parser.add_argument("--world", metavar="PATH.py:FUNCTION",
+                        help="a world of your own instead of --sizes: FUNCTION(seed) in PATH.py (or MODULE:FUNCTION) "
+                             "returns a patched Box2D.b2World (docs/worlds.md)")
+    parser.add_argument("--tolerance", type=float, metavar="NS",
+                        help="the solver stops after the first sweep whose largest impulse change is at most this "
+                             "(N s; default 1e-4)")
+    parser.add_argument("--max-iterations", type=int, metavar="N",
+                        help="the solver's cap on velocity iterations a step (default 1000)")
+    parser.add_argument("--dt", type=float, metavar="S", help="time step in s (default 0.01)")
     parser.add_argument("--seeds", default="901-903", help="benchmark seeds per size (default 901-903)")
     parser.add_argument("--model", default="default", help="served model (default default, the shipped alias)")
     parser.add_argument("--models", type=Path, default=Path("models"), help="model folder (default models/)")
@@ -75,10 +90,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def scene_for(size: str, steps: int) -> SceneSpec:
+def scene_for(size: str, steps: int, solver: SolverConfig = SolverConfig()) -> SceneSpec:
     """The world of one size: 'thesis' or a body count of the scene family (ValueError otherwise)."""
     if size == "thesis":
-        return dataclasses.replace(SceneSpec.thesis(), steps=steps)
+        return dataclasses.replace(SceneSpec.thesis(), steps=steps, solver=solver)
     try:
         n = int(size)
     except ValueError:
@@ -87,7 +102,39 @@ def scene_for(size: str, steps: int) -> SceneSpec:
         raise ValueError(f"size {size!r}: at least one body")
     side = round(15.0 * math.sqrt(n / 100.0), 2)
     return SceneSpec(name=f"family-{n}", bodies=n, box_size=(side, side), radius=FAMILY_RADIUS,
-                     friction=FAMILY_FRICTION, steps=steps)
+                     friction=FAMILY_FRICTION, steps=steps, solver=solver)
+
+
+def specs_from_args(args: argparse.Namespace) -> list:
+    """The worlds to time: each of --sizes (SceneSpecs), or the user's --world (a WorldSpec),
+    every one with the solver's settings the flags give. ValueError, in one line, if none fits."""
+    overrides = {k: v for k, v in (("velocity_threshold", args.tolerance), ("velocity_iterations", args.max_iterations),
+                                   ("dt", args.dt)) if v is not None}
+    if not all(math.isfinite(v) and v > 0 for v in overrides.values()) or overrides.get("velocity_iterations", 1) < 1:
+        raise ValueError(f"--tolerance and --dt must be > 0 and --max-iterations >= 1, got "
+                         f"{args.tolerance}, {args.dt} and {args.max_iterations}")
+    if args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    solver = dataclasses.replace(SolverConfig(), **overrides)
+    if args.world is not None:
+        if args.sizes is not None:
+            raise ValueError("give --sizes (the project's worlds) or --world (your own), not both")
+        spec = WorldSpec(args.world, steps=args.steps, solver=solver)
+        spec.validate()
+        return [spec]
+    specs = [scene_for(s.strip(), args.steps, solver) for s in (args.sizes or "thesis,100,400,1600").split(",")
+             if s.strip()]
+    if not specs:
+        raise ValueError("give at least one size")
+    for spec in specs:
+        spec.validate()
+    return specs
+
+
+def dynamic_bodies(spec, seed: int) -> int:
+    """How many dynamic bodies the world of (spec, seed) starts with: a user's world's size."""
+    engine = worlds.build(spec, seed)
+    return sum(body.type == Box2D.b2_dynamicBody for body in engine.world.bodies)
 
 
 def step_times(run: dict, learned: bool) -> dict[str, np.ndarray]:
@@ -150,6 +197,7 @@ def summarize_size(builtin: list[dict], learned: list[dict], in_process: list[di
         own = float(np.median(p["overhead_ms"]))
         row["in_process"] = {
             "step_ms": float(np.median(p["step_ms"])), "solve_ms": float(np.median(p["solve_ms"])),
+            "mean_step_ms": float(p["step_ms"].mean()),
             "predict_ms": float(np.median(p["provider_ms"])), "overhead_ms": own,
             "mean_iterations": float(p["velocity_iterations"].mean()),
             "break_even_iterations": own / per_iteration if per_iteration > 0 else None,
@@ -170,14 +218,12 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         seeds = seed_ranges.parse_seeds(args.seeds)
-        specs = [scene_for(s.strip(), args.steps) for s in args.sizes.split(",") if s.strip()]
-        for spec in specs:
-            spec.validate()
+        specs = specs_from_args(args)
+        # A user's world that cannot be built for a seed: said now, before a server starts.
+        bodies = {spec.name: dynamic_bodies(spec, seeds[0]) if isinstance(spec, WorldSpec) else spec.bodies
+                  for spec in specs}
     except ValueError as exc:
         print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
-        return 2
-    if not specs or args.steps < 1:
-        print("deepcontact bench walltime: give at least one size and --steps >= 1", file=sys.stderr)
         return 2
     try:
         local = args.bind == "local"
@@ -198,15 +244,17 @@ def run(args: argparse.Namespace) -> int:
         bar = tqdm(total=arms * len(specs) * len(seeds), unit="sim", disable=args.quiet, file=sys.stderr)
         for spec in specs:
             runs = _simulate_size(spec, seeds, server.address, args, bar.update)
-            rows[spec.name] = {"bodies": spec.bodies, "box_size": list(spec.box_size), **summarize_size(**runs)}
+            rows[spec.name] = {"bodies": bodies[spec.name],
+                               "box_size": list(spec.box_size) if isinstance(spec, SceneSpec) else None,
+                               **summarize_size(**runs)}
         bar.close()
     finally:
         server.stop()
     args.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.out / "walltime.json", {
         "command": "deepcontact " + " ".join(sys.argv[1:]), "model": args.model, "bind": args.bind, "seeds": seeds,
-        "sizes": rows})
-    table = markdown_table(rows, args.model, seeds)
+        "solver": dataclasses.asdict(specs[0].solver), "sizes": rows})
+    table = markdown_table(rows, args.model, seeds, specs[0].solver)
     tmp = args.out / ".walltime.md.part"
     tmp.write_text(table)
     tmp.replace(args.out / "walltime.md")
@@ -246,13 +294,18 @@ def _simulate_size(spec, seeds: list[int], address: str, args: argparse.Namespac
     return runs
 
 
-def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
-    lines = [f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} per size); medians over steps with contacts, ms. "
+def markdown_table(rows: dict, model: str, seeds: list[int], solver: SolverConfig = SolverConfig()) -> str:
+    """The table `bench walltime` prints: per world, the medians of a step's parts, the whole
+    step's mean over steps with contacts as a ratio to Builtin's, and the break-even."""
+    lines = [f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} per world); steps of {solver.dt:g} s solved to "
+             f"{solver.velocity_threshold:g} N s, at most {solver.velocity_iterations} velocity iterations; "
+             f"medians over steps with contacts, ms, but for the means of the whole step and their ratio. "
              f"Learned: server:{model}.",
              "",
              "| world | bodies | points | builtin step | builtin solve | learned step | learned solve | round trip "
-             "| first round trip | overhead | ms / iteration | break-even iterations | saved iterations | fallbacks |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| first round trip | overhead | ms / iteration | break-even iterations | saved iterations | fallbacks "
+             "| mean step, builtin / learned | **learned / builtin** |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in rows.items():
         b, m = r["builtin"], r["learned"]
         be = "–" if r["break_even_iterations"] is None else f"{r['break_even_iterations']:.0f}"
@@ -260,15 +313,16 @@ def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
                      f"{b['solve_ms']:.2f} | {m['step_ms']:.2f} | {m['solve_ms']:.2f} | {m['round_trip_ms']:.2f} | "
                      f"{m['first_round_trip_ms']:.2f} | "
                      f"{m['overhead_ms']:.2f} | {r['ms_per_iteration']:.4f} | {be} | {r['saved_iterations']:.0f} | "
-                     f"{m['fallback_steps']} |")
+                     f"{m['fallback_steps']} | {b['mean_step_ms']:.2f} / {m['mean_step_ms']:.2f} | "
+                     f"**{m['mean_step_ms'] / b['mean_step_ms']:.2f}** |")
     local = {name: r["in_process"] for name, r in rows.items() if "in_process" in r}
     if local:
         lines += ["", f"The same model called in this process (in-process:{model}, bench.inprocess): no gRPC, "
                       "no encoding or decoding.", "",
                   "| world | builtin step | in-process step | predict | p2g (graph: features) | inference "
                   "| g2p (graph: combination; face route: solve, admit) | overhead | served inference "
-                  "| served overhead | break-even iterations | saved iterations |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| served overhead | break-even iterations | saved iterations | in-process / builtin (mean step) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for name, p in local.items():
             r = rows[name]
             be = "–" if p["break_even_iterations"] is None else f"{p['break_even_iterations']:.0f}"
@@ -276,7 +330,7 @@ def markdown_table(rows: dict, model: str, seeds: list[int]) -> str:
             lines.append(f"| {name} | {r['builtin']['step_ms']:.2f} | {p['step_ms']:.2f} | {p['predict_ms']:.2f} | "
                          f"{stages} | {p['overhead_ms']:.2f} | {_ms(r['learned']['server_inference_ms'])} | "
                          f"{r['learned']['overhead_ms']:.2f} | {be} | "
-                         f"{p['saved_iterations']:.0f} |")
+                         f"{p['saved_iterations']:.0f} | {p['mean_step_ms'] / r['builtin']['mean_step_ms']:.2f} |")
     return "\n".join(lines) + "\n"
 
 

@@ -65,3 +65,48 @@ def test_bench_walltime_serves_over_a_unix_socket_when_told_to(tmp_path, model_d
                  "--models", str(model_dir), "--model", "tiny", "--bind", bind, "--out", str(tmp_path), "--quiet"]) == 0
     result = json.loads((tmp_path / "walltime.json").read_text())
     assert result["bind"] == bind and result["sizes"]["thesis"]["learned"]["round_trip_ms"] > 0
+
+
+def test_bench_walltime_times_a_users_world_at_the_tolerance_it_is_given(tmp_path, model_dir):
+    out = tmp_path / "out"
+    assert main(["bench", "walltime", "--world", "examples/stack.py:build", "--tolerance", "1e-6",
+                 "--max-iterations", "2000", "--seeds", "901", "--steps", "40", "--models", str(model_dir),
+                 "--model", "tiny", "--out", str(out), "--quiet"]) == 0
+    result = json.loads((out / "walltime.json").read_text())
+    assert result["solver"]["velocity_threshold"] == 1e-6 and result["solver"]["velocity_iterations"] == 2000
+    row = result["sizes"]["examples/stack.py:build"]
+    assert row["bodies"] == 12 and row["box_size"] is None  # read off the world the function builds
+    assert row["learned"]["fallback_steps"] == 0 and row["in_process"]["mean_iterations"] > 0
+    # The ratio a user's simulation sees: the whole step's mean, learned over Builtin's.
+    table = (out / "walltime.md").read_text()
+    ratio = row["learned"]["mean_step_ms"] / row["builtin"]["mean_step_ms"]
+    assert f"**{ratio:.2f}** |" in table and "solved to 1e-06 N s, at most 2000 velocity iterations" in table
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--world", "nowhere.py:build"], "there is no file nowhere.py"),
+    (["--world", "examples/stack.py:missing"], "has no function 'missing'"),
+    (["--world", "examples/stack.py:build", "--sizes", "thesis"], "not both"),
+    (["--tolerance", "0"], "--tolerance and --dt must be > 0"),
+    (["--max-iterations", "0"], "--max-iterations >= 1"),
+])
+def test_bench_walltime_refuses_a_world_it_cannot_build_in_one_line_and_writes_nothing(tmp_path, model_dir, capsys,
+                                                                                      flags, message):
+    out = tmp_path / "out"
+    assert main(["bench", "walltime", *flags, "--seeds", "901", "--models", str(model_dir), "--model", "tiny",
+                 "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+def test_the_wall_of_stacks_stands_at_two_points_a_box():
+    from bench.stack_wall import BOXES, COLUMNS, build
+    from simclient.engine import Engine, SolverConfig
+
+    engine = Engine(build(901), SolverConfig())
+    points = [engine.step().contact_points for _ in range(40)]
+    assert engine.world.bodyCount == 1 + COLUMNS * BOXES
+    # Every box on a face: the ten columns stand (until they fall asleep, column by column, and
+    # their points leave the solve).
+    assert points[-1] == 2 * COLUMNS * BOXES
