@@ -164,10 +164,17 @@ fail:
     return -1;
 }
 
+/* How many times face_dual_solve grows its ridge, and by how much each time, where the factor
+ * meets a pivot below zero: see faces.DUAL_RIDGE. */
+#define FACE_DUAL_RIDGE_TRIES 2
+#define FACE_DUAL_RIDGE_GROWTH 100.0
+
 /* minimum_norm_solve's dual solve on S's nonzeros (deepcontact/_faces.c documents it). S as
- * CSR (sp (m + 1,), si, sx; checked), rhs (m,), ridge (relative to S S^T's mean diagonal),
- * refinements, optimality, x (m,) out. Returns 0 (x written), 1 (S S^T not positive definite
- * to rounding), 2 (x is not a least-squares answer) or -1 (memory). */
+ * CSR (sp (m + 1,), si, sx; checked), rhs (m,), ridge (relative to S S^T's mean diagonal; grown
+ * FACE_DUAL_RIDGE_GROWTH times, up to FACE_DUAL_RIDGE_TRIES times, while the factor meets a
+ * pivot below zero), refinements, optimality, x (m,) out. Returns 0 (x written), 1 (S S^T not
+ * positive definite to rounding at the largest ridge), 2 (x is not a least-squares answer) or
+ * -1 (memory). */
 static int face_dual_solve(int64_t m, const int32_t *sp, const int32_t *si, const double *sx, const double *rhs,
                            double ridge, int refinements, double optimality, double *x)
 {
@@ -205,6 +212,10 @@ static int face_dual_solve(int64_t m, const int32_t *sp, const int32_t *si, cons
         || spchol_permute_upper((int32_t)m, gp, gi, gx, order, inverse, up, ui, ux) != 0)
         goto out;
     int factored = spchol_factor((int32_t)m, up, ui, ux, ridge * scale, 0.0, &factor);
+    for (int tries = 0; factored > 0 && tries < FACE_DUAL_RIDGE_TRIES; tries++) {
+        ridge *= FACE_DUAL_RIDGE_GROWTH;
+        factored = spchol_factor((int32_t)m, up, ui, ux, ridge * scale, 0.0, &factor);
+    }
     if (factored != 0) {
         status = factored > 0 ? 1 : -1;
         goto out;

@@ -239,7 +239,13 @@ def _least_squares(sparse: SparseSystem, rhs: np.ndarray, damping: float, solver
 #: values that a face's system resolves, far above what S S^T's rounding leaves in its null
 #: space. A face's system has a clean gap between the two: on the thesis world's largest steps
 #: (seed 903, the default's labels) its singular values are above about 1e-6 of the largest or
-#: below 1e-12, the right-hand side nowhere in the latter (`deepcontact lab face-solve`).
+#: below 1e-12, the right-hand side nowhere in the latter (`deepcontact lab face-solve`). Where
+#: the factor still meets a pivot below zero, the compiled solve grows the ridge a hundredfold,
+#: at most twice (to 1e-11; face_kernels.h): a pile held at far more points than its bodies have
+#: freedoms leaves rounding's pivots larger. On a pyramid of boxes, two points to each face on
+#: a face, S is of rank 170 at 358 unknowns, its singular values below 2e-16 of the largest or
+#: above 4e-3, and the least ridge met a pivot below zero on every step of 100 points and more
+#: (docs/research/2026-12-06-redundant-piles.md).
 DUAL_RIDGE = 1e-15
 #: minimum_norm_solve's rounds of iterative refinement on S S^T y = b, each from the ridged
 #: factor: squaring S squares its condition (1e12 where a singular value is 1e-6 of the
@@ -267,8 +273,8 @@ def minimum_norm_solve(system: np.ndarray | SparseSystem, rhs: np.ndarray) -> np
     S is about 3 % full and S S^T under 10 %, so its sparse Cholesky factor in a reverse
     Cuthill-McKee order holds a fifth to a tenth of a dense factor's entries): about 0.28 ms at
     the thesis world's largest steps (300 unknowns), where LAPACK's dense Cholesky of S S^T took
-    0.45-0.66 ms and gelsy three to four times that. Where rounding leaves a pivot below zero,
-    the dense factorization with gesv's LU. None where the answer is not a least-squares
+    0.45-0.66 ms and gelsy three to four times that. Where rounding leaves a pivot below zero
+    at the largest ridge (DUAL_RIDGE), the dense factorization with gesv's LU. None where the answer is not a least-squares
     solution to DUAL_OPTIMALITY (a wrong face's inconsistent system, whose residual the ridge
     would blow up through y): the caller solves it otherwise.
     """

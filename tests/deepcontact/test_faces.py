@@ -270,3 +270,30 @@ def test_the_sparse_dual_solve_agrees_with_the_dense_one_on_a_piles_faces():
     rhs = -velocity[rows]
     reference = np.linalg.pinv(dense, rcond=1e-10) @ rhs
     np.testing.assert_allclose(faces.minimum_norm_solve(sparse, rhs), reference, atol=1e-10 * np.abs(reference).max())
+
+
+def test_the_dual_solve_meets_a_pyramid_of_boxes_whose_system_is_half_redundant():
+    """A pile of boxes held at two points to each face on a face: the face system's rank is
+    about half its unknowns, and rounding leaves S S^T's null-space pivots below the least
+    ridge. The compiled solve grows its ridge there and still gives the pseudo-inverse's
+    answer, and the route on the solution's own labels serves the solution: one sweep."""
+    from deepcontact import faces
+    from deepcontact.faces import DUAL_OPTIMALITY, DUAL_REFINEMENTS, DUAL_RIDGE, contact_face, face_system_sparse
+    from deepcontact.kinematics import contact_frame
+    from tests.deepcontact.piles import pyramid_of_boxes
+
+    bodies, points, exact, mu = pyramid_of_boxes()
+    face = contact_face(exact, mu, pressing=1e-6, share=0.99)
+    sparse, rows, _ = face_system_sparse(contact_frame(bodies, points), face, mu)
+    dense = sparse.dense()
+    rank = np.linalg.matrix_rank(dense, tol=1e-10 * np.linalg.norm(dense, 2))
+    assert sparse.m > 300 and rank < 0.7 * sparse.m
+    rhs = -contact_velocities(bodies, points, physics=Physics.thesis()).ravel()[rows]
+    x = np.empty(sparse.m)
+    status = faces._compiled.dual_solve(sparse.indptr, sparse.indices, sparse.data, rhs, DUAL_RIDGE,
+                                        DUAL_REFINEMENTS, DUAL_OPTIMALITY, x)
+    assert status == 0  # solved compiled, not by the dense LU
+    reference = np.linalg.pinv(dense, rcond=1e-10) @ rhs
+    np.testing.assert_allclose(x, reference, atol=1e-8 * np.abs(reference).max())
+    served = faces.route_compiled(bodies, points, exact, mu, Physics.thesis(), pressing=1e-6, share=0.99, rounds=40)
+    assert served is not None and served.residual < 0.01  # the cards serve up to 0.3
