@@ -29,6 +29,7 @@ from deepcontact.modelcard import unknown_model
 from server.predictors import Predictor, World, load_model
 from simclient import worlds
 from simclient.provider import Provider, as_warm_start, point_friction
+from simclient.scene import SceneSpec
 
 
 class InProcess(Provider):
@@ -36,7 +37,9 @@ class InProcess(Provider):
 
     def __init__(self, predictor: Predictor, spec):
         self.predictor, self.spec = predictor, spec
-        self.world: World | None = None  # as the simulation's stream would declare it, set in prepare
+        # As the simulation's stream would declare it: a project scene's now, a user's world's
+        # when prepare reads it off the engine.
+        self.world: World | None = declared_world(spec, None) if isinstance(spec, SceneSpec) else None
         self.name = f"in-process:{predictor.name}"
         self._points: np.ndarray | None = None  # the last step with points: temporal channels' previous
         #: per step with points, the predictor's stage times (s), named as in the server's
@@ -56,12 +59,7 @@ class InProcess(Provider):
     def prepare(self, engine) -> None:
         super().prepare(engine)
         self._points, self.stages = None, []
-        # The world as this simulation's stream declares it (a user's world is read from the
-        # engine): the wire carries the step's time and gravity as float32, and the server's
-        # channels see them so.
-        declared = worlds.world_message(self.spec, engine)
-        lower, upper, _edges = wire.decode_world(declared)
-        self.world = World((tuple(map(float, lower)), tuple(map(float, upper))), wire.decode_physics(declared))
+        self.world = declared_world(self.spec, engine)
         self.predictor.warm_up(self.world.domain)  # as the server does when a stream declares its world
 
     def warm_start(self, engine, bodies: np.ndarray, points: np.ndarray, step: int):
@@ -75,3 +73,12 @@ class InProcess(Provider):
         self._points = points
         self.stages.append(answer.stages)
         return as_warm_start(answer.impulses)
+
+
+def declared_world(spec, engine) -> World:
+    """The World a stream declares for (spec, engine) as the server decodes it: a project
+    scene's from its spec, a user's world's read off its engine (simclient.worlds.world_message).
+    The wire carries the step's time and gravity as float32, and the server's channels see them so."""
+    declared = worlds.world_message(spec, engine)
+    lower, upper, _edges = wire.decode_world(declared)
+    return World((tuple(map(float, lower)), tuple(map(float, upper))), wire.decode_physics(declared))
