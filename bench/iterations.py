@@ -350,14 +350,27 @@ def _seed_mean(run: dict) -> float | None:
     return float(its.mean()) if len(its) else None
 
 
+def _every_step(run: dict) -> np.ndarray:
+    """(steps,) velocity iterations of every step of one simulation, with contacts or not (a
+    step whose bodies are all asleep solves nothing: 0)."""
+    return np.asarray(run["per_step"]["velocity_iterations"], np.int64)
+
+
 def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]]:
-    """{warm start: {"mean"|"median"|"p90": Ratio}}: each warm start's statistic over
-    Builtin's on the same seeds, with the paired bootstrap interval over seeds
-    (bench.stats); empty without a builtin run."""
+    """{warm start: {"mean"|"median"|"p90"|"every_step": Ratio}}: each warm start's statistic
+    over Builtin's on the same seeds, with the paired bootstrap interval over seeds
+    (bench.stats); empty without a builtin run. The first three are over the steps with
+    contacts (the thesis's measure); every_step is the mean over every step of the runs, the
+    solver's whole work: with Box2D's sleeping on, a run whose bodies fall asleep sooner has
+    fewer steps with contacts, its costly settling steps a larger share of them, and the two
+    measures part (a pile of polygons that slept at step 100 where Builtin's never did: 2.29x
+    Builtin's mean over the steps with contacts for 0.96x of its iterations in all)."""
     if "builtin" not in runs:
         return {}
     reference = [_iterations(r) for r in runs["builtin"]]
-    return {name: {stat: ratio_interval([_iterations(r) for r in rs], reference, stat) for stat in STATS}
+    every = [_every_step(r) for r in runs["builtin"]]
+    return {name: {**{stat: ratio_interval([_iterations(r) for r in rs], reference, stat) for stat in STATS},
+                   "every_step": ratio_interval([_every_step(r) for r in rs], every, "mean")}
             for name, rs in runs.items()}
 
 
@@ -503,12 +516,13 @@ def markdown_table(summaries: dict, seeds: list[int], scene: str, ratios: dict |
         seed_text = f"seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds)"
     else:
         seed_text = f"seeds {', '.join(map(str, seeds))} ({len(seeds)} worlds)"
-    lines = [f"Scene `{scene}`, {seed_text}; velocity iterations over steps with contacts. "
+    lines = [f"Scene `{scene}`, {seed_text}; velocity iterations over steps with contacts (the last column: "
+             "over every step, the solver's whole work, which parts from it where bodies fall asleep). "
              "Ratios to builtin with their 95 % bootstrap interval over seeds; ✓: the whole interval lies below 1.",
              "",
              "| warm start | mean | / builtin | median | median / builtin | p90 | p90 / builtin | MSE normal "
-             "| MSE tangent | p50 latency ms | p99 latency ms | fallbacks |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| MSE tangent | p50 latency ms | p99 latency ms | fallbacks | every step / builtin |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def f(x, fmt):
         return "–" if x is None else format(x, fmt)
@@ -524,7 +538,7 @@ def markdown_table(summaries: dict, seeds: list[int], scene: str, ratios: dict |
                      f"{f(s['median_velocity_iterations'], '.0f')} | {r(name, 'median')} | "
                      f"{f(s['p90_velocity_iterations'], '.0f')} | {r(name, 'p90')} | "
                      f"{f(s['mse_normal'], '.3g')} | {f(s['mse_tangent'], '.3g')} | {f(s['p50_latency_ms'], '.2f')} | "
-                     f"{f(s['p99_latency_ms'], '.2f')} | {s['fallback_steps']} |")
+                     f"{f(s['p99_latency_ms'], '.2f')} | {s['fallback_steps']} | {r(name, 'every_step')} |")
     if not any(s["steps_with_contacts"] for s in summaries.values()):
         lines += ["", "No steps with contacts: nothing to warm-start, nothing to compare."]
     return "\n".join(lines) + "\n"

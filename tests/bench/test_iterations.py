@@ -58,6 +58,21 @@ def test_ratios_to_builtin_come_with_their_interval_over_seeds(tmp_path):
     assert "[" in row and "✓" in row
 
 
+def test_a_run_that_falls_asleep_sooner_is_judged_on_every_step_too():
+    """Sleeping parts the two measures: a run whose bodies sleep after its costly settling step
+    has one step with contacts, and its mean there is high, though it solved less in all."""
+    from bench.iterations import ratios_to_builtin
+
+    def run(iterations, points):
+        return {"per_step": {"velocity_iterations": iterations, "contact_points": points}}
+
+    builtin = [run([100, 2, 2, 2], [30, 30, 30, 30]), run([80, 2, 2, 2], [30, 30, 30, 30])]
+    asleep = [run([100, 0, 0, 0], [30, 0, 0, 0]), run([80, 0, 0, 0], [30, 0, 0, 0])]
+    ratios = ratios_to_builtin({"builtin": builtin, "server:model": asleep})["server:model"]
+    assert ratios["mean"].value == pytest.approx(180 / (192 / 4))  # 3.75x over the steps with contacts
+    assert ratios["every_step"].value == pytest.approx(180 / 192)  # 0.94x of the solver's work
+
+
 def test_every_series_of_a_figure_has_its_own_look_and_baselines_stay_grey():
     from bench.iterations import series_styles
 
