@@ -87,7 +87,10 @@ and 2: their over-relaxation, deepcontact/admission_kernels.h, above 1 fewer rou
 answer where the rounds crawl along the cones), against_builtin (default false; true: the route's
 answer is served only where one projected Jacobi step from it would change the impulses less than
 one from Box2D's warm start, kinematics.jacobi_change, and Box2D's elsewhere: a check that needs
-no trust in the labels, for a route on worlds its classifier may not know).
+no trust in the labels, for a route on worlds its classifier may not know), rescale (default
+false; true: a step denser, or with a larger or smaller gravity times time step, than the
+classifier's `trained_on` is labelled scaled into it, deepcontact.envelope.Envelope.rescaled, and
+solved in its own units; the reply's familiar verdict stays the unscaled step's).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -144,7 +147,7 @@ ALIAS_OVERRIDES = ("step_gate", "face", "mirror", "description", "measured")
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
-                 "relax": 1.0, "against_builtin": False}
+                 "relax": 1.0, "against_builtin": False, "rescale": False}
 
 
 class ModelCardError(ValueError):
@@ -317,7 +320,7 @@ def _face_settings(face: Any, kind: str) -> dict:
     out = {**FACE_DEFAULTS, **face}
     optional = ("label_friction", "max_residual", "close")
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
-                  for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin")
+                  for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale")
                   and not (k in optional + ("max_points",) and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -327,18 +330,19 @@ def _face_settings(face: Any, kind: str) -> dict:
             or out["rounds"] < 1 or any(out[k] is not None and not out[k] > 0 for k in optional) \
             or not out["damping"] >= 0 or not (fallback is None or isinstance(fallback, str) and fallback) \
             or not (most is None or isinstance(most, int) and most >= 1) or out["solver"] not in SOLVERS \
-            or not retries_ok or not 0 < out["relax"] < 2 or not isinstance(out["against_builtin"], bool):
+            or not retries_ok or not 0 < out["relax"] < 2 or not isinstance(out["against_builtin"], bool) \
+            or not isinstance(out["rescale"], bool):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
                              f"between 0 and 2, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin "
-                             f"true or false, got {face!r}")
+                             f"and rescale true or false, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]),
-            "against_builtin": out["against_builtin"]}
+            "against_builtin": out["against_builtin"], "rescale": out["rescale"]}
 
 
 def _measured(m: Any) -> dict:

@@ -62,7 +62,7 @@ from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
 from server.deadline import CostBySize
 from server.mirror_image import MirroredGraphPredictor
-from server.predictors import Domain, GraphPredictor, Prediction, Predictor
+from server.predictors import Domain, GraphPredictor, Prediction, Predictor, World
 
 #: What the route reads beyond its classifier's inputs: it solves the step's contact problem,
 #: so the bodies' inertia, the step's physics, each point's friction, and Box2D's warm start
@@ -137,14 +137,24 @@ class FaceRoutePredictor(Predictor):
             raise ValueError(f"{self.name} needs each point's friction")
         lane = self._lanes if deadline is not None else None  # a step with a budget takes a free lane or none
         verdict = self.unfamiliar(bodies, points, friction, world)
-        if verdict is not None or not self.fits(len(points), started, deadline, slowdown) \
+        scaled = None
+        if verdict is not None and self.settings["rescale"] and self.envelope is not None:
+            # The step read at the scale the classifier was trained at: familiar there, it is
+            # labelled so and solved in its own units (the reply still says it is unfamiliar).
+            b, p, prev, physics, factors = self.envelope.rescaled(bodies, points, previous, world.physics)
+            if factors != (1.0, 1.0):
+                scaled_world = World(world.domain, physics)
+                if self.unfamiliar(b, p, friction, scaled_world) is None:
+                    scaled = (b, p, prev, scaled_world)
+        if (verdict is not None and scaled is None) or not self.fits(len(points), started, deadline, slowdown) \
                 or (lane is not None and not lane.acquire(blocking=False)):
             # A world the classifier was not trained on, too large a step to solve, or to solve
             # in time, or every lane busy with another step's route: no labels asked for.
             answer = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown)
         else:
             try:
-                answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown)
+                answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown,
+                                     scaled)
             finally:
                 if lane is not None:
                     lane.release()
@@ -153,9 +163,10 @@ class FaceRoutePredictor(Predictor):
         return Prediction(answer.impulses, answer.stages, answer.served_by, verdict)
 
     def _route(self, bodies, points, world, step, previous, friction, deadline, cpu: float,
-               slowdown: float = 1.0) -> Prediction:
+               slowdown: float = 1.0, scaled=None) -> Prediction:
         """predict's answer along the route (module docstring); cpu: the thread's CPU time when
-        the step began."""
+        the step began; scaled: (bodies, points, previous, world) the classifier reads instead
+        (the card's rescale), or None."""
         # The route's geometry (the frame, the admission's factorization) does not depend on the
         # labels: on a server with a core to spare it is built there while the classifier runs.
         ahead, mirror, prepared = None, {}, None
@@ -168,7 +179,8 @@ class FaceRoutePredictor(Predictor):
             mirror = {"spare": self._helper, "reflected": free, "meanwhile": later}
         elif self.compiled and free and len(points) >= AHEAD_POINTS:
             ahead = self._helper.submit(prepare_route, bodies, points, world.physics)
-        labels = self.classifier.predict(bodies, points, world, step, previous, friction=friction, **mirror)
+        asked = scaled if scaled is not None else (bodies, points, previous, world)
+        labels = self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction, **mirror)
         if ahead is not None:
             prepared = ahead.result()
         elif mirror.get("meanwhile") is not None:
@@ -177,7 +189,9 @@ class FaceRoutePredictor(Predictor):
                   "solve": labels.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
         impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared)
         served_by = None
-        if impulses is not None and self.settings["against_builtin"]:
+        # A step read at another scale than its own is one the classifier was not trained on:
+        # checked as the card's against_builtin checks every step.
+        if impulses is not None and (self.settings["against_builtin"] or scaled is not None):
             t0 = time.perf_counter()
             if not self._beats_builtin(bodies, points, impulses, friction, world):
                 impulses, served_by = points["builtin"].copy(), BUILTIN

@@ -90,3 +90,25 @@ def test_what_is_not_an_envelope_is_refused_in_one_line():
         Envelope.from_dict({"radius": [0.6, 0.5]})
     with pytest.raises(ValueError):
         Envelope.from_scenes([])
+
+
+def test_a_step_is_rescaled_into_the_density_and_pull_its_envelope_holds_and_left_alone_inside_it():
+    from tests.deepcontact.piles import sliding_pile
+
+    bodies, points, _, _ = sliding_pile()
+    thesis = Physics.thesis()
+    envelope = Envelope()  # the thesis world: density 1, 9.8 m/s^2, 0.01 s
+    same = envelope.rescaled(bodies, points, None, thesis)
+    assert same[0] is bodies and same[1] is points and same[4] == (1.0, 1.0)
+    heavy = bodies.copy()
+    heavy["mass"] *= 4
+    heavy["inertia"] *= 4
+    strong = Physics(thesis.dt, (0.0, -19.6))  # twice the pull: g dt twice the trained
+    b, p, _, physics, (km, kv) = envelope.rescaled(heavy, points, None, strong)
+    assert km == pytest.approx(4, rel=1e-5) and kv == pytest.approx(2, rel=1e-5)
+    np.testing.assert_allclose(b["mass"], bodies["mass"], rtol=1e-6)
+    np.testing.assert_allclose(b["velocity"], bodies["velocity"] / 2, rtol=1e-6)
+    np.testing.assert_allclose(p["builtin"], points["builtin"] / 8, rtol=1e-6)
+    assert physics.dt == pytest.approx(0.01) and physics.gravity[1] == pytest.approx(-9.8)
+    assert envelope.unfamiliar(heavy, points, None, strong, None) is not None
+    assert envelope.unfamiliar(b, p, None, physics, None) is None

@@ -582,3 +582,38 @@ def test_a_step_declined_whole_for_its_joints_is_served_box2ds_start_by_builtin(
     free = predict_around_joints(ConstantPredictor("bad", 50.0, 50.0), bodies, points, chain[:1],
                                  thesis_world(world_msg), 0)
     assert free.served_by is None and (free.impulses == 50.0).any()
+
+
+def test_a_route_that_rescales_labels_a_denser_step_as_the_step_it_scales_and_solves_it_in_its_own_units(
+        tmp_path, thesis_steps):
+    """Ten times the density is the same contact problem with every mass and impulse ten times
+    larger: a card with rescale labels it as the thesis step it scales, and its answer is that
+    step's ten times over; the reply still calls the step unfamiliar."""
+    import json
+
+    from deepcontact.envelope import Envelope
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    card = json.loads((tmp_path / f"{classifier}.json").read_text())
+    card.update(name="thesis-only", trained_on=Envelope().to_dict())
+    (tmp_path / "thesis-only.json").write_text(json.dumps(card))
+    world_msg, steps = thesis_steps
+    world = thesis_world(world_msg)
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5, np.float32)
+    dense_bodies, dense_points = bodies.copy(), points.copy()
+    dense_bodies["mass"] *= 10
+    dense_bodies["inertia"] *= 10
+    dense_points["builtin"] *= 10
+    rescaled = load_model(face_card(tmp_path, "rescaled", "thesis-only", rescale=True))
+    checked = load_model(face_card(tmp_path, "checked", "thesis-only", against_builtin=True))
+    at_scale = checked.predict(bodies, points, world, 0, friction=mu)
+    dense = rescaled.predict(dense_bodies, dense_points, world, 0, friction=mu)
+    assert dense.unfamiliar is not None and "density" in dense.unfamiliar
+    assert dense.served_by == at_scale.served_by
+    np.testing.assert_allclose(dense.impulses, 10 * at_scale.impulses, rtol=1e-3, atol=1e-4)
+    # Without rescale the route declines the denser step: Box2D's start (no fallback here).
+    plain = load_model(face_card(tmp_path, "plain", "thesis-only")).predict(dense_bodies, dense_points, world, 0,
+                                                                            friction=mu)
+    assert plain.served_by == "builtin"
