@@ -193,21 +193,25 @@ class Envelope:
 
     # -- a step brought inside ---------------------------------------------------
     def rescaled(self, bodies: np.ndarray, points: np.ndarray, previous: np.ndarray | None, physics):
-        """(bodies, points, previous, physics, (km, kv)): the step with its scale brought inside the
-        envelope's density and its gravity times time step, or the same objects and (1, 1) where
-        they lie inside already.
+        """(bodies, points, previous, physics, (kl, km, kv)): the step with its scale brought inside
+        the envelope's radius, density and gravity times time step, or the same objects and
+        (1, 1, 1) where they lie inside already.
 
         A step's contact problem keeps its solution's labels (which points let go, stick, slide)
-        under two scalings: every mass and impulse times one factor (a denser world), and every
-        velocity, g dt and impulse times another (a stronger pull or a longer step: the one step's
-        problem, M dv = J^T lambda + M g dt with its cones and complementarity, is homogeneous in
-        (v, g dt, lambda)). So a classifier trained at one scale can be asked about a step at
-        another, scaled to its own: km = the touched discs' median density over the nearest
-        density trained on (masses and inertias divided by it, impulses too), kv = |g| dt over the
-        nearest gravity and time step trained on (velocities divided by it, impulses too; the
-        physics becomes those). Exact for density; for gravity and the time step the motion
-        that brought the bodies there differs, the one step's problem does not. Arguments as
-        unfamiliar's (previous: the stream's last points, or None)."""
+        under three scalings: every length times one factor, with the rotational inertias times
+        its square and the angular velocities over it (a world of smaller bodies: the points'
+        relative velocities and the operator J M^-1 J^T do not change); every mass and impulse
+        times another (a denser world); and every velocity, g dt and impulse times a third (a
+        stronger pull or a longer step: the one step's problem, M dv = J^T lambda + M g dt with
+        its cones and complementarity, is homogeneous in (v, g dt, lambda)). So a classifier
+        trained at one scale can be asked about a step at another, scaled to its own: 1 / kl the
+        factor nearest 1 that brings every touched body's bounding radius inside the trained
+        radii (none where their spread is wider than the range's), km the touched discs' median
+        density then over the nearest density trained on, kv |g| dt over the nearest gravity
+        times time step trained on (the physics becomes those). Exact for length and density;
+        for gravity and the time step the motion that brought the bodies there differs, the one
+        step's problem does not. Arguments as unfamiliar's (previous: the stream's last points,
+        or None)."""
         touched = np.zeros(len(bodies), bool)
         touched[points["body_a"]] = touched[points["body_b"]] = True
         touched[0] = False  # the walls
@@ -215,10 +219,16 @@ class Envelope:
         radius = bodies["radius"][touched].astype(np.float64)
         inertia = bodies["inertia"][touched].astype(np.float64)
         dynamic = mass > 0
+        kl = 1.0
+        if dynamic.any() and radius[dynamic].min() > 0:
+            shortest, longest = float(radius[dynamic].min()), float(radius[dynamic].max())
+            low, high = self.radius[0] / shortest, self.radius[1] / longest  # the factors that fit both ends
+            if low <= high:
+                kl = 1.0 / min(max(1.0, low), high)
         disc = dynamic & (np.abs(inertia / np.maximum(mass * radius * radius, 1e-30) - 0.5) <= DISC_TOLERANCE)
         km = 1.0
         if disc.any():
-            density = float(np.median(mass[disc] / (np.pi * radius[disc] ** 2)))
+            density = float(np.median(mass[disc] / (np.pi * (radius[disc] / kl) ** 2)))
             km = density / _nearest(density, self.density) if density > 0 else 1.0
         kv, scaled_physics = 1.0, physics
         g = math.hypot(*physics.gravity)
@@ -226,22 +236,24 @@ class Envelope:
             g_to, dt_to = _nearest(g, self.gravity), _nearest(physics.dt, self.dt)
             kv = g * physics.dt / (g_to * dt_to)
             scaled_physics = type(physics)(dt_to, (physics.gravity[0] * g_to / g, physics.gravity[1] * g_to / g))
-        if abs(km - 1.0) <= RESCALE_TOLERANCE and abs(kv - 1.0) <= RESCALE_TOLERANCE:
-            return bodies, points, previous, physics, (1.0, 1.0)
+        if all(abs(k - 1.0) <= RESCALE_TOLERANCE for k in (kl, km, kv)):
+            return bodies, points, previous, physics, (1.0, 1.0, 1.0)
         b = bodies.copy()
-        b["mass"], b["inertia"] = bodies["mass"] / km, bodies["inertia"] / km
-        b["velocity"], b["angular_velocity"] = bodies["velocity"] / kv, bodies["angular_velocity"] / kv
+        b["position"], b["radius"] = bodies["position"] / kl, bodies["radius"] / kl
+        b["mass"], b["inertia"] = bodies["mass"] / km, bodies["inertia"] / (km * kl * kl)
+        b["velocity"], b["angular_velocity"] = bodies["velocity"] / kv, bodies["angular_velocity"] * kl / kv
 
-        def impulses(records):
+        def scaled(records):
             if records is None:
                 return None
             out = records.copy()
+            out["point"], out["separation"] = records["point"] / kl, records["separation"] / kl
             out["builtin"] = records["builtin"] / (km * kv)
             return out
-        return b, impulses(points), impulses(previous), scaled_physics, (km, kv)
+        return b, scaled(points), scaled(previous), scaled_physics, (kl, km, kv)
 
 
-#: Envelope.rescaled leaves a step as it is where both factors lie this close to 1 (a world at
+#: Envelope.rescaled leaves a step as it is where its factors lie this close to 1 (a world at
 #: the trained scale, whose float32 records and physics round a little off it).
 RESCALE_TOLERANCE = 1e-4
 

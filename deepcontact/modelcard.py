@@ -88,8 +88,8 @@ answer where the rounds crawl along the cones), against_builtin (default false; 
 answer is served only where one projected Jacobi step from it would change the impulses less than
 one from Box2D's warm start, kinematics.jacobi_change, and Box2D's elsewhere: a check that needs
 no trust in the labels, for a route on worlds its classifier may not know), rescale (default
-false; true: a step denser, or with a larger or smaller gravity times time step, than the
-classifier's `trained_on` is labelled scaled into it, deepcontact.envelope.Envelope.rescaled, and
+false; true: a step of larger or smaller bodies, denser, or with a larger or smaller gravity times
+time step than the classifier's `trained_on` is labelled scaled into it, deepcontact.envelope.Envelope.rescaled, and
 solved in its own units; the reply's familiar verdict stays the unscaled step's).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an

@@ -142,7 +142,7 @@ class FaceRoutePredictor(Predictor):
             # The step read at the scale the classifier was trained at: familiar there, it is
             # labelled so and solved in its own units (the reply still says it is unfamiliar).
             b, p, prev, physics, factors = self.envelope.rescaled(bodies, points, previous, world.physics)
-            if factors != (1.0, 1.0):
+            if factors != (1.0, 1.0, 1.0):
                 scaled_world = World(world.domain, physics)
                 if self.unfamiliar(b, p, friction, scaled_world) is None:
                     scaled = (b, p, prev, scaled_world)

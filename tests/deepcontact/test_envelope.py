@@ -99,13 +99,13 @@ def test_a_step_is_rescaled_into_the_density_and_pull_its_envelope_holds_and_lef
     thesis = Physics.thesis()
     envelope = Envelope()  # the thesis world: density 1, 9.8 m/s^2, 0.01 s
     same = envelope.rescaled(bodies, points, None, thesis)
-    assert same[0] is bodies and same[1] is points and same[4] == (1.0, 1.0)
+    assert same[0] is bodies and same[1] is points and same[4] == (1.0, 1.0, 1.0)
     heavy = bodies.copy()
     heavy["mass"] *= 4
     heavy["inertia"] *= 4
     strong = Physics(thesis.dt, (0.0, -19.6))  # twice the pull: g dt twice the trained
-    b, p, _, physics, (km, kv) = envelope.rescaled(heavy, points, None, strong)
-    assert km == pytest.approx(4, rel=1e-5) and kv == pytest.approx(2, rel=1e-5)
+    b, p, _, physics, (kl, km, kv) = envelope.rescaled(heavy, points, None, strong)
+    assert kl == 1.0 and km == pytest.approx(4, rel=1e-5) and kv == pytest.approx(2, rel=1e-5)
     np.testing.assert_allclose(b["mass"], bodies["mass"], rtol=1e-6)
     np.testing.assert_allclose(b["velocity"], bodies["velocity"] / 2, rtol=1e-6)
     np.testing.assert_allclose(p["builtin"], points["builtin"] / 8, rtol=1e-6)

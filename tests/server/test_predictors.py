@@ -613,6 +613,20 @@ def test_a_route_that_rescales_labels_a_denser_step_as_the_step_it_scales_and_so
     assert dense.unfamiliar is not None and "density" in dense.unfamiliar
     assert dense.served_by == at_scale.served_by
     np.testing.assert_allclose(dense.impulses, 10 * at_scale.impulses, rtol=1e-3, atol=1e-4)
+    # Half the size at the same density: every length halved, a quarter of the mass, the same
+    # velocities. The same problem in other units, so a quarter of the answer.
+    small_bodies, small_points = bodies.copy(), points.copy()
+    small_bodies["position"] /= 2
+    small_bodies["radius"] /= 2
+    small_bodies["mass"] /= 4
+    small_bodies["inertia"] /= 16
+    small_bodies["angular_velocity"] *= 2
+    small_points["point"] /= 2
+    small_points["separation"] /= 2
+    small_points["builtin"] /= 4
+    small = rescaled.predict(small_bodies, small_points, world, 0, friction=mu)
+    assert small.unfamiliar is not None and "radius" in small.unfamiliar and small.served_by == at_scale.served_by
+    np.testing.assert_allclose(small.impulses, at_scale.impulses / 4, rtol=1e-3, atol=1e-5)
     # Without rescale the route declines the denser step: Box2D's start (no fallback here).
     plain = load_model(face_card(tmp_path, "plain", "thesis-only")).predict(dense_bodies, dense_points, world, 0,
                                                                             friction=mu)
