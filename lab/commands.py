@@ -24,6 +24,8 @@ COMMANDS = [
             "a served model's answer read as an active set (open, sticks, slides): how many labels a step are wrong"),
     Command(("generate",), "lab.generate", "what recording simulations costs over running them"),
     Command(("graph-size",), "lab.graph_size", "a contact-graph model's inference against the step's points and bodies"),
+    Command(("joint-route",), "lab.joint_route",
+            "would the route pay on jointed worlds with the joints in its problem? priced on Box2D's states"),
     Command(("joints-price",), "lab.joints_price",
             "does declining at jointed points pay? a model priced on Box2D's states with the joints sent and withheld"),
     Command(("inference",), "lab.inference",

@@ -62,8 +62,9 @@ def _withheld():
     return restore
 
 
-def run(args: argparse.Namespace) -> int:
-    from server.process import ServerProcess
+def world_and_seeds(args: argparse.Namespace, command: str):
+    """(WorldSpec, seeds) of --world, --steps and --seeds, or None once a one-line error naming
+    `command` is printed (a world that cannot be loaded, seeds that do not parse)."""
     from simclient import seeds as seed_ranges
     from simclient.worlds import WorldSpec
 
@@ -72,8 +73,18 @@ def run(args: argparse.Namespace) -> int:
         spec = WorldSpec(args.world, steps=args.steps)
         spec.validate()
     except ValueError as exc:
-        print(f"deepcontact lab joints-price: {exc}", file=sys.stderr)
+        print(f"deepcontact lab {command}: {exc}", file=sys.stderr)
+        return None
+    return spec, seeds
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.process import ServerProcess
+
+    parsed = world_and_seeds(args, "joints-price")
+    if parsed is None:
         return 2
+    spec, seeds = parsed
     rows = {}
     with ServerProcess(args.models, local_socket=True) as server:
         for sent in (True, False):
