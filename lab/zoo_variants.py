@@ -14,6 +14,7 @@ network of the research store (lab/models):
     zoo-bf          the zoo route with Box2D's start in place of its fallback
     zoo-always      the zoo route on every step: no max_residual, max_points 5,000
     zoo-r0.6        the zoo route with max_residual 0.6 in place of 0.3
+    default-r0.6    the default with max_residual 0.6 in place of 0.3 (its zoo route's still 0.3)
     default-first   the default falling back to zoo-first
     zoo500          the zoo route on the zoo's recipe trained on 500 simulations of each class in
                     place of 200 (zoo500-modes: graph-labels-scaled-zoo500-r12-e4)
@@ -56,6 +57,7 @@ def _fill(tmp: Path) -> None:
     card(tmp, "zoo-always", alias_of="contact-modes-zoo",
          face={**{k: v for k, v in zoo_face.items() if k != "fallback"}, "max_points": 5000, "max_residual": None})
     card(tmp, "zoo-r0.6", alias_of="contact-modes-zoo", face={**zoo_face, "max_residual": 0.6})
+    card(tmp, "default-r0.6", alias_of="contact-modes", face={**face, "max_residual": 0.6})
     card(tmp, "default-first", alias_of="contact-modes", face={**face, "fallback": "zoo-first"})
     card(tmp, "zoo500", alias_of="zoo500-modes", face=zoo_face)
     card(tmp, "default-zoo500", alias_of="contact-modes", face={**face, "fallback": "zoo500"})

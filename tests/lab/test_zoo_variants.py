@@ -21,3 +21,4 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path
     assert served["default-bf"].fallback is None
     assert served["zoo-always"].settings["max_residual"] is None
     assert served["zoo-r0.6"].settings["max_residual"] == 0.6
+    assert served["default-r0.6"].settings["max_residual"] == 0.6 and served["default-r0.6"].fallback.name == "zoo"
