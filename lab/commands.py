@@ -30,6 +30,8 @@ COMMANDS = [
             "does declining at jointed points pay? a model priced on Box2D's states with the joints sent and withheld"),
     Command(("inference",), "lab.inference",
             "ONNX Runtime levers on a grid model's inference: session options, int8, cropped grids"),
+    Command(("label-reuse",), "lab.label_reuse",
+            "can a stream keep the classifier's labels across steps? the route on held and fresh labels"),
     Command(("order",), "lab.order",
             "does the order of the solver's sweep choose its answer? a Gauss-Seidel replica in several orders"),
     Command(("step-gate",), "lab.step_gate",
