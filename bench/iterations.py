@@ -52,10 +52,13 @@ DEFAULT_WARM_STARTS = ("none,builtin,copy,copy2,copy0,extrapolate,"
 TIMING_FIELDS = ("p50_latency_ms", "p99_latency_ms", "median_client_us", "total_solve_ms", "guard_trial_ms")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_arguments(parser: argparse.ArgumentParser, warm_starts: str = DEFAULT_WARM_STARTS,
+                  warm_starts_note: str | None = None) -> None:
+    """The command's flags; warm_starts: --warm-starts' default, warm_starts_note: its help's
+    first words where another command gives the flag another meaning."""
     worlds.add_world_arguments(parser)
     parser.add_argument("--seeds", default="901-910", help="benchmark seeds (default 901-910)")
-    parser.add_argument("--warm-starts", default=DEFAULT_WARM_STARTS, help=warm_starts_help())
+    parser.add_argument("--warm-starts", default=warm_starts, help=warm_starts_help(warm_starts_note))
     parser.add_argument("--server", metavar="HOST:PORT",
                         help="use this server instead of starting one (any gRPC target: dns:///name:port balances "
                              "over replicas, unix:PATH dials a Unix socket); server: warm starts with --ray ADDRESS need it, as the cluster's "
@@ -73,9 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def warm_starts_help() -> str:
+def warm_starts_help(note: str | None = None) -> str:
     """--warm-starts' help: the names registered when the parser is built (simclient.warmstarts)."""
-    text = (f"comma-separated (default {DEFAULT_WARM_STARTS}); each one of {warmstarts.usage()}; "
+    text = (f"{note or f'comma-separated (default {DEFAULT_WARM_STARTS})'}; each one of {warmstarts.usage()}; "
             "server:* stands for every model the server serves")
     if any(r.composite for r in warmstarts.registered()):
         text += (" (in a composite too, e.g. price:server:*); a composite prints a same-state table of its trial "
@@ -89,14 +92,16 @@ def _prog(args: argparse.Namespace) -> str:
     return " ".join(("deepcontact", *getattr(args, "_words", ("bench", "iterations"))))
 
 
-def _read_arguments(args: argparse.Namespace):
-    """(spec, seeds, names, providers) of the command line, or ValueError saying what is wrong;
-    warns on stderr of seeds that models were fitted or stopped on."""
+def _read_arguments(args: argparse.Namespace, names: list[str] | None = None):
+    """(spec, seeds, names, providers) of the command line (names: these warm starts instead of
+    --warm-starts), or ValueError saying what is wrong; warns on stderr of seeds that models
+    were fitted or stopped on."""
     spec = worlds.spec_from_args(args)
     seeds = seed_ranges.parse_seeds(args.seeds)
     if isinstance(spec, worlds.WorldSpec):  # a function that raises or returns no world: said before any work
         worlds.build_user_world(spec.source, seeds[0])
-    names = [w.strip() for w in args.warm_starts.split(",") if w.strip()]
+    if names is None:
+        names = [w.strip() for w in args.warm_starts.split(",") if w.strip()]
     providers = {name: make_provider(name) for name in names}
     dispatch.check_arguments(args)
     tls.client_credentials(*tls_files(args))  # unreadable or mismatched files: said before anything runs
@@ -116,8 +121,25 @@ def _read_arguments(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    collected = collect_runs(args)
+    if isinstance(collected, int):
+        return collected
+    spec, seeds, runs = collected
+    table = _write_results(args.out, runs, spec, seeds, args.deadline_ms, guard=not args.no_guard)
+    plot_figures(runs, spec.solver.velocity_iterations, spec.solver.velocity_threshold, args.out)
+    print(table)
+    print(f"wrote {args.out}/summary.json, results.md and figures")
+    return 0
+
+
+def collect_runs(args: argparse.Namespace, names: list[str] | None = None):
+    """(spec, seeds, {warm start: [run_simulation result per seed]}) of the command line, with
+    a server of this machine's started and stopped around them where a `server:` warm start
+    needs one and none is given; or the exit status (2: bad arguments, a server that is away or
+    refuses; 1: a simulation failed), said on stderr, with nothing written. names: the warm
+    starts to run instead of --warm-starts (`deepcontact lab spread` adds its own)."""
     try:
-        spec, seeds, names, providers = _read_arguments(args)
+        spec, seeds, names, providers = _read_arguments(args, names)
     except ValueError as exc:
         print(f"{_prog(args)}: {exc}", file=sys.stderr)
         return 2
@@ -173,12 +195,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if server_proc is not None:
             server_proc.stop()
-
-    table = _write_results(args.out, runs, spec, seeds, args.deadline_ms, guard=not args.no_guard)
-    plot_figures(runs, spec.solver.velocity_iterations, spec.solver.velocity_threshold, args.out)
-    print(table)
-    print(f"wrote {args.out}/summary.json, results.md and figures")
-    return 0
+    return spec, seeds, runs
 
 
 STAR = "server:*"
@@ -228,7 +245,7 @@ def guard_note(summaries: dict[str, dict], runs: dict[str, list[dict]]) -> str:
     probes and switches, and what its trial solves cost against Builtin's own sweeps on the same
     seeds (the guard keeps them under 5 %); "" when no warm start ran under a guard."""
     builtin = runs.get("builtin")
-    reference = sum(int(np.sum(_iterations(r))) for r in builtin) if builtin else 0
+    reference = sum(int(np.sum(contact_step_iterations(r))) for r in builtin) if builtin else 0
     lines = []
     for name, s in summaries.items():
         if not s.get("guard_probes") and not s.get("guarded_steps") and not s.get("learned_steps"):
@@ -339,18 +356,18 @@ def pooled_summary(results: list[dict]) -> dict:
     return summarize(records)
 
 
-def _iterations(run: dict) -> np.ndarray:
+def contact_step_iterations(run: dict) -> np.ndarray:
     """(steps with contacts,) velocity iterations of one simulation."""
     cols = run["per_step"]
     return np.array([i for i, n in zip(cols["velocity_iterations"], cols["contact_points"]) if n > 0], np.int64)
 
 
 def _seed_mean(run: dict) -> float | None:
-    its = _iterations(run)
+    its = contact_step_iterations(run)
     return float(its.mean()) if len(its) else None
 
 
-def _every_step(run: dict) -> np.ndarray:
+def every_step_iterations(run: dict) -> np.ndarray:
     """(steps,) velocity iterations of every step of one simulation, with contacts or not (a
     step whose bodies are all asleep solves nothing: 0)."""
     return np.asarray(run["per_step"]["velocity_iterations"], np.int64)
@@ -367,10 +384,10 @@ def ratios_to_builtin(runs: dict[str, list[dict]]) -> dict[str, dict[str, Ratio]
     Builtin's mean over the steps with contacts for 0.96x of its iterations in all)."""
     if "builtin" not in runs:
         return {}
-    reference = [_iterations(r) for r in runs["builtin"]]
-    every = [_every_step(r) for r in runs["builtin"]]
-    return {name: {**{stat: ratio_interval([_iterations(r) for r in rs], reference, stat) for stat in STATS},
-                   "every_step": ratio_interval([_every_step(r) for r in rs], every, "mean")}
+    reference = [contact_step_iterations(r) for r in runs["builtin"]]
+    every = [every_step_iterations(r) for r in runs["builtin"]]
+    return {name: {**{stat: ratio_interval([contact_step_iterations(r) for r in rs], reference, stat) for stat in STATS},
+                   "every_step": ratio_interval([every_step_iterations(r) for r in rs], every, "mean")}
             for name, rs in runs.items()}
 
 
@@ -418,7 +435,7 @@ def pick_summary(name: str, results: list[dict], builtin: list[dict] | None = No
             "picked": [float((best == i).mean()) for i in range(width)],
             "better_than_builtin": (a < a[:, :1]).mean(axis=0).tolist(),
             "worse_than_builtin": (a > a[:, :1]).mean(axis=0).tolist(),
-            "trajectory": (ratio_interval([s[:, 0] for s in per_seed], [_iterations(b) for b in builtin]).to_dict()
+            "trajectory": (ratio_interval([s[:, 0] for s in per_seed], [contact_step_iterations(b) for b in builtin]).to_dict()
                            if builtin is not None and len(builtin) == len(per_seed) else None),
             "at_cap": cap_summary(per_seed, cap, reach) if cap else None,
             "notes": _mean_notes(provider.note_labels, results)}

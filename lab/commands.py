@@ -34,6 +34,8 @@ COMMANDS = [
             "can a stream keep the classifier's labels across steps? the route on held and fresh labels"),
     Command(("order",), "lab.order",
             "does the order of the solver's sweep choose its answer? a Gauss-Seidel replica in several orders"),
+    Command(("spread",), "lab.closed_loop_spread",
+            "how far a closed loop moves when nothing that matters changes: Builtin against itself perturbed"),
     Command(("step-gate",), "lab.step_gate",
             "a per-step gate between a model's warm start and Box2D's, fitted on some seeds, priced on others"),
     Command(("surrogate",), "lab.surrogate",
