@@ -83,6 +83,11 @@ composite prefix (MODE:W1+W2+..., and solved@P:W) when `lab` is imported.
                  the least-norm impulses), the admission cut at SOLVED_ROUNDS of its rounds
                  (what a server could afford), and W's labels read with the pressing
                  threshold at each of SOLVED_PRESSING (more solves a step: slower)
+    jittered@S:W  serves W's answer plus Gaussian noise of S N s at the points that persist
+                 (normal impulses clamped at 0; seeded, so the same noise every run), and
+                 trial-solves builtin and W beside it: one more draw of W's closed loop, another
+                 trajectory of the same warm start (as jitter@S is of Box2D's; lab spread).
+                 jittered:W is jittered@1e-7:W
     feedback:W   serves W, as W alone would, and trial-solves builtin, W, and W less G times
                  its own error on the previous step at each point that persists (what W served
                  there minus where the solve ended, matched by key), for G in 0.25, 0.5 and 1:
@@ -107,7 +112,7 @@ class Pick(Composite):
     a tie). The stepping loop asks every candidate, then calls pick()."""
 
     MODES = ("pick", "shadow", "mean", "price", "split", "boost", "admit", "motion", "graft", "feedback", "shrink",
-             "gate", "face", "solved", "solved-forms")
+             "gate", "face", "solved", "solved-forms", "jittered")
     #: shrink:W+E: the factors W's whole error is priced at.
     SHRINKS = (0.75, 0.5, 0.25)
     #: boost:W: the factors its self-stress part is priced at.
@@ -128,21 +133,29 @@ class Pick(Composite):
     SOLVED_PRESSING = (0.25, 0.75)
     #: solved-forms:W: the admission's rounds in its cut form (nearest_admissible's iterations).
     SOLVED_ROUNDS = 50
+    #: jittered:W: the noise added to W's answer at persisting points, N s (jittered@S:W sets it).
+    NOISE = 1e-7
 
     @classmethod
     def names_one(cls, name: str) -> bool:
         """Whether a warm-start name is one of these composites (solved@P:W included)."""
         head = name.split(":", 1)[0]
         mode = head.split("@", 1)[0]
-        return ":" in name and mode in cls.MODES and (head == mode or mode.startswith("solved"))
+        return ":" in name and mode in cls.MODES and (head == mode or mode.startswith("solved") or mode == "jittered")
 
-    def __init__(self, candidates: list[Provider], mode: str = "pick", pressing: float | None = None):
+    def __init__(self, candidates: list[Provider], mode: str = "pick", pressing: float | None = None,
+                 noise: float | None = None):
         if mode not in self.MODES:
             raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
         if pressing is not None:  # solved@P:W, W's labels read pressing above P N s
             if not mode.startswith("solved") or not pressing >= 0:
                 raise ValueError(f"a pressing threshold goes with solved: only, and is >= 0 N s, got {pressing!r}")
             self.FACE_LABELS = (pressing, self.FACE_LABELS[1])
+        if noise is not None:  # jittered@S:W, S N s of noise on W's answer
+            if mode != "jittered" or not (np.isfinite(noise) and noise > 0):
+                raise ValueError(f"a noise size goes with jittered: only, and is > 0 N s, got {noise!r}")
+            self.NOISE = noise
+        self._rng = np.random.default_rng(0)  # jittered: a fresh provider per world, the same noise every run
         super().__init__(candidates)
         # pick: serve the cheapest; shadow: serve the first, price the others beside it;
         # mean: serve the candidates' mean, price it and each of them on the same state;
@@ -157,7 +170,8 @@ class Pick(Composite):
         # shrink: serve builtin, price the first candidate's error against the second scaled, and its parts
         # gate: serve builtin, price the first candidate gated per point against builtin, judged by the second
         # solved: serve the step solved on the one candidate's labels, price it and the candidate
-        if mode in ("split", "boost", "admit", "motion", "feedback", "solved", "solved-forms") and len(candidates) != 1:
+        if mode in ("split", "boost", "admit", "motion", "feedback", "solved", "solved-forms", "jittered") \
+                and len(candidates) != 1:
             raise ValueError(f"{mode}: takes one warm start, e.g. {mode}:server:default, got {len(candidates)}")
         if mode in ("shrink", "gate", "face") and len(candidates) != 2:
             raise ValueError(f"{mode}: takes a warm start and its reference, e.g. {mode}:server:default+oracle:near, "
@@ -169,7 +183,8 @@ class Pick(Composite):
         for i, c in enumerate(candidates):
             if hasattr(c, "reseed"):  # jitter@S
                 c.reseed(i)  # two jitters in one pick draw different noise
-        self.name = f"{mode}{'' if pressing is None else f'@{pressing:g}'}:" + "+".join(c.name for c in candidates)
+        at = "" if pressing is None and noise is None else f"@{pressing if noise is None else noise:g}"
+        self.name = f"{mode}{at}:" + "+".join(c.name for c in candidates)
         # trials: per step with contacts, builtin's, then each candidate's iterations; reach: the same
         # steps, each one's sweeps to Builtin's accuracy (sweeps_to_builtin); notes: what note_labels names
         # feedback: the candidate's answer this step, (keys (P,), impulses (P, 2) N s), until observe() scores it,
@@ -191,6 +206,7 @@ class Pick(Composite):
                  "graft": [f"{first} with {self.candidates[-1].name}'s moving bodies' motion admissible",
                            f"{first} with {self.candidates[-1].name}'s moving bodies' motion"],
                  "feedback": [f"{first} less {g:g} x its last error" for g in self.FEEDBACKS],
+                 "jittered": [f"{first} plus noise of {self.NOISE:g} N s"],
                  "shrink": [f"{first} error x{k:g}" for k in self.SHRINKS]
                  + [f"{first} error's body-space part x0.5", f"{first} error's self-stress x0.5"],
                  "gate": [f"{first} or builtin, the nearer at each point", f"{first} gated at each point",
@@ -268,7 +284,7 @@ class Pick(Composite):
         derive = {"mean": self._mean, "admit": self._admitted, "motion": self._scaled_motion, "graft": self._grafted, "feedback": self._less_last_error,
                   "split": self._parts, "boost": self._parts, "shrink": self._shrunk, "gate": self._gated,
                   "face": self._on_faces, "solved": self._solved_on_labels,
-                  "solved-forms": self._solved_on_labels}.get(self.mode)
+                  "solved-forms": self._solved_on_labels, "jittered": self._jittered}.get(self.mode)
         if derive is not None:
             candidates += derive(engine, points, candidates)
         if self.mode.startswith("solved") and served[0] is None:  # the classifier fell back: no labels to solve on
@@ -284,7 +300,7 @@ class Pick(Composite):
             return builtin  # the trials left the last candidate's as the step's warm start
         if self.mode == "mean":
             return candidates[-1]
-        if self.mode.startswith("solved"):
+        if self.mode.startswith("solved") or self.mode == "jittered":
             return candidates[2]
         return candidates[int(np.argmin(iterations))]  # argmin: the first, builtin, on a tie
 
@@ -295,6 +311,14 @@ class Pick(Composite):
     # Each mode's derived warm starts, priced after builtin and the candidates. Each takes the
     # engine (after collide()), the step's point records and the candidates so far (builtin
     # first; (normal (P,), tangent (P,)) N s each) and returns a list of the same.
+
+    def _jittered(self, engine, points, candidates) -> list:
+        """jittered: the candidate plus NOISE N s of Gaussian noise at the points that persist
+        (Box2D's warm start there is not zero), normal impulses clamped at 0."""
+        warm = _stacked(candidates[1])
+        persisting = points["builtin"].any(axis=1)[:, None]
+        warm += np.where(persisting, self._rng.normal(0.0, self.NOISE, warm.shape), 0.0)
+        return [_pushing(warm)]
 
     @staticmethod
     def _mean(engine, points, candidates) -> list:
@@ -515,6 +539,7 @@ MODE_HELP = {
     "face": "serves builtin and prices the step solved on E's active set, with W's labels, and on W's",
     "solved": "serves the step solved on classifier W's labels, admitted (the face route, closed loop)",
     "solved-forms": "serves as solved:W does and prices other forms of it",
+    "jittered": "serves W plus noise far below the tolerance: another draw of W's closed loop",
 }
 #: How each mode's name is written in help.
 MODE_USAGE = {"pick": "W1+W2+...", "shadow": "W1+W2+...", "mean": "W1+W2+...", "price": "W1+W2+...",
@@ -522,7 +547,16 @@ MODE_USAGE = {"pick": "W1+W2+...", "shadow": "W1+W2+...", "mean": "W1+W2+...", "
 
 
 def make_composite(name: str) -> Pick:
-    """MODE:W1+W2+... (or solved@P:W, solved-forms@P:W) as a Pick; ValueError saying what is wrong."""
+    """MODE:W1+W2+... (or solved@P:W, solved-forms@P:W, jittered@S:W) as a Pick; ValueError saying what is wrong."""
+    if name.startswith("jittered@"):  # jittered@S:W, S N s of noise on W's answer
+        size, colon, rest = name[len("jittered@"):].partition(":")
+        try:
+            noise = float(size)
+        except ValueError:
+            noise = None
+        if not colon or noise is None:
+            raise ValueError(f"jittered@S: needs a noise size in N s, e.g. jittered@1e-7:server:NAME, got {name!r}")
+        return Pick(make_composite(f"jittered:{rest}").candidates, mode="jittered", noise=noise)
     for mode in ("solved", "solved-forms"):  # solved@P:W: W's labels read pressing above P N s
         if name.startswith(f"{mode}@"):
             threshold, colon, rest = name[len(mode) + 1:].partition(":")
@@ -550,3 +584,4 @@ for _mode in Pick.MODES:
 for _mode in ("solved", "solved-forms"):
     register_prefix(f"{_mode}@", make_composite, f"{_mode}:W with W's labels read pressing above P N s",
                     usage=f"{_mode}@P:W", composite=True)
+register_prefix("jittered@", make_composite, "jittered:W with noise of S N s", usage="jittered@S:W", composite=True)

@@ -319,3 +319,20 @@ def test_pick_keeps_the_cheapest_of_builtin_and_the_servers_answers_each_step(tm
     assert its == [min(t) for t in trials]
     assert any(t[1] < t[0] for t in trials)  # even zeros win some steps ...
     assert sum(t[2] for t in trials) > sum(t[0] for t in trials)  # ... and (50, 50) loses overall
+
+
+def test_jittered_serves_its_warm_start_with_noise_far_below_the_tolerance_another_draw():
+    plain = run_simulation(SHORT, 901, make_provider("shadow:copy"))
+    drawn = run_simulation(SHORT, 901, make_provider("jittered@1e-7:copy"))
+    assert make_provider("jittered:copy").name == "jittered:copy" and Pick.NOISE == 1e-7
+    assert make_provider("jittered@1e-7:copy").labels == ["builtin", "copy", "copy plus noise of 1e-07 N s"]
+    # Every step is priced from the served trajectory: builtin, the warm start, and the served noisy start.
+    assert all(len(t) == 3 for t in drawn["trials"]) and len(drawn["trials"]) > 0
+    # The noise is a hundred times below the tolerance: the same iterations step by step while the
+    # trajectories agree, and the same noise on every run (seeded, a fresh provider per world).
+    assert drawn["trials"][0][1:] == plain["trials"][0][1:] + [plain["trials"][0][1]]
+    assert run_simulation(SHORT, 901, make_provider("jittered@1e-7:copy"))["trials"] == drawn["trials"]
+    for bad in ("jittered@:copy", "jittered@big:copy", "jittered@0:copy", "jittered@-1e-7:copy",
+                "jittered:copy+copy2"):
+        with pytest.raises(ValueError):
+            make_provider(bad)
