@@ -22,6 +22,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-aug     the default's route as shipped on its classifier trained two more epochs with
                     half the steps reflected (modes-aug: graph-face-fr-r12-e15-aug of the
                     research store, with contact-modes' trained_on and measured)
+    default-against-builtin  the default's route as shipped, its answer checked against Box2D's
+                    start by one projected Jacobi step as the zoo route's is (face
+                    `against_builtin`; docs/research/2026-12-06-the-route-against-box2ds-start.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -60,6 +63,7 @@ def _fill(tmp: Path) -> None:
     card(tmp, "default-aug", alias_of="modes-aug", face=default["face"], measured=default.get("measured"))
     card(tmp, "default-mirrored", alias_of=default["alias_of"], face=default["face"], mirror=True,
          measured=default.get("measured"))
+    card(tmp, "default-against-builtin", alias_of=default["alias_of"], face={**default["face"], "against_builtin": True})
 
 
 def build(out: Path) -> None:

@@ -35,3 +35,8 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     # The classifier trained on reflected steps under the default's route.
     assert served["default-aug"].settings == served["default"].settings
     assert served["default-aug"].classifier.card.onnx_file == "modes-aug.onnx"
+    # The default's route with its answer checked against Box2D's start, as the zoo route's is.
+    checked = served["default-against-builtin"].settings
+    assert checked["against_builtin"] and not served["default"].settings["against_builtin"]
+    assert {k: v for k, v in checked.items() if k != "against_builtin"} == \
+        {k: v for k, v in served["default"].settings.items() if k != "against_builtin"}
