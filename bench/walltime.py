@@ -34,7 +34,8 @@ times sqrt(N / 100)); the server's grids grow with the box.
 which a server that had not run this grid size before would be slow on (the
 server warms a model up when a stream declares its world, so it should not be).
 The deadline is long (1 s by default) so that every step is served and
-timed, not replaced by builtin. Writes DIR/walltime.json, DIR/walltime.md
+timed, not replaced by builtin. `--pin` puts the server on the host's last core and the
+simulations on the others, so that neither moves between cores nor takes the other's caches. Writes DIR/walltime.json, DIR/walltime.md
 (the table) and DIR/walltime.png (step time against bodies, one line per
 warm start).
 """
@@ -44,6 +45,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -87,7 +89,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the server started here listens: 'local' (default), a Unix socket in a "
                              "folder of its own, what a simulation and its server on one host use; "
                              "127.0.0.1:0 a free loopback port; unix:PATH a Unix socket there")
+    parser.add_argument("--pin", action="store_true",
+                        help="the server on this host's last core and the simulations on the others (a host of "
+                             "two cores or more), as a simulation and its server sharing a host may be run: "
+                             "neither moves between cores nor takes the other's caches (default: both on every core)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def pinned_cores() -> tuple[set[int], set[int]]:
+    """(the server's cores, the simulation's) for --pin: the last of this process's cores, and the
+    rest. ValueError on a host of one core."""
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) < 2:
+        raise ValueError(f"--pin needs two cores or more; this process may run on {len(cores)}")
+    return {cores[-1]}, set(cores[:-1])
 
 
 def scene_for(size: str, steps: int, solver: SolverConfig = SolverConfig()) -> SceneSpec:
@@ -226,11 +241,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
         return 2
     try:
+        server_cores, simulation_cores = pinned_cores() if args.pin else (None, None)
         local = args.bind == "local"
-        server = ServerProcess(args.models, local_socket=local, **({} if local else {"bind": args.bind})).start()
-    except (RuntimeError, TimeoutError) as exc:
+        server = ServerProcess(args.models, local_socket=local, cpus=server_cores,
+                               **({} if local else {"bind": args.bind})).start()
+    except (ValueError, RuntimeError, TimeoutError) as exc:
         print(f"deepcontact bench walltime: {exc}", file=sys.stderr)
         return 2
+    every_core = os.sched_getaffinity(0)
+    if simulation_cores is not None:
+        os.sched_setaffinity(0, simulation_cores)
     rows = {}
     try:
         try:
@@ -250,11 +270,13 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     finally:
         server.stop()
+        os.sched_setaffinity(0, every_core)
     args.out.mkdir(parents=True, exist_ok=True)
+    pinned = {"server": sorted(server_cores), "simulation": sorted(simulation_cores)} if args.pin else None
     write_json_atomic(args.out / "walltime.json", {
         "command": "deepcontact " + " ".join(sys.argv[1:]), "model": args.model, "bind": args.bind, "seeds": seeds,
-        "solver": dataclasses.asdict(specs[0].solver), "sizes": rows})
-    table = markdown_table(rows, args.model, seeds, specs[0].solver)
+        "pinned": pinned, "solver": dataclasses.asdict(specs[0].solver), "sizes": rows})
+    table = markdown_table(rows, args.model, seeds, specs[0].solver, pinned)
     tmp = args.out / ".walltime.md.part"
     tmp.write_text(table)
     tmp.replace(args.out / "walltime.md")
@@ -294,13 +316,17 @@ def _simulate_size(spec, seeds: list[int], address: str, args: argparse.Namespac
     return runs
 
 
-def markdown_table(rows: dict, model: str, seeds: list[int], solver: SolverConfig = SolverConfig()) -> str:
+def markdown_table(rows: dict, model: str, seeds: list[int], solver: SolverConfig = SolverConfig(),
+                   pinned: dict | None = None) -> str:
     """The table `bench walltime` prints: per world, the medians of a step's parts, the whole
-    step's mean over steps with contacts as a ratio to Builtin's, and the break-even."""
+    step's mean over steps with contacts as a ratio to Builtin's, and the break-even. pinned:
+    {"server": cores, "simulation": cores} where --pin set them, said above the table."""
+    where = (f" The server on core {','.join(map(str, pinned['server']))}, the simulations on "
+             f"{','.join(map(str, pinned['simulation']))} (--pin)." if pinned else "")
     lines = [f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} per world); steps of {solver.dt:g} s solved to "
              f"{solver.velocity_threshold:g} N s, at most {solver.velocity_iterations} velocity iterations; "
              f"medians over steps with contacts, ms, but for the means of the whole step and their ratio. "
-             f"Learned: server:{model}.",
+             f"Learned: server:{model}.{where}",
              "",
              "| world | bodies | points | builtin step | builtin solve | learned step | learned solve | round trip "
              "| first round trip | overhead | ms / iteration | break-even iterations | saved iterations | fallbacks "

@@ -25,6 +25,12 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-against-builtin  the default's route as shipped, its answer checked against Box2D's
                     start by one projected Jacobi step as the zoo route's is (face
                     `against_builtin`; docs/research/2026-12-06-the-route-against-box2ds-start.md)
+    default-graph-mirror  the default whose last fallback is contact-graph served with its mirror
+                    image in one ONNX graph (graph-mirror: graph-projected-max-1-799-r8-e9-reflect-sym-mirror
+                    of the research store, with contact-graph's trained_on), through zoo-graph-mirror,
+                    as until 2026-12-06 (docs/research/2026-12-06-the-fallback-without-its-mirror.md)
+    default-no-graph  the default with no graph fallback: where both routes miss, Box2D's start
+                    (through zoo-no-graph, the zoo route without a fallback)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -43,6 +49,8 @@ from lab.variants import main as variants_main
 VARIANTS = ((50, 10), (50, 15), (40, 16), (30, 15), (30, 17), (25, 18), (20, 18))
 #: The default's classifier with its mirror image, and trained on reflected steps, in the research store.
 MIRROR, AUGMENTED = "graph-face-fr-r12-e15-mirror", "graph-face-fr-r12-e15-aug"
+#: The graph fallback as it was served until 2026-12-06: the network and its mirror image in one graph.
+GRAPH_MIRROR = "graph-projected-max-1-799-r8-e9-reflect-sym-mirror"
 
 
 def _fill(tmp: Path) -> None:
@@ -53,10 +61,12 @@ def _fill(tmp: Path) -> None:
              face={**default["face"], "rounds": rounds, "relax": relax / 10})
     card(tmp, "zoo-r40-x16", alias_of=zoo["alias_of"], face={**zoo["face"], "rounds": 40, "relax": 1.6})
     modes = json.loads((tmp / "contact-modes.json").read_text())
-    for store_name, name in ((MIRROR, "modes-mirror"), (AUGMENTED, "modes-aug")):
+    graph = json.loads((tmp / "contact-graph.json").read_text())
+    for store_name, name, like in ((MIRROR, "modes-mirror", modes), (AUGMENTED, "modes-aug", modes),
+                                   (GRAPH_MIRROR, "graph-mirror", graph)):
         network = json.loads((ROOT / "lab" / "models" / f"{store_name}.json").read_text())
-        network.update(name=name, onnx_file=f"{name}.onnx", trained_on=modes.get("trained_on"),
-                       measured=modes.get("measured"))
+        network.update(name=name, onnx_file=f"{name}.onnx", trained_on=like.get("trained_on"),
+                       measured=like.get("measured"))
         shutil.copy(ROOT / "lab" / "models" / f"{store_name}.onnx", tmp / f"{name}.onnx")
         (tmp / f"{name}.json").write_text(json.dumps(network, indent=1) + "\n")
     card(tmp, "default-mirror", alias_of="modes-mirror", face=default["face"], measured=default.get("measured"))
@@ -64,6 +74,10 @@ def _fill(tmp: Path) -> None:
     card(tmp, "default-mirrored", alias_of=default["alias_of"], face=default["face"], mirror=True,
          measured=default.get("measured"))
     card(tmp, "default-against-builtin", alias_of=default["alias_of"], face={**default["face"], "against_builtin": True})
+    card(tmp, "zoo-graph-mirror", alias_of=zoo["alias_of"], face={**zoo["face"], "fallback": "graph-mirror"})
+    card(tmp, "default-graph-mirror", alias_of=default["alias_of"], face={**default["face"], "fallback": "zoo-graph-mirror"})
+    card(tmp, "zoo-no-graph", alias_of=zoo["alias_of"], face={k: v for k, v in zoo["face"].items() if k != "fallback"})
+    card(tmp, "default-no-graph", alias_of=default["alias_of"], face={**default["face"], "fallback": "zoo-no-graph"})
 
 
 def build(out: Path) -> None:

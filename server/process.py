@@ -27,8 +27,12 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 class ServerProcess:
     def __init__(self, models: str | os.PathLike, *extra_args: str, bind: str = "127.0.0.1:0",
-                 startup_timeout: float = 60.0, log: str | os.PathLike | None = None, local_socket: bool = False):
+                 startup_timeout: float = 60.0, log: str | os.PathLike | None = None, local_socket: bool = False,
+                 cpus: set[int] | None = None):
         self.models = Path(models)
+        # The cores the server may run on (None: this process's): set in the child before it
+        # starts, so every thread it makes inherits them and it counts them as its cores.
+        self.cpus = set(cpus) if cpus is not None else None
         self.extra_args = list(extra_args)
         self.startup_timeout = startup_timeout
         self.log_path = Path(log) if log else None
@@ -49,7 +53,8 @@ class ServerProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "commands", "serve", "--models", str(self.models), "--bind", self.bind,
              "--port-file", str(port_file), *self.extra_args],
-            stdout=log, stderr=log, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            stdout=log, stderr=log, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            preexec_fn=(lambda: os.sched_setaffinity(0, self.cpus)) if self.cpus is not None else None)
         deadline = time.monotonic() + self.startup_timeout
         while not port_file.exists():
             if self.proc.poll() is not None:

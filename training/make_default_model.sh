@@ -5,12 +5,15 @@
 #   models/contact-graph.onnx + .json
 #                         the contact-graph model (message passing over the contact points,
 #                         eight rounds) trained on 1,598 simulations of the thesis world and
-#                         the scene family, served as the mean of its answer and its mirror
-#                         image's: the squared error for 6 epochs, 3 more with half the steps
-#                         reflected left to right, then 2 epochs of the loss the solver's
-#                         stopping rule reads, scored on that mean (training/round2_graph.sh;
-#                         each run starts from the last one's weights). In the research store
-#                         (lab/models/) it is graph-projected-max-1-799-r8-e9-reflect-sym-mirror,
+#                         the scene family: the squared error for 6 epochs, 3 more with half
+#                         the steps reflected left to right, then 2 epochs of the loss the
+#                         solver's stopping rule reads, scored on the mean of its answer and its
+#                         mirror image's (training/round2_graph.sh; each run starts from the last
+#                         one's weights). It is served alone: with its mirror image
+#                         (...-reflect-sym-mirror) the default needed 1.002x the iterations on
+#                         Builtin's states of 850-899 at twice the fallback's network time
+#                         (docs/research/2026-12-06-the-fallback-without-its-mirror.md). In the
+#                         research store (lab/models/) it is graph-projected-max-1-799-r8-e9-reflect-sym,
 #                         beside the runs it was trained through.
 #   models/contact-modes.onnx + .json
 #                         the same network trained to label the points (which let go, stick,
@@ -75,13 +78,13 @@ RECIPE=(--loss grid --lr-schedule constant --config "$CONFIG" --batch-size 16 --
 
 SECONDS=0
 CHAIN=(graph-mse-1-799-r8 graph-mse-1-799-r8-e9-reflect graph-projected-max-1-799-r8-e9-reflect-sym)
-DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym-mirror   # the graph model: the default's fallback
+DEFAULT=graph-projected-max-1-799-r8-e9-reflect-sym          # the graph model: the default's fallback
 FACE_FR=graph-face-fr-r8                                      # the classifier with each point's friction
 FACE_NET=graph-face-fr-r12-e15                                # the same trained on, twelve rounds
 FACE=$FACE_NET                                                # what the default solves on (its mirror image, served beside it
                                                               # until 2026-12-06, cost 0.27 ms a step for 1.3 % of the iterations)
 MODES_LINE="a contact-graph classifier (twelve rounds of message passing over the contact points): labels each point open, sticking or sliding which way; the default solves the step on its labels"
-GRAPH_LINE="a contact-graph network (eight rounds of message passing over the contact points, served with its mirror image): a correction to Box2D's warm start at each point; the default's fallback"
+GRAPH_LINE="a contact-graph network (eight rounds of message passing over the contact points): a correction to Box2D's warm start at each point; the default's fallback"
 DEFAULT_LINE="the face route: contact-modes labels each point, the server solves the step on the labels and admits the answer into the friction cones (a world that differs from contact-modes' only in its bodies' size, density, gravity or time step labelled at the scale it was trained at); on worlds contact-modes was not trained on, or where its solve misses its labels, the zoo route answers, then contact-graph inside what it was trained on, else Box2D's own start"
 ZOO_MODES_LINE="a contact-graph classifier like contact-modes, trained on a zoo of worlds (boxes, polygons, joints, terrain, kinematic bodies; gravity, time step and density drawn wide) on inputs in the step's own units"
 ZOO_LINE="the face route on contact-modes-zoo, for any world: the default's route where contact-modes does not know the world; contact-graph where its solve misses its labels, inside what contact-graph was trained on, else Box2D's own start"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -110,3 +111,25 @@ def test_the_wall_of_stacks_stands_at_two_points_a_box():
     # Every box on a face: the ten columns stand (until they fall asleep, column by column, and
     # their points leave the solve).
     assert points[-1] == 2 * COLUMNS * BOXES
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="pinning needs two cores")
+def test_bench_walltime_pins_the_server_to_the_last_core_and_the_simulation_to_the_rest(tmp_path, model_dir):
+    cores = sorted(os.sched_getaffinity(0))
+    assert main(["bench", "walltime", "--sizes", "thesis", "--seeds", "901", "--steps", "30", "--no-in-process",
+                 "--pin", "--models", str(model_dir), "--model", "tiny", "--out", str(tmp_path), "--quiet"]) == 0
+    result = json.loads((tmp_path / "walltime.json").read_text())
+    assert result["pinned"] == {"server": cores[-1:], "simulation": cores[:-1]}
+    assert f"The server on core {cores[-1]}" in (tmp_path / "walltime.md").read_text()
+    assert sorted(os.sched_getaffinity(0)) == cores  # this process gets its cores back
+
+
+def test_bench_walltime_refuses_to_pin_on_one_core_in_one_line_and_writes_nothing(tmp_path, model_dir, capsys,
+                                                                                 monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
+    out = tmp_path / "out"
+    assert main(["bench", "walltime", "--sizes", "thesis", "--seeds", "901", "--pin", "--models", str(model_dir),
+                 "--model", "tiny", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--pin needs two cores or more" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()

@@ -40,3 +40,16 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     assert checked["against_builtin"] and not served["default"].settings["against_builtin"]
     assert {k: v for k, v in checked.items() if k != "against_builtin"} == \
         {k: v for k, v in served["default"].settings.items() if k != "against_builtin"}
+    # The graph fallback as it was served, with its mirror image in one graph, and no graph fallback
+    # at all: the same routes, only the last fallback changed.
+    from server.predictors import GraphPredictor
+
+    mirrored = served["default-graph-mirror"].fallback
+    assert mirrored.name == "zoo-graph-mirror"
+    assert {k: v for k, v in mirrored.settings.items() if k != "fallback"} == \
+        {k: v for k, v in served["zoo"].settings.items() if k != "fallback"}
+    assert isinstance(mirrored.fallback, GraphPredictor) and mirrored.fallback.name == "graph-mirror"
+    assert mirrored.fallback.envelope == served["contact-graph"].envelope
+    assert served["default-no-graph"].fallback.name == "zoo-no-graph"
+    assert served["default-no-graph"].fallback.fallback is None
+    assert served["default"].fallback.fallback.name == "contact-graph"
