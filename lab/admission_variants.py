@@ -28,9 +28,12 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-graph-mirror  the default whose last fallback is contact-graph served with its mirror
                     image in one ONNX graph (graph-mirror: graph-projected-max-1-799-r8-e9-reflect-sym-mirror
                     of the research store, with contact-graph's trained_on), through zoo-graph-mirror,
-                    as until 2026-12-06 (docs/research/2026-12-06-the-fallback-without-its-mirror.md)
+                    as until 2026-12-06 (docs/research/2026-12-06-the-graph-fallbacks-share.md)
     default-no-graph  the default with no graph fallback: where both routes miss, Box2D's start
                     (through zoo-no-graph, the zoo route without a fallback)
+    default-resR    the default's route with max_residual R / 100 (resnone: none, every reading
+                    served), for R in RESIDUALS: how far the admitted solve may miss its labels
+                    before the fallback answers (docs/research/2026-12-06-the-graph-fallbacks-share.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -51,6 +54,8 @@ VARIANTS = ((50, 10), (50, 15), (40, 16), (30, 15), (30, 17), (25, 18), (20, 18)
 MIRROR, AUGMENTED = "graph-face-fr-r12-e15-mirror", "graph-face-fr-r12-e15-aug"
 #: The graph fallback as it was served until 2026-12-06: the network and its mirror image in one graph.
 GRAPH_MIRROR = "graph-projected-max-1-799-r8-e9-reflect-sym-mirror"
+#: max_residual of the default's route variants (a share of the step's velocities; None: none).
+RESIDUALS = (0.3, 0.35, 0.4, 0.5, 0.75, 1.0, None)
 
 
 def _fill(tmp: Path) -> None:
@@ -78,6 +83,14 @@ def _fill(tmp: Path) -> None:
     card(tmp, "default-graph-mirror", alias_of=default["alias_of"], face={**default["face"], "fallback": "zoo-graph-mirror"})
     card(tmp, "zoo-no-graph", alias_of=zoo["alias_of"], face={k: v for k, v in zoo["face"].items() if k != "fallback"})
     card(tmp, "default-no-graph", alias_of=default["alias_of"], face={**default["face"], "fallback": "zoo-no-graph"})
+    for residual in RESIDUALS:
+        card(tmp, residual_variant(residual), alias_of=default["alias_of"],
+             face={**default["face"], "max_residual": residual})
+
+
+def residual_variant(residual: float | None) -> str:
+    """The name of the default's route variant with this max_residual: default-res50 for 0.5."""
+    return "default-resnone" if residual is None else f"default-res{round(100 * residual)}"
 
 
 def build(out: Path) -> None:

@@ -25,8 +25,9 @@ given as `--fit-also`.
 
 `--hidden TENSOR` asks whether the network's own inner state knows where it loses (a
 confidence head's question, without training one): the named tensors of the model's ONNX graph
-(e.g. the default's last point states, `m0/add_49:0`, rows for the points and their mirror
-images), each pooled over its rows by mean and max, join the features of a second gate, priced
+(e.g. the graph network's last point states, `add_49:0`, a row a point; `m0/add_49:0` in an
+ensemble with its mirror image, rows for the points and their images), each pooled over its rows
+by mean and max, join the features of a second gate, priced
 in the same run beside the first. The server computes no such features, so that gate is a screen
 and `--save-card` refuses it.
 
@@ -317,7 +318,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "priced on the main world only")
     parser.add_argument("--hidden", action="append", metavar="TENSOR",
                         help="also price a gate that reads these inner tensors of the model's ONNX graph, each "
-                             "pooled over its rows by mean and max (e.g. m0/add_49:0, the default's last point "
+                             "pooled over its rows by mean and max (e.g. add_49:0, the graph network's last point "
                              "states); repeatable. A screen: the server computes no such features, so not with "
                              "--save-card")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from lab.admission_variants import VARIANTS, main
+from lab.admission_variants import RESIDUALS, VARIANTS, main, residual_variant
 from server.predictors import load_models
 
 
@@ -53,3 +53,10 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     assert served["default-no-graph"].fallback.name == "zoo-no-graph"
     assert served["default-no-graph"].fallback.fallback is None
     assert served["default"].fallback.fallback.name == "contact-graph"
+    # How far the admitted solve may miss its labels before the fallback answers, each else as shipped.
+    for residual in RESIDUALS:
+        settings = served[residual_variant(residual)].settings
+        assert settings["max_residual"] == residual
+        assert {k: v for k, v in settings.items() if k != "max_residual"} == \
+            {k: v for k, v in served["default"].settings.items() if k != "max_residual"}
+    assert residual_variant(0.35) == "default-res35" and residual_variant(None) == "default-resnone"

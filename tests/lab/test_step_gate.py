@@ -97,7 +97,7 @@ def test_a_fit_world_that_is_not_scene_flags_is_refused_before_anything_runs(cap
 
 def test_a_gate_on_the_networks_inner_state_is_priced_beside_the_plain_one(tmp_path):
     out, models = tmp_path / "gate.json", _shipped_default(tmp_path)
-    tensor = "m0/add_49:0"  # the shipped default's last point states, rows for the points and their mirror images
+    tensor = "add_49:0"  # the shipped graph network's last point states, a row a point
     assert main(["lab", "step-gate", "--models", str(models), "--fit-seeds", "800-801", "--seeds", "850",
                  "--steps", "40", "--workers", "1", "--hidden", tensor, "--json", str(out)]) == 0
     report = json.loads(out.read_text())
@@ -120,7 +120,7 @@ def test_the_tap_hands_the_network_its_answer_and_keeps_the_pooled_state():
             np.array([[0, 1], [1, 2], [2, 0], [0, 3], [3, 1]], np.int32), np.ones((4, 1), np.float32))
     plain = predictor.run_session(*feed)
     tap = HiddenTap(predictor, SHIPPED / f"{GRAPH}.onnx",
-                    ["m0/add_49:0"])
+                    ["add_49:0"])
     assert predictor.infer == tap.infer and np.array_equal(predictor.infer(*feed), plain)
     width = tap.widths[0]
     assert tap.last.shape == (2 * width,) and len(tap.names()) == 2 * width
@@ -131,8 +131,8 @@ def test_a_tensor_the_model_does_not_hold_and_a_card_for_a_screens_gate_are_refu
     models = _shipped_default(tmp_path)
     assert main(["lab", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "no/such:0"]) == 2
     err = capsys.readouterr().err
-    assert "no/such:0" in err and "m0/add_49:0" in err  # it names some tensors that are there
-    assert main(["lab", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "m0/add_49:0",
+    assert "no/such:0" in err and "add_49:0" in err  # it names some tensors that are there
+    assert main(["lab", "step-gate", "--models", str(models), "--steps", "20", "--hidden", "add_49:0",
                  "--save-card", "x"]) == 2
     assert "--save-card with --hidden" in capsys.readouterr().err
 
