@@ -34,6 +34,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-resR    the default's route with max_residual R / 100 (resnone: none, every reading
                     served), for R in RESIDUALS: how far the admitted solve may miss its labels
                     before the fallback answers (docs/research/2026-12-06-the-graph-fallbacks-share.md)
+    zoo-resR, default-zoo-resR  the zoo route with max_residual R / 100, and the default falling
+                    back to it, for R in ZOO_RESIDUALS (the default serves the zoo route on worlds
+                    contact-modes was not trained on)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -56,6 +59,8 @@ MIRROR, AUGMENTED = "graph-face-fr-r12-e15-mirror", "graph-face-fr-r12-e15-aug"
 GRAPH_MIRROR = "graph-projected-max-1-799-r8-e9-reflect-sym-mirror"
 #: max_residual of the default's route variants (a share of the step's velocities; None: none).
 RESIDUALS = (0.3, 0.35, 0.4, 0.5, 0.75, 1.0, None)
+#: max_residual of the zoo route's variants.
+ZOO_RESIDUALS = (0.3, 0.5, 0.75)
 
 
 def _fill(tmp: Path) -> None:
@@ -86,6 +91,10 @@ def _fill(tmp: Path) -> None:
     for residual in RESIDUALS:
         card(tmp, residual_variant(residual), alias_of=default["alias_of"],
              face={**default["face"], "max_residual": residual})
+    for residual in ZOO_RESIDUALS:
+        zoo_variant = residual_variant(residual).replace("default", "zoo")
+        card(tmp, zoo_variant, alias_of=zoo["alias_of"], face={**zoo["face"], "max_residual": residual})
+        card(tmp, f"default-{zoo_variant}", alias_of=default["alias_of"], face={**default["face"], "fallback": zoo_variant})
 
 
 def residual_variant(residual: float | None) -> str:

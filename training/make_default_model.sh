@@ -150,7 +150,11 @@ ZOO_NET=graph-labels-scaled-zoo-r12-e4
 # (against_builtin): on worlds the zoo does not hold, labels read as right can still cost more than
 # Box2D's start (a time step of 1/30 s: 1.42x per state unchecked, 0.97x checked;
 # docs/research/2026-12-06-the-route-against-box2ds-start.md).
-ROUTE='"pressing": 0.75, "rounds": 50, "max_residual": 0.3, "max_points": 1000, "solver": "dual", "against_builtin": true'
+# Its labels may leave the admitted solve's equations unmet by up to 0.5 of the step's velocities
+# (0.3 until 2026-12-06): on Builtin's states of the zoo's and the examples' 850-854, 0.984-0.997x
+# of 0.3's iterations on seven of the twelve worlds, the others within 0.5 %; 0.75 gains on fewer
+# (docs/research/2026-12-06-the-graph-fallbacks-share.md).
+ROUTE='"pressing": 0.75, "rounds": 50, "max_residual": 0.5, "max_points": 1000, "solver": "dual", "against_builtin": true'
 # The default's own route admits in 40 over-relaxed rounds (the same iterations as 50 plain ones
 # on the thesis world's states, 45 us less a step); on the zoo's discs they cost 1.2 %, so the
 # zoo route keeps 50 plain ones (docs/research/2026-12-06-over-relaxed-admission.md). Its labels

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from lab.admission_variants import RESIDUALS, VARIANTS, main, residual_variant
+from lab.admission_variants import RESIDUALS, VARIANTS, ZOO_RESIDUALS, main, residual_variant
 from server.predictors import load_models
 
 
@@ -60,3 +60,8 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
         assert {k: v for k, v in settings.items() if k != "max_residual"} == \
             {k: v for k, v in served["default"].settings.items() if k != "max_residual"}
     assert residual_variant(0.35) == "default-res35" and residual_variant(None) == "default-resnone"
+    # The zoo route's own test, and the default falling back to each.
+    for residual in ZOO_RESIDUALS:
+        zoo = served[f"default-zoo-res{round(100 * residual)}"].fallback
+        assert zoo.name == f"zoo-res{round(100 * residual)}" and zoo.settings["max_residual"] == residual
+        assert zoo.fallback.name == "contact-graph" and zoo.settings["against_builtin"]
