@@ -102,8 +102,8 @@ class WarmStartClient:
         self.world = world
         self._backoff = 0.0
         self._retry_at = 0.0
-        self._outbox: queue.Queue | None = None
-        self._inbox: queue.Queue | None = None
+        self._outbox: queue.SimpleQueue | None = None
+        self._inbox: queue.SimpleQueue | None = None
         self._replies = None
         self._late: collections.deque = collections.deque()  # (step, model) whose replies the stream still owes
         self._opened = False
@@ -216,8 +216,10 @@ class WarmStartClient:
         if now < self._retry_at:
             raise StepFailed(f"reconnecting in {1e3 * (self._retry_at - now):.0f} ms", grpc.StatusCode.UNAVAILABLE,
                              reason="BACKING_OFF")
-        outbox: queue.Queue = queue.Queue()
-        inbox: queue.Queue = queue.Queue()
+        # SimpleQueue, not Queue: each round trip crosses two of them, and the C queue hands a
+        # step from thread to thread with less of the interpreter's work than Queue's condition.
+        outbox: queue.SimpleQueue = queue.SimpleQueue()
+        inbox: queue.SimpleQueue = queue.SimpleQueue()
 
         def requests():
             while True:
