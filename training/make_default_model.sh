@@ -10,8 +10,8 @@
 #                         solver's stopping rule reads, scored on the mean of its answer and its
 #                         mirror image's (training/round2_graph.sh; each run starts from the last
 #                         one's weights). It is served alone: with its mirror image
-#                         (...-reflect-sym-mirror) the default needed 1.002x the iterations on
-#                         Builtin's states of 850-899 at twice the fallback's network time
+#                         (...-reflect-sym-mirror) the default needed 1.001x the iterations on
+#                         Builtin's states of 850-899 at 1.4 times the fallback's server time
 #                         (docs/research/2026-12-06-the-graph-fallbacks-share.md). In the
 #                         research store (lab/models/) it is graph-projected-max-1-799-r8-e9-reflect-sym,
 #                         beside the runs it was trained through.
