@@ -19,8 +19,10 @@ over steps with contacts (medians over all seeds' steps, ms; the whole step also
 and the learned mean over Builtin's, the ratio a user's simulation would see). The break-even
 is what the learned warm start costs per step beyond Box2D's own work
 (export + round trip + inject, median) divided by what one velocity
-iteration costs at that size (median over builtin's steps of solve time /
-velocity iterations): how many iterations per step it must save to pay for
+iteration costs at that size (the slope of builtin's solve times over its
+iterations, least squares over its steps: a step's solve also has a fixed part,
+the islands, the constraints' set-up and the positions' pass, which no warm
+start saves): how many iterations per step it must save to pay for
 itself, beside how many it does save (builtin's mean iterations minus the
 model's). The in-process run gives the same warm starts without gRPC, so its
 overhead is what the model's own work (features, inference, combination) costs
@@ -34,7 +36,10 @@ times sqrt(N / 100)); the server's grids grow with the box.
 which a server that had not run this grid size before would be slow on (the
 server warms a model up when a stream declares its world, so it should not be).
 The deadline is long (1 s by default) so that every step is served and
-timed, not replaced by builtin. `--pin` puts the server on the host's last core and the
+timed, not replaced by builtin. A third table says where the learned step's
+mean goes: the sweeps saved and what they are worth, the served overhead's mean and the
+model's own (in process), and the mean overhead at which the learned step would be 1.5 and
+1.0 times Builtin's: what the round trip may cost for a ratio. `--pin` puts the server on the host's last core and the
 simulations on the others, so that neither moves between cores nor takes the other's caches. Writes DIR/walltime.json, DIR/walltime.md
 (the table) and DIR/walltime.png (step time against bodies, one line per
 warm start).
@@ -181,11 +186,33 @@ def _pooled(runs: list[dict], learned: bool) -> dict[str, np.ndarray]:
     return {k: np.concatenate([step_times(r, learned)[k] for r in runs]) for k in step_times(runs[0], learned)}
 
 
+def solve_fit(solve_ms: np.ndarray, iterations: np.ndarray) -> tuple[float, float] | None:
+    """(fixed ms, ms a sweep): the least-squares line solve_ms = fixed + per_sweep * iterations
+    over a run's steps (N,) each, or None where the steps do not vary in their sweeps. A step's
+    solve is more than its sweeps (the islands, the constraints' set-up, the positions' pass),
+    so a median of solve / sweeps overstates what one sweep costs, and what one saved is worth."""
+    if len(iterations) < 2 or np.ptp(iterations) == 0:
+        return None
+    per, fixed = np.polyfit(np.asarray(iterations, float), np.asarray(solve_ms, float), 1)
+    return float(fixed), float(per)
+
+
+def overhead_allowed(ratio: float, builtin_mean_ms: float, learned_mean_ms: float,
+                     learned_overhead_mean_ms: float) -> float:
+    """The mean served overhead (ms a step) at which the learned step's mean would be `ratio`
+    times Builtin's, its collide and solve as measured: what the round trip may cost."""
+    return ratio * builtin_mean_ms - (learned_mean_ms - learned_overhead_mean_ms)
+
+
 def summarize_size(builtin: list[dict], learned: list[dict], in_process: list[dict] | None = None) -> dict:
     """One size's row from builtin's, the served model's and (optionally) the in-process model's
     runs on the same seeds."""
     b, m = _pooled(builtin, False), _pooled(learned, True)
-    per_iteration = float(np.median(b["solve_ms"] / np.maximum(b["velocity_iterations"], 1)))
+    # What a sweep costs: the slope of Builtin's solve times over its sweeps (a step's solve has
+    # a fixed part, which a saved sweep does not save); the median ratio where they do not vary.
+    fit_b = solve_fit(b["solve_ms"], b["velocity_iterations"])
+    per_iteration = fit_b[1] if fit_b is not None and fit_b[1] > 0 else \
+        float(np.median(b["solve_ms"] / np.maximum(b["velocity_iterations"], 1)))
     overhead = float(np.median(m["overhead_ms"]))
     saved = float(b["velocity_iterations"].mean() - m["velocity_iterations"].mean())
     row = {
@@ -207,6 +234,16 @@ def summarize_size(builtin: list[dict], learned: list[dict], in_process: list[di
         "break_even_iterations": overhead / per_iteration if per_iteration > 0 else None,
         "saved_iterations": saved,
     }
+    # Where the learned step's mean goes, and the mean overhead it could afford at 1.5 and 1.0
+    # times Builtin's mean step, its collide and solve as measured.
+    mean_overhead = float(m["overhead_ms"].mean())
+    row["budget"] = {
+        "builtin_solve_fit": fit_b, "learned_overhead_mean_ms": mean_overhead,
+        "learned_solve_mean_ms": float(m["solve_ms"].mean()), "builtin_solve_mean_ms": float(b["solve_ms"].mean()),
+        "saved_ms": saved * per_iteration,
+        "overhead_allowed_ms": {str(r): overhead_allowed(r, float(b["step_ms"].mean()), float(m["step_ms"].mean()),
+                                                         mean_overhead) for r in (1.5, 1.0)},
+    }
     if in_process:
         p = _pooled(in_process, True)
         own = float(np.median(p["overhead_ms"]))
@@ -216,7 +253,8 @@ def summarize_size(builtin: list[dict], learned: list[dict], in_process: list[di
             "predict_ms": float(np.median(p["provider_ms"])), "overhead_ms": own,
             "mean_iterations": float(p["velocity_iterations"].mean()),
             "break_even_iterations": own / per_iteration if per_iteration > 0 else None,
-            "saved_iterations": float(b["velocity_iterations"].mean() - p["velocity_iterations"].mean())}
+            "saved_iterations": float(b["velocity_iterations"].mean() - p["velocity_iterations"].mean()),
+            "overhead_mean_ms": float(p["overhead_ms"].mean())}
         stages = [st for r in in_process for st in r.get("stages", ())]
         # Three columns for every kind: before inference (a grid model's p2g, a graph model's
         # features), inference, after it (g2p; the face route's solve and admission).
@@ -341,6 +379,22 @@ def markdown_table(rows: dict, model: str, seeds: list[int], solver: SolverConfi
                      f"{m['overhead_ms']:.2f} | {r['ms_per_iteration']:.4f} | {be} | {r['saved_iterations']:.0f} | "
                      f"{m['fallback_steps']} | {b['mean_step_ms']:.2f} / {m['mean_step_ms']:.2f} | "
                      f"**{m['mean_step_ms'] / b['mean_step_ms']:.2f}** |")
+    budgets = {name: r["budget"] for name, r in rows.items() if "budget" in r}
+    if budgets:
+        lines += ["", "Where the learned step's mean goes (means over steps with contacts, ms): Builtin's solve "
+                      "fitted over its steps as a fixed part plus a cost a sweep (the cost a sweep above), what "
+                      "the sweeps saved are worth at that cost, the served overhead (and the model's own, called "
+                      "in process), and the served overhead at which the learned step's mean would be 1.5 and "
+                      "1.0 times Builtin's, its collide and solve as measured.", "",
+                  "| world | Builtin's solve, fixed part | the sweeps saved, worth | served overhead "
+                  "| the model's own overhead | **overhead for 1.5x** | overhead for 1.0x |",
+                  "|---|---|---|---|---|---|---|"]
+        for name, g in budgets.items():
+            fixed = "–" if g["builtin_solve_fit"] is None else f"{g['builtin_solve_fit'][0]:.2f}"
+            own = rows[name].get("in_process", {}).get("overhead_mean_ms")
+            allowed = g["overhead_allowed_ms"]
+            lines.append(f"| {name} | {fixed} | {g['saved_ms']:.2f} | {g['learned_overhead_mean_ms']:.2f} | "
+                         f"{_ms(own)} | **{allowed['1.5']:.2f}** | {allowed['1.0']:.2f} |")
     local = {name: r["in_process"] for name, r in rows.items() if "in_process" in r}
     if local:
         lines += ["", f"The same model called in this process (in-process:{model}, bench.inprocess): no gRPC, "

@@ -7,7 +7,9 @@ import os
 
 import pytest
 
-from bench.walltime import scene_for
+import numpy as np
+
+from bench.walltime import overhead_allowed, scene_for, solve_fit
 from commands import main
 from tests.server.conftest import write_conv_model
 
@@ -18,6 +20,20 @@ def test_family_worlds_keep_the_thesis_density_as_they_grow():
     assert scene_for("400", 250).box_size == (30.0, 30.0) and scene_for("400", 250).bodies == 400
     with pytest.raises(ValueError, match="number of bodies"):
         scene_for("huge", 250)
+
+
+def test_a_sweep_costs_the_slope_of_the_solve_times_not_their_ratio():
+    # Solves of 0.4 ms plus 3.5 us a sweep: the median ratio would say 5 us and more a sweep.
+    sweeps = np.array([50, 120, 300, 700, 1000])
+    fixed, per_sweep = solve_fit(0.4 + 0.0035 * sweeps, sweeps)
+    assert fixed == pytest.approx(0.4) and per_sweep == pytest.approx(0.0035)
+    assert solve_fit(np.array([1.0, 1.1]), np.array([80, 80])) is None  # no spread: no line
+
+
+def test_the_overhead_a_ratio_allows_is_what_is_left_of_it_after_collide_and_solve():
+    # Builtin's step 1.6 ms; the learned 2.7 ms, 1.4 of it overhead: 1.5x allows 2.4 - 1.3 ms.
+    assert overhead_allowed(1.5, 1.6, 2.7, 1.4) == pytest.approx(1.1)
+    assert overhead_allowed(1.0, 1.6, 2.7, 1.4) == pytest.approx(0.3)
 
 
 def test_bench_walltime_times_builtin_the_served_and_the_in_process_model_on_every_size(tmp_path):
@@ -41,8 +57,11 @@ def test_bench_walltime_times_builtin_the_served_and_the_in_process_model_on_eve
     assert local["mean_iterations"] == thesis["learned"]["mean_iterations"]  # the same trajectory
     assert local["predict_ms"] > 0 and local["inference_ms"] > 0
     assert local["break_even_iterations"] == pytest.approx(local["overhead_ms"] / thesis["ms_per_iteration"])
+    budget = thesis["budget"]
+    assert budget["overhead_allowed_ms"]["1.5"] > budget["overhead_allowed_ms"]["1.0"]
+    assert budget["saved_ms"] == pytest.approx(thesis["saved_iterations"] * thesis["ms_per_iteration"])
     table = (out / "walltime.md").read_text()
-    assert "| family-40 | 40 |" in table and "in-process:tiny" in table
+    assert "| family-40 | 40 |" in table and "in-process:tiny" in table and "overhead for 1.5x" in table
     assert (out / "walltime.png").stat().st_size > 10_000
 
 
@@ -111,6 +130,15 @@ def test_the_wall_of_stacks_stands_at_two_points_a_box():
     # Every box on a face: the ten columns stand (until they fall asleep, column by column, and
     # their points leave the solve).
     assert points[-1] == 2 * COLUMNS * BOXES
+
+
+def test_the_deep_wall_stands_twenty_boxes_a_column():
+    from bench.stack_wall import COLUMNS, deep
+    from simclient.engine import Engine, SolverConfig
+
+    engine = Engine(deep(901), SolverConfig())
+    points = [engine.step().contact_points for _ in range(40)]
+    assert engine.world.bodyCount == 1 + COLUMNS * 20 and points[-1] == 2 * COLUMNS * 20
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="pinning needs two cores")
