@@ -222,15 +222,15 @@ done:
 }
 
 /* solve_and_admit(bodies, n_bodies, points, n_points, labels, mu, read_mu, dt, gx, gy, pressing,
- *                 share, rounds, relax, until, ridge, refinements, optimality, impulses, geometry)
+ *                 share, rounds, relax, rho, until, ridge, refinements, optimality, impulses, geometry)
  *     -> (outcome, residual, solve_seconds, admit_seconds, admission_rounds)
  *
  * bodies, points: BODY_DTYPE and CONTACT_DTYPE records; labels float64 (P, 2), the classifier's
  * answer (N s); mu float64 (P,) each point's friction; read_mu float64 (P,) the friction the
  * sliding labels are read at (mu, or the card's label_friction everywhere); dt (s), gx, gy
  * (m/s^2); pressing (N s) and share: how the labels are read (faces.contact_face); rounds,
- * relax (its over-relaxation, admission_kernels.h), until (CLOCK_MONOTONIC s, 0: none): the
- * admission's; ridge, refinements, optimality: the dual solve's (faces.DUAL_*); impulses float64 (P, 2) out; geometry: prepare's for these
+ * relax (its over-relaxation, admission_kernels.h), rho (its ADMM penalty), until (CLOCK_MONOTONIC
+ * s, 0: none): the admission's; ridge, refinements, optimality: the dual solve's (faces.DUAL_*); impulses float64 (P, 2) out; geometry: prepare's for these
  * bodies and points, or None (built here). outcome: ROUTE_SERVED (impulses written, residual
  * faces.face_residual of them), ROUTE_NOT_DEFINITE (the sparse factor met a pivot below zero:
  * the caller solves densely) or ROUTE_INCONSISTENT (the labels' system is far from
@@ -239,13 +239,13 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
 {
     Py_buffer b[6];
     Py_ssize_t n_bodies, n_points;
-    double dt, gx, gy, pressing, share, relax, until, ridge, optimality;
+    double dt, gx, gy, pressing, share, relax, rho, until, ridge, optimality;
     long rounds;
     int refinements;
     PyObject *prepared;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddldddidw*O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3], &b[4],
-                          &dt, &gx, &gy, &pressing, &share, &rounds, &relax, &until, &ridge, &refinements, &optimality,
+    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddddidw*O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3], &b[4],
+                          &dt, &gx, &gy, &pressing, &share, &rounds, &relax, &rho, &until, &ridge, &refinements, &optimality,
                           &b[5], &prepared))
         return NULL;
     PyObject *result = NULL;
@@ -253,7 +253,7 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     const Py_ssize_t vec = 2 * n_points * (Py_ssize_t)sizeof(double);
     if (n_bodies < 0 || n_points < 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
         || b[1].len != n_points * POINT_SIZE || b[2].len != vec || b[3].len != vec / 2 || b[4].len != vec / 2
-        || b[5].len != vec || rounds < 0 || refinements < 0 || !(relax > 0.0 && relax < 2.0)) {
+        || b[5].len != vec || rounds < 0 || refinements < 0 || !(relax > 0.0 && relax < 2.0) || !(rho > 0.0)) {
         PyErr_SetString(PyExc_ValueError, "_route.solve_and_admit: arrays of the wrong size");
         goto done;
     }
@@ -342,7 +342,7 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
             goto out;
         memcpy(s.rhs, impulses, (size_t)P * 2 * sizeof(double)); /* c, the solve's answer */
         used = admission_rounds_run(g->rows, 2 * P, g->jp, g->ji, g->jd, &g->factor, g->inverse, s.rhs, mu, s.keep,
-                                    100.0, rounds, 1e-5, relax, until, impulses);
+                                    rho, rounds, 1e-5, relax, until, impulses);
         if (used < 0)
             goto out;
     }

@@ -33,6 +33,11 @@ except ImportError as exc:  # pragma: no cover - a checkout that was never set u
     ) from exc
 
 
+#: ADMM's penalty where a caller gives none: large, since reaching the admissible set is what
+#: counts and the distance to the start only picks among its points (nearest_admissible).
+ADMISSION_RHO = 100.0
+
+
 def project_to_cones(impulses: np.ndarray, mu: np.ndarray) -> np.ndarray:
     """The nearest impulses inside each point's friction cone, (P, 2) N s.
 
@@ -51,7 +56,7 @@ def project_to_cones(impulses: np.ndarray, mu: np.ndarray) -> np.ndarray:
 
 def nearest_admissible(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu: np.ndarray,
                        open_points: np.ndarray | None = None, iterations: int = 1000, tolerance: float = 1e-5,
-                       rho: float = 100.0, frame: ContactFrame | None = None,
+                       rho: float = ADMISSION_RHO, frame: ContactFrame | None = None,
                        until: float | None = None, relax: float = 1.0) -> np.ndarray:
     """The impulses nearest `impulses` that move the bodies as they do and that every
     point's limits admit, (P, 2) N s.

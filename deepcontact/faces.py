@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from deepcontact.admission import _monotonic, nearest_admissible
+from deepcontact.admission import ADMISSION_RHO, _monotonic, nearest_admissible
 from deepcontact.kinematics import (ContactFrame, Physics, _records, contact_frame, contact_velocities,
                                     velocities_before_and_after)
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
@@ -343,7 +343,7 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
                      rounds: int = 1000, label_friction: float | None = None,
                      frame: ContactFrame | None = None, damping: float = 0.0,
                      solver: str = "gelsy", until: float | None = None,
-                     close: float | None = None, relax: float = 1.0) -> tuple[np.ndarray, float]:
+                     close: float | None = None, relax: float = 1.0, rho: float = ADMISSION_RHO) -> tuple[np.ndarray, float]:
     """The warm start of the face route, (P, 2) N s: a classifier's answer read as labels,
     the step solved on them, the result admitted.
 
@@ -354,7 +354,8 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     (P,) friction coefficients; bodies, points, physics as in contact_velocities. The step
     is solved on those labels (solve_on_face, with its `damping` and `solver`) and moved by the smallest self-stress that
     every cone admits, the labels' open points held at 0 (admission.nearest_admissible, at most
-    `rounds` rounds over-relaxed by `relax`, and none begun after `until`, perf_counter() s). The simulation client's
+    `rounds` rounds over-relaxed by `relax` at ADMM's penalty `rho`, and none begun after `until`,
+    perf_counter() s). The simulation client's
     solved: composite and the server's face cards (deepcontact.modelcard) both serve this.
 
     close: None, or a speed (m/s): the points labelled open that the solve leaves closing
@@ -375,7 +376,7 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     frame = contact_frame(bodies, points) if frame is None else frame
     face, solved = read_and_solve(bodies, points, labels, mu, physics, pressing, share, label_friction, frame,
                                   damping, solver, close)
-    return admit_solved(bodies, points, face, solved, mu, physics, rounds, frame, until, relax)
+    return admit_solved(bodies, points, face, solved, mu, physics, rounds, frame, until, relax, rho)
 
 
 class CompiledRoute(NamedTuple):
@@ -404,7 +405,8 @@ def prepare_route(bodies: np.ndarray, points: np.ndarray, physics: Physics = Phy
 def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
                    physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                    label_friction: float | None = None, rounds: int = 1000,
-                   until: float | None = None, prepared=None, relax: float = 1.0) -> CompiledRoute | None:
+                   until: float | None = None, prepared=None, relax: float = 1.0,
+                   rho: float = ADMISSION_RHO) -> CompiledRoute | None:
     """solved_on_labels with solver "dual", no damping and no `close`, in one compiled call
     (deepcontact/_route.c, on the same kernels as the pieces here): the same numbers to rounding,
     without the NumPy calls between the pieces (about 0.15-0.25 ms of a served step). Arguments
@@ -420,7 +422,8 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
     gx, gy = physics.gravity
     outcome, residual, solve_s, admit_s, used = _compiled_route.solve_and_admit(
         bodies, len(bodies), points, len(points), np.ascontiguousarray(labels, np.float64), mu, read_at,
-        float(physics.dt), float(gx), float(gy), float(pressing), float(share), int(rounds), float(relax), _monotonic(until),
+        float(physics.dt), float(gx), float(gy), float(pressing), float(share), int(rounds), float(relax), float(rho),
+        _monotonic(until),
         DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, impulses, prepared)
     if outcome != _compiled_route.SERVED:
         return None
@@ -453,7 +456,8 @@ def read_and_solve(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
 
 def admit_solved(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, solved: np.ndarray, mu: np.ndarray,
                  physics: Physics = Physics(), rounds: int = 1000, frame: ContactFrame | None = None,
-                 until: float | None = None, relax: float = 1.0) -> tuple[np.ndarray, float]:
+                 until: float | None = None, relax: float = 1.0,
+                 rho: float = ADMISSION_RHO) -> tuple[np.ndarray, float]:
     """solved_on_labels's second half: (impulses (P, 2) N s, residual), a step solved on a face
     (P,) (read_and_solve's `solved`, (P, 2) N s) moved by the smallest self-stress that every cone
     admits, the face's open points held at 0 (admission.nearest_admissible, at most `rounds`
@@ -461,7 +465,7 @@ def admit_solved(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, solve
     Arguments as in solved_on_labels. A server times it apart from the solve (the face route's
     "admit" stage)."""
     admitted = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame,
-                                  until=until, relax=relax)
+                                  until=until, relax=relax, rho=rho)
     return admitted, face_residual(bodies, points, face, admitted, physics)
 
 

@@ -84,7 +84,10 @@ the step's factorizations are shared, so a retry costs its solve and admission r
 closing faster than that are labelled pressing and the step solved again before the admission,
 faces.solved_on_labels), relax (default 1: the admission's rounds plain ADMM; a number between 0
 and 2: their over-relaxation, deepcontact/admission_kernels.h, above 1 fewer rounds to the same
-answer where the rounds crawl along the cones), against_builtin (default false; true: the route's
+answer where the rounds crawl along the cones), rho (default 100: the admission's ADMM penalty,
+admission.nearest_admissible; larger, the rounds' pull toward the solve's own answer weaker and
+the bodies' motion reached sooner, which a served step cut at `rounds` rounds ends nearer),
+against_builtin (default false; true: the route's
 answer is served only where one projected Jacobi step from it would change the impulses less than
 one from Box2D's warm start, kinematics.jacobi_change, and Box2D's elsewhere: a check that needs
 no trust in the labels, for a route on worlds its classifier may not know), rescale (default
@@ -147,7 +150,7 @@ ALIAS_OVERRIDES = ("step_gate", "face", "mirror", "description", "measured")
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
-                 "relax": 1.0, "against_builtin": False, "rescale": False}
+                 "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False}
 
 
 class ModelCardError(ValueError):
@@ -330,10 +333,11 @@ def _face_settings(face: Any, kind: str) -> dict:
             or out["rounds"] < 1 or any(out[k] is not None and not out[k] > 0 for k in optional) \
             or not out["damping"] >= 0 or not (fallback is None or isinstance(fallback, str) and fallback) \
             or not (most is None or isinstance(most, int) and most >= 1) or out["solver"] not in SOLVERS \
-            or not retries_ok or not 0 < out["relax"] < 2 or not isinstance(out["against_builtin"], bool) \
+            or not retries_ok or not 0 < out["relax"] < 2 or not out["rho"] > 0 \
+            or not isinstance(out["against_builtin"], bool) \
             or not isinstance(out["rescale"], bool):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
-                             f"between 0 and 2, "
+                             f"between 0 and 2, rho > 0, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin "
@@ -341,7 +345,7 @@ def _face_settings(face: Any, kind: str) -> dict:
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
-            "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]),
+            "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
             "against_builtin": out["against_builtin"], "rescale": out["rescale"]}
 
 

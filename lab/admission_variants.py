@@ -37,6 +37,10 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     zoo-resR, default-zoo-resR  the zoo route with max_residual R / 100, and the default falling
                     back to it, for R in ZOO_RESIDUALS (the default serves the zoo route on worlds
                     contact-modes was not trained on)
+    default-rhoR, zoo-rhoR, default-zoo-rhoR  the default's route, the zoo route and the default
+                    falling back to that zoo route, with the admission's ADMM penalty (face `rho`)
+                    R, for R in RHOS; default-rho1000-rN the default's route at 1000 in N rounds
+                    (docs/research/2026-12-06-the-admissions-penalty.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -61,6 +65,10 @@ GRAPH_MIRROR = "graph-projected-max-1-799-r8-e9-reflect-sym-mirror"
 RESIDUALS = (0.3, 0.35, 0.4, 0.5, 0.75, 1.0, None)
 #: max_residual of the zoo route's variants.
 ZOO_RESIDUALS = (0.3, 0.5, 0.75)
+#: The admission's ADMM penalty (face `rho`) of the routes' variants.
+RHOS = (30, 100, 300, 1000, 3000)
+#: Rounds of the default's route at the penalty 1000 (as many as it takes, for the rounds' share).
+RHO_ROUNDS = (60, 80, 200)
 
 
 def _fill(tmp: Path) -> None:
@@ -95,6 +103,13 @@ def _fill(tmp: Path) -> None:
         zoo_variant = residual_variant(residual).replace("default", "zoo")
         card(tmp, zoo_variant, alias_of=zoo["alias_of"], face={**zoo["face"], "max_residual": residual})
         card(tmp, f"default-{zoo_variant}", alias_of=default["alias_of"], face={**default["face"], "fallback": zoo_variant})
+    for rho in RHOS:
+        card(tmp, f"default-rho{rho}", alias_of=default["alias_of"], face={**default["face"], "rho": float(rho)})
+        card(tmp, f"zoo-rho{rho}", alias_of=zoo["alias_of"], face={**zoo["face"], "rho": float(rho)})
+        card(tmp, f"default-zoo-rho{rho}", alias_of=default["alias_of"], face={**default["face"], "fallback": f"zoo-rho{rho}"})
+    for rounds in RHO_ROUNDS:
+        card(tmp, f"default-rho1000-r{rounds}", alias_of=default["alias_of"],
+             face={**default["face"], "rho": 1000.0, "rounds": rounds})
 
 
 def residual_variant(residual: float | None) -> str:

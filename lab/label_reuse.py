@@ -48,7 +48,8 @@ def price(seed: int, steps: int, predictor) -> tuple[dict[str, np.ndarray], int,
 
     def served(bodies, points, labels, friction) -> np.ndarray:
         answer = route_compiled(bodies, points, labels, friction, world.physics, face["pressing"], face["share"],
-                                face["label_friction"], face["rounds"], None, None, face["relax"])
+                                face["label_friction"], face["rounds"], None, None, face["relax"],
+                                face["rho"])
         if answer is None or (face["max_residual"] is not None and answer.residual > face["max_residual"]):
             return points["builtin"].astype(np.float64)
         return answer.impulses

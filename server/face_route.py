@@ -249,7 +249,8 @@ class FaceRoutePredictor(Predictor):
         face = self.settings
         if self.compiled:
             answer = route_compiled(bodies, points, labels, friction, world.physics, face["pressing"], face["share"],
-                                    face["label_friction"], face["rounds"], deadline, prepared, face["relax"])
+                                    face["label_friction"], face["rounds"], deadline, prepared, face["relax"],
+                                    face["rho"])
             if answer is not None:
                 stages["solve"] += answer.solve_seconds
                 stages["admit"] += answer.admit_seconds
@@ -273,7 +274,7 @@ class FaceRoutePredictor(Predictor):
                                           face["close"])
             t1 = time.perf_counter()
             impulses, residual = admit_solved(bodies, points, read, solved, mu, world.physics, face["rounds"], frame,
-                                              deadline, face["relax"])
+                                              deadline, face["relax"], face["rho"])
             t2 = time.perf_counter()
             stages["solve"] += t1 - t0
             stages["admit"] += t2 - t1

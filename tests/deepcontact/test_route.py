@@ -42,6 +42,23 @@ def test_the_compiled_route_is_the_route_piece_by_piece(wrong, rounds):
     assert compiled.solve_seconds > 0 and compiled.admit_seconds >= 0 and 0 <= compiled.rounds_run <= rounds
 
 
+@pytest.mark.parametrize("rho", [30.0, 1000.0])
+def test_the_compiled_route_admits_at_the_penalty_it_is_given(rho):
+    # The admission's ADMM penalty reaches the compiled rounds as it reaches the piecewise ones:
+    # cut at a few rounds, the answers at two penalties part, each the same in both routes.
+    bodies, points, exact, mu = sliding_pile()
+    labels = labels_of(exact, mu, np.random.default_rng(3), 0.2)
+    settings = dict(physics=Physics.thesis(), pressing=0.75, share=1.0, rounds=8, relax=1.6)
+    reference, _ = solved_on_labels(bodies, points, labels, mu, solver="dual", rho=rho, **settings)
+    compiled = route_compiled(bodies, points, labels, mu, rho=rho, **settings)
+    if compiled is None:
+        return
+    np.testing.assert_allclose(compiled.impulses, reference, atol=1e-8 * max(1.0, np.abs(reference).max()))
+    other = route_compiled(bodies, points, labels, mu, rho=100.0, **settings)
+    if compiled.rounds_run > 0:  # the rounds ran (not admitted as solved): the penalty shows
+        assert not np.allclose(other.impulses, compiled.impulses)
+
+
 def test_the_compiled_route_reads_labels_at_a_friction_of_its_own():
     bodies, points, exact, mu = sliding_pile()
     labels = labels_of(exact, mu, np.random.default_rng(7), 0.1)
