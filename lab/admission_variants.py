@@ -37,9 +37,10 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     zoo-resR, default-zoo-resR  the zoo route with max_residual R / 100, and the default falling
                     back to it, for R in ZOO_RESIDUALS (the default serves the zoo route on worlds
                     contact-modes was not trained on)
-    default-rhoR, zoo-rhoR, default-zoo-rhoR  the default's route, the zoo route and the default
-                    falling back to that zoo route, with the admission's ADMM penalty (face `rho`)
-                    R, for R in RHOS; default-rho1000-rN the default's route at 1000 in N rounds
+    zoo-rhoR, default-rhoR  the zoo route, and the default with both its routes, admitting at
+                    ADMM's penalty (face `rho`) R, for R in RHOS (default-rho100: the default as
+                    it was until 2026-12-06; default-rho1000: as shipped); default-rhoR-rN the
+                    same with its own route in N rounds, for R 100 and 1000 and N in RHO_ROUNDS
                     (docs/research/2026-12-06-the-admissions-penalty.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
@@ -67,8 +68,8 @@ RESIDUALS = (0.3, 0.35, 0.4, 0.5, 0.75, 1.0, None)
 ZOO_RESIDUALS = (0.3, 0.5, 0.75)
 #: The admission's ADMM penalty (face `rho`) of the routes' variants.
 RHOS = (30, 100, 300, 1000, 3000)
-#: Rounds of the default's route at the penalty 1000 (as many as it takes, for the rounds' share).
-RHO_ROUNDS = (60, 80, 200)
+#: Rounds of the default's route at the penalties 100 and 1000 (for what more rounds would buy).
+RHO_ROUNDS = (60, 80, 120, 200, 1000)
 
 
 def _fill(tmp: Path) -> None:
@@ -104,12 +105,13 @@ def _fill(tmp: Path) -> None:
         card(tmp, zoo_variant, alias_of=zoo["alias_of"], face={**zoo["face"], "max_residual": residual})
         card(tmp, f"default-{zoo_variant}", alias_of=default["alias_of"], face={**default["face"], "fallback": zoo_variant})
     for rho in RHOS:
-        card(tmp, f"default-rho{rho}", alias_of=default["alias_of"], face={**default["face"], "rho": float(rho)})
         card(tmp, f"zoo-rho{rho}", alias_of=zoo["alias_of"], face={**zoo["face"], "rho": float(rho)})
-        card(tmp, f"default-zoo-rho{rho}", alias_of=default["alias_of"], face={**default["face"], "fallback": f"zoo-rho{rho}"})
-    for rounds in RHO_ROUNDS:
-        card(tmp, f"default-rho1000-r{rounds}", alias_of=default["alias_of"],
-             face={**default["face"], "rho": 1000.0, "rounds": rounds})
+        card(tmp, f"default-rho{rho}", alias_of=default["alias_of"],
+             face={**default["face"], "rho": float(rho), "fallback": f"zoo-rho{rho}"})
+    for rho in (100, 1000):
+        for rounds in RHO_ROUNDS:
+            card(tmp, f"default-rho{rho}-r{rounds}", alias_of=default["alias_of"],
+                 face={**default["face"], "rho": float(rho), "rounds": rounds, "fallback": f"zoo-rho{rho}"})
 
 
 def residual_variant(residual: float | None) -> str:

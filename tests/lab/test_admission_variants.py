@@ -65,10 +65,10 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
         zoo = served[f"default-zoo-res{round(100 * residual)}"].fallback
         assert zoo.name == f"zoo-res{round(100 * residual)}" and zoo.settings["max_residual"] == residual
         assert zoo.fallback.name == "contact-graph" and zoo.settings["against_builtin"]
-    # The admission's ADMM penalty on each route, each else as shipped.
+    # The admission's ADMM penalty on both routes, each else as shipped.
     for rho in RHOS:
-        own, zoo = served[f"default-rho{rho}"].settings, served[f"default-zoo-rho{rho}"].fallback
+        own, zoo = served[f"default-rho{rho}"].settings, served[f"default-rho{rho}"].fallback
         assert own["rho"] == rho and zoo.name == f"zoo-rho{rho}" and zoo.settings["rho"] == rho
-        assert {k: v for k, v in own.items() if k != "rho"} == \
-            {k: v for k, v in served["default"].settings.items() if k != "rho"}
-    assert served["default-rho1000-r200"].settings["rounds"] == 200
+        assert {k: v for k, v in own.items() if k not in ("rho", "fallback")} == \
+            {k: v for k, v in served["default"].settings.items() if k not in ("rho", "fallback")}
+    assert served["default-rho100-r200"].settings["rounds"] == 200 and served["default-rho100-r200"].settings["rho"] == 100
