@@ -40,7 +40,8 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     zoo-rhoR, default-rhoR  the zoo route, and the default with both its routes, admitting at
                     ADMM's penalty (face `rho`) R, for R in RHOS (default-rho100: the default as
                     it was until 2026-12-06; default-rho1000: as shipped); default-rhoR-rN the
-                    same with its own route in N rounds, for R 100 and 1000 and N in RHO_ROUNDS
+                    same with its own route in N rounds, for R 100 and 1000 and N in RHO_ROUNDS;
+                    default-rho1000-xX its own route over-relaxed by X / 10 (RHO_RELAX)
                     (docs/research/2026-12-06-the-admissions-penalty.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
@@ -70,6 +71,8 @@ ZOO_RESIDUALS = (0.3, 0.5, 0.75)
 RHOS = (30, 100, 300, 1000, 3000)
 #: Rounds of the default's route at the penalties 100 and 1000 (for what more rounds would buy).
 RHO_ROUNDS = (60, 80, 120, 200, 1000)
+#: Over-relaxations (x 10) of the default's route at the penalty 1000 (tuned at 100: 1.6).
+RHO_RELAX = (14, 18, 19)
 
 
 def _fill(tmp: Path) -> None:
@@ -112,6 +115,9 @@ def _fill(tmp: Path) -> None:
         for rounds in RHO_ROUNDS:
             card(tmp, f"default-rho{rho}-r{rounds}", alias_of=default["alias_of"],
                  face={**default["face"], "rho": float(rho), "rounds": rounds, "fallback": f"zoo-rho{rho}"})
+    for relax in RHO_RELAX:
+        card(tmp, f"default-rho1000-x{relax}", alias_of=default["alias_of"],
+             face={**default["face"], "rho": 1000.0, "relax": relax / 10, "fallback": "zoo-rho1000"})
 
 
 def residual_variant(residual: float | None) -> str:
