@@ -41,7 +41,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
                     ADMM's penalty (face `rho`) R, for R in RHOS (default-rho100: the default as
                     it was until 2026-12-06; default-rho1000: as shipped); default-rhoR-rN the
                     same with its own route in N rounds, for R 100 and 1000 and N in RHO_ROUNDS;
-                    default-rho1000-xX its own route over-relaxed by X / 10 (RHO_RELAX)
+                    default-rho1000-xX its own route over-relaxed by X / 10 (RHO_RELAX);
+                    zoo-rho1000-x13, -x16 (50 rounds over-relaxed), -r40-x16 (40 of them), and the
+                    default falling back to each, default-zoo-rho1000-...
                     (docs/research/2026-12-06-the-admissions-penalty.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
@@ -118,6 +120,10 @@ def _fill(tmp: Path) -> None:
     for relax in RHO_RELAX:
         card(tmp, f"default-rho1000-x{relax}", alias_of=default["alias_of"],
              face={**default["face"], "rho": 1000.0, "relax": relax / 10, "fallback": "zoo-rho1000"})
+    for name, change in (("zoo-rho1000-x13", {"relax": 1.3}), ("zoo-rho1000-x16", {"relax": 1.6}),
+                         ("zoo-rho1000-r40-x16", {"relax": 1.6, "rounds": 40})):
+        card(tmp, name, alias_of=zoo["alias_of"], face={**zoo["face"], "rho": 1000.0, **change})
+        card(tmp, f"default-{name}", alias_of=default["alias_of"], face={**default["face"], "fallback": name})
 
 
 def residual_variant(residual: float | None) -> str:

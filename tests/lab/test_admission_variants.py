@@ -73,3 +73,5 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
             {k: v for k, v in served["default"].settings.items() if k not in ("rho", "fallback")}
     assert served["default-rho100-r200"].settings["rounds"] == 200 and served["default-rho100-r200"].settings["rho"] == 100
     assert served["default-rho1000-x18"].settings["relax"] == 1.8 and served["default-rho1000-x18"].settings["rho"] == 1000
+    relaxed = served["default-zoo-rho1000-r40-x16"].fallback.settings
+    assert (relaxed["rounds"], relaxed["relax"], relaxed["rho"]) == (40, 1.6, 1000)
