@@ -88,7 +88,7 @@ static PyObject *admission_rounds(PyObject *self, PyObject *args)
     long rounds;
     Py_BEGIN_ALLOW_THREADS
     rounds = admission_rounds_run((int32_t)rows, n2, b[0].buf, b[1].buf, b[2].buf, &factor, position, b[7].buf,
-                                  b[8].buf, b[9].buf, rho, iterations, tolerance, relax, until, b[10].buf);
+                                  b[8].buf, b[9].buf, rho, iterations, tolerance, relax, until, b[10].buf, NULL);
     Py_END_ALLOW_THREADS
     if (rounds < 0)
         PyErr_NoMemory();

@@ -157,6 +157,47 @@ static int alloc_step(struct step *s, int64_t P)
     return s->index && s->face && s->slide && s->keep && s->rhs && s->x && s->after;
 }
 
+/* A kept point key and its row, sorted by key for carry_begin's binary search. */
+struct keyed {
+    uint64_t key;
+    int64_t row;
+};
+
+static int by_key(const void *x, const void *y)
+{
+    const uint64_t a = ((const struct keyed *)x)->key, b = ((const struct keyed *)y)->key;
+    return a < b ? -1 : (a > b);
+}
+
+/* The admission's starting state (P, 4) of this step's points (records, their key at offset 0)
+ * from the state kept (Q, 4) under keys (Q,) on the step before: a point found there begins at
+ * its z (and its s with dual, else 0), the others NaN (cold). Returns 0, or -1 (memory). */
+static int carry_begin(const uint64_t *keys, const double *kept, int64_t Q, const char *points, int64_t P, int dual,
+                       double *state)
+{
+    struct keyed *sorted = malloc(((size_t)Q + 1) * sizeof *sorted);
+    if (sorted == NULL)
+        return -1;
+    for (int64_t q = 0; q < Q; q++)
+        sorted[q].key = keys[q], sorted[q].row = q;
+    qsort(sorted, (size_t)Q, sizeof *sorted, by_key);
+    for (int64_t i = 0; i < P; i++) {
+        struct keyed want;
+        memcpy(&want.key, points + i * POINT_SIZE + POINT_KEY, sizeof want.key);
+        const struct keyed *found = Q ? bsearch(&want, sorted, (size_t)Q, sizeof *sorted, by_key) : NULL;
+        double *to = state + 4 * i;
+        if (found == NULL) {
+            to[0] = to[1] = to[2] = to[3] = NAN;
+        } else {
+            const double *from = kept + 4 * found->row;
+            to[0] = from[0], to[1] = from[1];
+            to[2] = dual ? from[2] : 0.0, to[3] = dual ? from[3] : 0.0;
+        }
+    }
+    free(sorted);
+    return 0;
+}
+
 static const char GEOMETRY[] = "deepcontact._route.geometry";
 
 static void geometry_capsule_free(PyObject *capsule)
@@ -166,6 +207,22 @@ static void geometry_capsule_free(PyObject *capsule)
         geometry_free(g);
         free(g);
     }
+}
+
+/* The step's geometry where a caller passed prepare's (a capsule for these P points and B
+ * bodies), else `own`, zeroed, for the caller to build; NULL with a Python error set for an
+ * object that is not one, or one prepared for another step. `who` names the caller. */
+static struct geometry *prepared_or_own(PyObject *prepared, int64_t P, int64_t B, struct geometry *own, const char *who)
+{
+    memset(own, 0, sizeof *own);
+    if (prepared == Py_None)
+        return own;
+    struct geometry *g = PyCapsule_GetPointer(prepared, GEOMETRY);
+    if (g != NULL && (g->P != P || g->B != B)) {
+        PyErr_Format(PyExc_ValueError, "_route.%s: a geometry prepared for another step", who);
+        return NULL;
+    }
+    return g;
 }
 
 /* prepare(bodies, n_bodies, points, n_points, dt, gx, gy) -> geometry
@@ -222,7 +279,7 @@ done:
 }
 
 /* solve_and_admit(bodies, n_bodies, points, n_points, labels, mu, read_mu, dt, gx, gy, pressing,
- *                 share, rounds, relax, rho, until, ridge, refinements, optimality, impulses, geometry)
+ *                 share, rounds, relax, rho, until, ridge, refinements, optimality, impulses, geometry[, carry])
  *     -> (outcome, residual, solve_seconds, admit_seconds, admission_rounds)
  *
  * bodies, points: BODY_DTYPE and CONTACT_DTYPE records; labels float64 (P, 2), the classifier's
@@ -231,29 +288,43 @@ done:
  * (m/s^2); pressing (N s) and share: how the labels are read (faces.contact_face); rounds,
  * relax (its over-relaxation, admission_kernels.h), rho (its ADMM penalty), until (CLOCK_MONOTONIC
  * s, 0: none): the admission's; ridge, refinements, optimality: the dual solve's (faces.DUAL_*); impulses float64 (P, 2) out; geometry: prepare's for these
- * bodies and points, or None (built here). outcome: ROUTE_SERVED (impulses written, residual
+ * bodies and points, or None (built here); carry: None, or (kept_keys, kept, state, dual): the
+ * admission state (z, s) of the stream's step before, kept (Q, 4) float64 under kept_keys (Q,)
+ * uint64 point keys, each point of this step that is among them begins there (its s only with
+ * dual; elsewhere cold), and state (P, 4) float64 gets the state this step's rounds end in
+ * (admission_kernels.h; (impulses, 0) where no round ran), for the next. outcome: ROUTE_SERVED (impulses written, residual
  * faces.face_residual of them), ROUTE_NOT_DEFINITE (the sparse factor met a pivot below zero:
  * the caller solves densely) or ROUTE_INCONSISTENT (the labels' system is far from
  * consistent). */
 static PyObject *solve_and_admit(PyObject *self, PyObject *args)
 {
-    Py_buffer b[6];
+    Py_buffer b[7];
     Py_ssize_t n_bodies, n_points;
     double dt, gx, gy, pressing, share, relax, rho, until, ridge, optimality;
     long rounds;
     int refinements;
-    PyObject *prepared;
+    PyObject *prepared, *carried = Py_None;
+    Py_buffer kept[2];
+    int dual = 0;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddddidw*O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3], &b[4],
+    memset(kept, 0, sizeof kept);
+    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddddidw*O|O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3], &b[4],
                           &dt, &gx, &gy, &pressing, &share, &rounds, &relax, &rho, &until, &ridge, &refinements, &optimality,
-                          &b[5], &prepared))
+                          &b[5], &prepared, &carried))
         return NULL;
+    if (carried != Py_None && !PyArg_ParseTuple(carried, "y*y*w*p", &kept[0], &kept[1], &b[6], &dual)) {
+        for (int k = 0; k < 6; k++)
+            PyBuffer_Release(&b[k]);
+        return NULL;
+    }
     PyObject *result = NULL;
     const int64_t P = n_points, B = n_bodies;
     const Py_ssize_t vec = 2 * n_points * (Py_ssize_t)sizeof(double);
     if (n_bodies < 0 || n_points < 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
         || b[1].len != n_points * POINT_SIZE || b[2].len != vec || b[3].len != vec / 2 || b[4].len != vec / 2
-        || b[5].len != vec || rounds < 0 || refinements < 0 || !(relax > 0.0 && relax < 2.0) || !(rho > 0.0)) {
+        || b[5].len != vec
+        || (carried != Py_None && (b[6].len != 2 * vec || kept[1].len != 4 * kept[0].len || kept[0].len % 8 != 0))
+        || rounds < 0 || refinements < 0 || !(relax > 0.0 && relax < 2.0) || !(rho > 0.0)) {
         PyErr_SetString(PyExc_ValueError, "_route.solve_and_admit: arrays of the wrong size");
         goto done;
     }
@@ -262,19 +333,11 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
         PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
         goto done;
     }
-    struct geometry own, *g = &own;
-    memset(&own, 0, sizeof own);
-    if (prepared != Py_None) {
-        g = PyCapsule_GetPointer(prepared, GEOMETRY);
-        if (g == NULL)
-            goto done;
-        if (g->P != P || g->B != B) {
-            PyErr_SetString(PyExc_ValueError, "_route.solve_and_admit: a geometry prepared for another step");
-            goto done;
-        }
-    }
+    struct geometry own, *g = prepared_or_own(prepared, P, B, &own, "solve_and_admit");
+    if (g == NULL)
+        goto done;
     const double *labels = b[2].buf, *mu = b[3].buf, *read_mu = b[4].buf;
-    double *impulses = b[5].buf;
+    double *impulses = b[5].buf, *carry = carried != Py_None ? b[6].buf : NULL;
     struct step s;
     memset(&s, 0, sizeof s);
     int outcome = -1;
@@ -285,6 +348,8 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     Py_BEGIN_ALLOW_THREADS
     t0 = monotonic_seconds();
     if (!alloc_step(&s, P) || (g == &own && geometry_build(g, bodies, points, P, B, dt, gx, gy) != 0))
+        goto out;
+    if (carry != NULL && carry_begin(kept[0].buf, kept[1].buf, kept[0].len / 8, points, P, dual, carry) != 0)
         goto out;
     /* The labels (faces.contact_face) and the system's unknowns: the pressing points' normal
      * impulses first, then the sticking points' tangent ones (faces.face_system_sparse). */
@@ -342,9 +407,14 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
             goto out;
         memcpy(s.rhs, impulses, (size_t)P * 2 * sizeof(double)); /* c, the solve's answer */
         used = admission_rounds_run(g->rows, 2 * P, g->jp, g->ji, g->jd, &g->factor, g->inverse, s.rhs, mu, s.keep,
-                                    rho, rounds, 1e-5, relax, until, impulses);
+                                    rho, rounds, 1e-5, relax, until, impulses, carry);
         if (used < 0)
             goto out;
+    } else if (carry != NULL) {
+        for (int64_t i = 0; i < P; i++) {
+            carry[4 * i] = impulses[2 * i], carry[4 * i + 1] = impulses[2 * i + 1];
+            carry[4 * i + 2] = carry[4 * i + 3] = 0.0;
+        }
     }
     /* faces.face_residual: the velocity left where the labels ask for none (the normal where a
      * point presses, the tangent where it sticks) and the closing velocity where a point lets
@@ -380,7 +450,230 @@ out:
         result = Py_BuildValue("(iddd l)", outcome, residual, (outcome == ROUTE_SERVED ? t1 : t2) - t0,
                                outcome == ROUTE_SERVED ? t2 - t1 : 0.0, used);
 done:
-    for (int k = 0; k < 6; k++)
+    for (int k = 0; k < 7; k++)
+        if (b[k].obj != NULL || b[k].buf != NULL)
+            PyBuffer_Release(&b[k]);
+    for (int k = 0; k < 2; k++)
+        if (kept[k].obj != NULL || kept[k].buf != NULL)
+            PyBuffer_Release(&kept[k]);
+    return result;
+}
+
+/* A point's part in Box2D's velocity constraints: alone (one-point manifold), the first or
+ * second of a two-point manifold solved as a block, or a second point Box2D drops (its two
+ * points' normal rows nearly parallel: b2ContactSolver's condition number test). */
+enum { ALONE = 0, BLOCK_FIRST = 1, BLOCK_SECOND = 2, DROPPED = 3 };
+
+/* Box2D's b2ContactSolver::SolveVelocityConstraints on the server's copy of the step, one
+ * constraint at a time: the tangent rows of its points first, each held inside mu times its
+ * normal impulse, then its normal rows, one point's held >= 0, a two-point manifold's solved
+ * as a 2 x 2 complementarity problem by total enumeration, as Box2D's block solver does. A
+ * manifold's two points are consecutive in the export (deepcontact/box2d's patch) and share
+ * their bodies and normal. The largest change any impulse made is returned; v (3 B,) the
+ * bodies' velocities and lam (2 P,) the impulses are updated. */
+static double solve_sweep(const struct geometry *g, const double *mu, const double *mass, const unsigned char *role,
+                          const double *block, double *vx, double *vy, double *w, double *lam)
+{
+    const int64_t P = g->P;
+    double change = 0.0;
+    for (int64_t i = 0; i < P; i++) {
+        if (role[i] == BLOCK_SECOND || role[i] == DROPPED)
+            continue;
+        const int64_t a = g->pa[i], b = g->pb[i];
+        const int count = role[i] == BLOCK_FIRST ? 2 : 1;
+        const double ma = g->inv_mass[a], mb = g->inv_mass[b], ia = g->inv_inertia[a], ib = g->inv_inertia[b];
+        for (int j = 0; j < count; j++) { /* the tangent rows */
+            const int64_t q = i + j;
+            const double *ra = g->ra + 2 * q, *rb = g->rb + 2 * q, t0 = g->t[2 * q], t1 = g->t[2 * q + 1];
+            const double rel0 = vx[b] - w[b] * rb[1] - vx[a] + w[a] * ra[1];
+            const double rel1 = vy[b] + w[b] * rb[0] - vy[a] - w[a] * ra[0];
+            const double limit = mu[q] * lam[2 * q];
+            double next = lam[2 * q + 1] - mass[2 * q + 1] * (rel0 * t0 + rel1 * t1);
+            next = next > limit ? limit : (next < -limit ? -limit : next);
+            const double step = next - lam[2 * q + 1];
+            lam[2 * q + 1] = next;
+            change = fabs(step) > change ? fabs(step) : change;
+            const double i0 = step * t0, i1 = step * t1;
+            vx[a] -= i0 * ma, vy[a] -= i1 * ma, w[a] -= (ra[0] * i1 - ra[1] * i0) * ia;
+            vx[b] += i0 * mb, vy[b] += i1 * mb, w[b] += (rb[0] * i1 - rb[1] * i0) * ib;
+        }
+        const double n0 = g->n[2 * i], n1 = g->n[2 * i + 1];
+        double vn[2];
+        for (int j = 0; j < count; j++) {
+            const double *ra = g->ra + 2 * (i + j), *rb = g->rb + 2 * (i + j);
+            const double rel0 = vx[b] - w[b] * rb[1] - vx[a] + w[a] * ra[1];
+            const double rel1 = vy[b] + w[b] * rb[0] - vy[a] - w[a] * ra[0];
+            vn[j] = rel0 * n0 + rel1 * n1;
+        }
+        double x[2];
+        if (count == 1) {
+            x[0] = lam[2 * i] - mass[2 * i] * vn[0];
+            x[0] = x[0] > 0.0 ? x[0] : 0.0;
+        } else {
+            /* K, K^-1 (block + 6 i: k11, k12, k22, then the inverse's) and b = vn - K a */
+            const double *k = block + 6 * i, *kinv = k + 3, a0 = lam[2 * i], a1 = lam[2 * i + 2];
+            const double b0 = vn[0] - (k[0] * a0 + k[1] * a1), b1 = vn[1] - (k[1] * a0 + k[2] * a1);
+            x[0] = -(kinv[0] * b0 + kinv[1] * b1), x[1] = -(kinv[1] * b0 + kinv[2] * b1);
+            if (!(x[0] >= 0.0 && x[1] >= 0.0)) {
+                x[0] = -b0 / k[0], x[1] = 0.0;
+                if (!(x[0] >= 0.0 && k[1] * x[0] + b1 >= 0.0)) {
+                    x[0] = 0.0, x[1] = -b1 / k[2];
+                    if (!(x[1] >= 0.0 && k[1] * x[1] + b0 >= 0.0)) {
+                        x[0] = 0.0, x[1] = 0.0;
+                        if (!(b0 >= 0.0 && b1 >= 0.0))
+                            x[0] = a0, x[1] = a1; /* no case holds: Box2D leaves them */
+                    }
+                }
+            }
+        }
+        for (int j = 0; j < count; j++) {
+            const int64_t q = i + j;
+            const double *ra = g->ra + 2 * q, *rb = g->rb + 2 * q;
+            const double step = x[j] - lam[2 * q];
+            lam[2 * q] = x[j];
+            change = fabs(step) > change ? fabs(step) : change;
+            const double i0 = step * n0, i1 = step * n1;
+            vx[a] -= i0 * ma, vy[a] -= i1 * ma, w[a] -= (ra[0] * i1 - ra[1] * i0) * ia;
+            vx[b] += i0 * mb, vy[b] += i1 * mb, w[b] += (rb[0] * i1 - rb[1] * i0) * ib;
+        }
+        i += count - 1;
+    }
+    return change;
+}
+
+/* The largest change the solver's sweep number `sweeps` would make, from each of several starts:
+ * Box2D's velocity constraints (solve_sweep) after each start is applied as its warm start (a
+ * dropped point's not), on the server's copy of the step, without joints or restitution: what
+ * the server knows of it. The solver stops after the first sweep that changes no impulse by more
+ * than its threshold, so of two starts the one whose sweep `sweeps` changes less is the nearer
+ * to its end; one projected Jacobi step (sweeps 1, kinematics.jacobi_change, every point from
+ * the same velocities) is the crude version of this. g: the step's geometry (velocities with
+ * gravity added); mu (P,); starts (n_starts, P, 2) N s; changes (n_starts,) out, N s. Returns
+ * 0, or -1 (memory). */
+static int sweep_changes(const struct geometry *g, const double *mu, const double *starts, int n_starts, long sweeps,
+                         double *changes)
+{
+    const int64_t P = g->P, B = g->B;
+    double *vx = malloc(((size_t)3 * B + 1) * sizeof(double)), *vy = vx + B, *w = vy + B;
+    double *mass = malloc(((size_t)2 * P + 1) * sizeof(double)), *lam = malloc(((size_t)2 * P + 1) * sizeof(double));
+    double *block = malloc(((size_t)6 * P + 1) * sizeof(double));
+    unsigned char *role = calloc((size_t)P + 1, 1);
+    if (vx == NULL || mass == NULL || lam == NULL || block == NULL || role == NULL) {
+        free(vx), free(mass), free(lam), free(block), free(role);
+        return -1;
+    }
+    for (int64_t i = 0; i < P; i++) { /* effective masses along the normal and the tangent */
+        const int64_t a = g->pa[i], b = g->pb[i];
+        for (int d = 0; d < 2; d++) {
+            const double d0 = d ? g->t[2 * i] : g->n[2 * i], d1 = d ? g->t[2 * i + 1] : g->n[2 * i + 1];
+            const double ca = g->ra[2 * i] * d1 - g->ra[2 * i + 1] * d0, cb = g->rb[2 * i] * d1 - g->rb[2 * i + 1] * d0;
+            const double k = g->inv_mass[a] + g->inv_mass[b] + ca * ca * g->inv_inertia[a] + cb * cb * g->inv_inertia[b];
+            mass[2 * i + d] = k > 0.0 ? 1.0 / k : 0.0;
+        }
+    }
+    for (int64_t i = 0; i + 1 < P; i++) { /* two-point manifolds: a block, or their second point dropped */
+        const int64_t a = g->pa[i], b = g->pb[i];
+        if (role[i] != ALONE || g->pa[i + 1] != a || g->pb[i + 1] != b || g->n[2 * i] != g->n[2 * i + 2]
+            || g->n[2 * i + 1] != g->n[2 * i + 3])
+            continue;
+        const double n0 = g->n[2 * i], n1 = g->n[2 * i + 1], ma = g->inv_mass[a], mb = g->inv_mass[b];
+        const double ia = g->inv_inertia[a], ib = g->inv_inertia[b];
+        const double r1a = g->ra[2 * i] * n1 - g->ra[2 * i + 1] * n0, r1b = g->rb[2 * i] * n1 - g->rb[2 * i + 1] * n0;
+        const double r2a = g->ra[2 * i + 2] * n1 - g->ra[2 * i + 3] * n0;
+        const double r2b = g->rb[2 * i + 2] * n1 - g->rb[2 * i + 3] * n0;
+        const double k11 = ma + mb + ia * r1a * r1a + ib * r1b * r1b, k22 = ma + mb + ia * r2a * r2a + ib * r2b * r2b;
+        const double k12 = ma + mb + ia * r1a * r2a + ib * r1b * r2b, det = k11 * k22 - k12 * k12;
+        if (k11 * k11 < 1000.0 * det) { /* Box2D's k_maxConditionNumber */
+            double *k = block + 6 * i;
+            k[0] = k11, k[1] = k12, k[2] = k22, k[3] = k22 / det, k[4] = -k12 / det, k[5] = k11 / det;
+            role[i] = BLOCK_FIRST, role[i + 1] = BLOCK_SECOND;
+        } else {
+            role[i + 1] = DROPPED;
+        }
+        i++;
+    }
+    for (int k = 0; k < n_starts; k++) {
+        const double *start = starts + (size_t)2 * P * k;
+        memcpy(lam, start, (size_t)2 * P * sizeof(double));
+        memcpy(vx, g->vx, (size_t)B * sizeof(double));
+        memcpy(vy, g->vy, (size_t)B * sizeof(double));
+        memcpy(w, g->w, (size_t)B * sizeof(double));
+        for (int64_t i = 0; i < P; i++) { /* the start, as Box2D's warm start applies it */
+            if (role[i] == DROPPED)
+                continue;
+            const int64_t a = g->pa[i], b = g->pb[i];
+            const double *ra = g->ra + 2 * i, *rb = g->rb + 2 * i;
+            const double i0 = lam[2 * i] * g->n[2 * i] + lam[2 * i + 1] * g->t[2 * i];
+            const double i1 = lam[2 * i] * g->n[2 * i + 1] + lam[2 * i + 1] * g->t[2 * i + 1];
+            vx[a] -= i0 * g->inv_mass[a], vy[a] -= i1 * g->inv_mass[a];
+            w[a] -= (ra[0] * i1 - ra[1] * i0) * g->inv_inertia[a];
+            vx[b] += i0 * g->inv_mass[b], vy[b] += i1 * g->inv_mass[b];
+            w[b] += (rb[0] * i1 - rb[1] * i0) * g->inv_inertia[b];
+        }
+        double change = 0.0;
+        for (long sweep = 0; sweep < sweeps; sweep++)
+            change = solve_sweep(g, mu, mass, role, block, vx, vy, w, lam);
+        changes[k] = change;
+    }
+    free(vx), free(mass), free(lam), free(block), free(role);
+    return 0;
+}
+
+/* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry)
+ *     -> [change, ...]
+ *
+ * sweep_changes of each start: starts float64 (n_starts, P, 2) N s (n_starts from its size);
+ * mu float64 (P,); geometry: prepare's for these bodies, points and physics, or None. */
+static PyObject *compare_starts(PyObject *self, PyObject *args)
+{
+    Py_buffer b[4];
+    Py_ssize_t n_bodies, n_points;
+    double dt, gx, gy;
+    long sweeps;
+    PyObject *prepared;
+    memset(b, 0, sizeof b);
+    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lO", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx, &gy, &b[3],
+                          &sweeps, &prepared))
+        return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t per_start = 2 * n_points * (Py_ssize_t)sizeof(double);
+    if (n_bodies < 0 || n_points <= 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
+        || b[1].len != n_points * POINT_SIZE || b[2].len != per_start / 2 || b[3].len % per_start != 0
+        || b[3].len / per_start > 64 || sweeps < 1) {
+        PyErr_SetString(PyExc_ValueError, "_route.compare_starts: arrays of the wrong size");
+        goto done;
+    }
+    if (!points_in_range(b[1].buf, n_points, n_bodies)) {
+        PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
+        goto done;
+    }
+    struct geometry own, *g = prepared_or_own(prepared, n_points, n_bodies, &own, "compare_starts");
+    if (g == NULL)
+        goto done;
+    const int n_starts = (int)(b[3].len / per_start);
+    double changes[64];
+    int status;
+    Py_BEGIN_ALLOW_THREADS
+    status = g == &own ? geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy) : 0;
+    if (status == 0)
+        status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, changes);
+    geometry_free(&own);
+    Py_END_ALLOW_THREADS
+    if (status != 0) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    result = PyList_New(n_starts);
+    for (int k = 0; result != NULL && k < n_starts; k++) {
+        PyObject *x = PyFloat_FromDouble(changes[k]);
+        if (x == NULL) {
+            Py_CLEAR(result);
+            break;
+        }
+        PyList_SET_ITEM(result, k, x);
+    }
+done:
+    for (int k = 0; k < 4; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);
     return result;
@@ -390,6 +683,8 @@ static PyMethodDef methods[] = {
     {"solve_and_admit", solve_and_admit, METH_VARARGS,
      "The face route after its classifier: labels, solve, admission, residual (see the C source)."},
     {"prepare", prepare, METH_VARARGS, "A step's geometry for solve_and_admit, built ahead (see the C source)."},
+    {"compare_starts", compare_starts, METH_VARARGS,
+     "The largest change a sweep of the solver makes from each of several starts (see the C source)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -156,3 +156,44 @@ def _monotonic(until: float | None) -> float:
         return 0.0
     return max(1e-9, until - time.perf_counter() + time.monotonic())
 
+
+
+class AdmissionCarry:
+    """A stream's admission state between its steps, by contact point: the rounds of one step
+    begin where the same point's ended on the step before (deepcontact/_route.c's carry), so
+    that rounds cut short on every step add up along the stream where its points' problems move
+    little from step to step. A point new to the stream, or any point after a gap of steps,
+    begins cold.
+
+        carry = AdmissionCarry()
+        args = carry.begin(points, step)                 # what route_compiled's carry takes
+        answer = faces.route_compiled(..., carry=args)
+        carry.keep(points, step, args) if answer is not None else carry.forget()
+
+    The rounds' iterate z is carried, their scaled dual s begun at 0 unless dual: the dual is the
+    cones' reaction to the step's own start (the solve on this step's labels), which moves with
+    the labels; carried too, it cost more sweeps than the cold start on the choosing seeds
+    (lab.admission_carry).
+    """
+
+    __slots__ = ("_keys", "_state", "_step", "dual")
+
+    def __init__(self, dual: bool = False):
+        self._keys, self._state, self._step = np.empty(0, np.uint64), np.empty((0, 4)), None
+        self.dual = dual
+
+    def begin(self, points: np.ndarray, step: int) -> tuple:
+        """route_compiled's carry for step `step`'s points (P,) CONTACT_DTYPE: (the keys (Q,)
+        uint64 and the state (Q, 4) float64 kept on step - 1, none after a gap; the (P, 4)
+        float64 buffer the rounds write this step's state to; dual)."""
+        fresh = self._step is not None and self._step == step - 1
+        keys, state = (self._keys, self._state) if fresh else (self._keys[:0], self._state[:0])
+        return keys, state, np.empty((len(points), 4)), self.dual
+
+    def keep(self, points: np.ndarray, step: int, carry: tuple) -> None:
+        """Keep the state begin's buffer (carry[2]) got on step `step`, under its points' keys."""
+        self._keys, self._state, self._step = np.ascontiguousarray(points["key"]), carry[2], step
+
+    def forget(self) -> None:
+        """Drop the state: the next step begins cold (a step the route did not serve)."""
+        self._keys, self._state, self._step = self._keys[:0], self._state[:0], None

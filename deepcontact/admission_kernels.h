@@ -152,11 +152,15 @@ out:
  * iterations, tolerance; relax: the over-relaxation (1: plain ADMM; between 1 and 2 the
  * affine step is pushed past its point, which converges in fewer rounds where ADMM crawls along
  * the cones, as it does at rho = 100); until: CLOCK_MONOTONIC seconds after which no round starts
- * (0: none; read every UNTIL_EVERY rounds); z (2 P,) out. Returns the rounds run, or -1 (memory). */
+ * (0: none; read every UNTIL_EVERY rounds); z (2 P,) out. carry (P, 4) or NULL: each point's
+ * (z, s) to begin from, read on entry where its row is finite (elsewhere z = cones(c), s = 0)
+ * and the last round's (z, s) written back: the state a stream's next step begins from, where
+ * the same point's problem has moved little and its cut rounds go on where these stopped.
+ * Returns the rounds run, or -1 (memory). */
 static long admission_rounds_run(int32_t rows, int64_t n2, const int32_t *jp, const int32_t *ji, const double *jd,
                                  const spchol_factor_t *factor, const int32_t *position, const double *c,
                                  const double *mu, const double *keep, double rho, long iterations, double tolerance,
-                                 double relax, double until, double *z)
+                                 double relax, double until, double *z, double *carry)
 {
     const int64_t n_points = n2 / 2;
     const int32_t *lp = factor->Lp, *li = factor->Li;
@@ -200,6 +204,14 @@ static long admission_rounds_run(int32_t rows, int64_t n2, const int32_t *jp, co
     const double blend = 1.0 / (1.0 + rho);
     long round = 0;
     project_cones(c, mu, keep, n_points, z);
+    if (carry != NULL)
+        for (int64_t i = 0; i < n_points; i++) {
+            const double *from = carry + 4 * i;
+            if (isfinite(from[0]) && isfinite(from[1]) && isfinite(from[2]) && isfinite(from[3])) {
+                z[2 * i] = from[0] * keep[i], z[2 * i + 1] = from[1] * keep[i];
+                s[2 * i] = from[2], s[2 * i + 1] = from[3];
+            }
+        }
     while (round < iterations) {
         if (until > 0 && round > 0 && round % UNTIL_EVERY == 0 && monotonic_seconds() >= until)
             break;
@@ -239,6 +251,11 @@ static long admission_rounds_run(int32_t rows, int64_t n2, const int32_t *jp, co
         if (change < tolerance)
             break;
     }
+    if (carry != NULL)
+        for (int64_t i = 0; i < n_points; i++) {
+            double *to = carry + 4 * i;
+            to[0] = z[2 * i], to[1] = z[2 * i + 1], to[2] = s[2 * i], to[3] = s[2 * i + 1];
+        }
     free(work), free(index);
     return round;
 }

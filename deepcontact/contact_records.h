@@ -20,6 +20,7 @@ enum {
     BODY_MASS = 32,
     BODY_INERTIA = 36,
     POINT_SIZE = 64,
+    POINT_KEY = 0,
     POINT_BODY_A = 8,
     POINT_BODY_B = 12,
     POINT_POINT = 16,

@@ -38,6 +38,10 @@ except ImportError as exc:  # pragma: no cover - a checkout that was never set u
         "deepcontact's compiled faces (deepcontact/_faces.c, _route.c) are not built: "
         "run `make setup` (or `pip install -e .`)"
     ) from exc
+# deepcontact/_route.c reads a contact point's key at offset 0 (contact_records.h, POINT_KEY).
+if CONTACT_DTYPE.fields["key"][1] != 0:
+    raise ImportError("deepcontact.records moved a contact point's key from offset 0, where deepcontact/_route.c "
+                      "reads it (contact_records.h, POINT_KEY): change both")
 
 
 #: contact_face's labels: a point that lets go (no impulse), sticks (both velocities 0),
@@ -402,16 +406,43 @@ def prepare_route(bodies: np.ndarray, points: np.ndarray, physics: Physics = Phy
     return _compiled_route.prepare(bodies, len(bodies), points, len(points), float(physics.dt), float(gx), float(gy))
 
 
+def sweep_changes(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
+                  physics: Physics = Physics(), sweeps: int = 12, prepared=None) -> np.ndarray:
+    """(S,) N s: for each start of starts (S, P, 2) N s (normal, tangent), the largest change the
+    solver's sweep number `sweeps` would make at any point, on the server's copy of the step:
+    Box2D's velocity constraints (each manifold in turn, its tangent impulses held inside mu (P,)
+    times their normal ones, then its normal impulses held >= 0, a two-point manifold's as one
+    block, as Box2D's block solver; no joints, no restitution; deepcontact/_route.c). The
+    solver stops after the first sweep that changes
+    nothing by more than its threshold, so of two starts the one whose sweep changes less is
+    the nearer to where it stops: kinematics.jacobi_change is the one-step, every-point-at-once
+    version of this. prepared: prepare_route's for the same bodies, points and physics, or
+    None. At most 64 starts; about 1.8 us a sweep a start at 130 points."""
+    bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
+    points = _records(np.asarray(points), CONTACT_DTYPE, "points")
+    starts = np.ascontiguousarray(starts, np.float64)
+    if starts.ndim != 3 or starts.shape[1:] != (len(points), 2) or not 1 <= len(starts) <= 64:
+        raise ValueError(f"starts: (S, {len(points)}, 2) with 1 <= S <= 64, got {starts.shape}")
+    if len(points) == 0:
+        return np.zeros(len(starts))
+    gx, gy = physics.gravity
+    return np.array(_compiled_route.compare_starts(bodies, len(bodies), points, len(points),
+                                                   np.ascontiguousarray(mu, np.float64), float(physics.dt), float(gx),
+                                                   float(gy), starts, int(sweeps), prepared))
+
+
 def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,
                    physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                    label_friction: float | None = None, rounds: int = 1000,
                    until: float | None = None, prepared=None, relax: float = 1.0,
-                   rho: float = ADMISSION_RHO) -> CompiledRoute | None:
+                   rho: float = ADMISSION_RHO, carry: tuple | None = None) -> CompiledRoute | None:
     """solved_on_labels with solver "dual", no damping and no `close`, in one compiled call
     (deepcontact/_route.c, on the same kernels as the pieces here): the same numbers to rounding,
     without the NumPy calls between the pieces (about 0.15-0.25 ms of a served step). Arguments
     as in solved_on_labels; bodies (B,) BODY_DTYPE and points (P,) CONTACT_DTYPE records;
-    prepared: prepare_route's for the same bodies, points and physics, or None. None where the
+    prepared: prepare_route's for the same bodies, points and physics, or None; carry: None, or
+    admission.AdmissionCarry.begin's: the rounds begin where each point's ended on the stream's
+    step before, and write where this step's end. None where the
     compiled dual solve declines the labels' system (a pivot below zero, or a system far from
     consistent): solved_on_labels answers those."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
@@ -424,7 +455,7 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
         bodies, len(bodies), points, len(points), np.ascontiguousarray(labels, np.float64), mu, read_at,
         float(physics.dt), float(gx), float(gy), float(pressing), float(share), int(rounds), float(relax), float(rho),
         _monotonic(until),
-        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, impulses, prepared)
+        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, impulses, prepared, carry)
     if outcome != _compiled_route.SERVED:
         return None
     return CompiledRoute(impulses, residual, solve_s, admit_s, used)

@@ -90,10 +90,16 @@ the bodies' motion reached sooner, which a served step cut at `rounds` rounds en
 against_builtin (default false; true: the route's
 answer is served only where one projected Jacobi step from it would change the impulses less than
 one from Box2D's warm start, kinematics.jacobi_change, and Box2D's elsewhere: a check that needs
-no trust in the labels, for a route on worlds its classifier may not know), rescale (default
+no trust in the labels, for a route on worlds its classifier may not know), check_sweeps
+(default null: against_builtin's comparison is that one Jacobi step; a whole number N >= 1: the
+largest change the solver's N-th sweep of sequential impulses would make from each start,
+faces.sweep_changes, nearer to how the solver itself stops), rescale (default
 false; true: a step of larger or smaller bodies, denser, or with a larger or smaller gravity times
 time step than the classifier's `trained_on` is labelled scaled into it, deepcontact.envelope.Envelope.rescaled, and
-solved in its own units; the reply's familiar verdict stays the unscaled step's).
+solved in its own units; the reply's familiar verdict stays the unscaled step's), carry (default
+false; true: along a stream, each point's admission begins where the same point's ended on the
+step before, deepcontact.admission.AdmissionCarry, so that the rounds cut at `rounds` go on
+across steps; a step alone, or a point new to the stream, begins cold as before).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -150,7 +156,8 @@ ALIAS_OVERRIDES = ("step_gate", "face", "mirror", "description", "measured")
 #: A card's `face` settings, and their defaults (see above).
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
-                 "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False}
+                 "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
+                 "carry": False, "check_sweeps": None}
 
 
 class ModelCardError(ValueError):
@@ -322,9 +329,10 @@ def _face_settings(face: Any, kind: str) -> dict:
         raise ModelCardError(f"model card face: an object with keys among {sorted(FACE_DEFAULTS)}, got {face!r}")
     out = {**FACE_DEFAULTS, **face}
     optional = ("label_friction", "max_residual", "close")
+    sweeps = out["check_sweeps"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
-                  for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale")
-                  and not (k in optional + ("max_points",) and out[k] is None))
+                  for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry")
+                  and not (k in optional + ("max_points", "check_sweeps") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
                                                    for r in retries) and (not retries or out["max_residual"] is not None)
@@ -335,18 +343,21 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not (most is None or isinstance(most, int) and most >= 1) or out["solver"] not in SOLVERS \
             or not retries_ok or not 0 < out["relax"] < 2 or not out["rho"] > 0 \
             or not isinstance(out["against_builtin"], bool) \
-            or not isinstance(out["rescale"], bool):
+            or not isinstance(out["rescale"], bool) or not isinstance(out["carry"], bool) \
+            or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
                              f"between 0 and 2, rho > 0, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
-                             f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin "
-                             f"and rescale true or false, got {face!r}")
+                             f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
+                             f"rescale and carry true or false, check_sweeps null or a whole number 1-1000, "
+                             f"got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
-            "against_builtin": out["against_builtin"], "rescale": out["rescale"]}
+            "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
+            "check_sweeps": sweeps}
 
 
 def _measured(m: Any) -> dict:

@@ -45,6 +45,23 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
                     zoo-rho1000-x13, -x16 (50 rounds over-relaxed), -r40-x16 (40 of them), and the
                     default falling back to each, default-zoo-rho1000-...
                     (docs/research/2026-12-06-the-admissions-penalty.md)
+    zoo-carry, default-carry  the zoo route, and the default with both its routes, whose
+                    admission goes on along the stream from where each point's stopped on the
+                    step before (face `carry`, deepcontact.admission.AdmissionCarry);
+                    default-carry-rN the same with its own route in N rounds (CARRY_ROUNDS),
+                    default-carry-own only its own route carried, default-carry-against-builtin
+                    both carried and its own answer checked against Box2D's start
+    default-uncarried, zoo-jacobi  the default and the zoo route as shipped until the last change of
+                    2026-12-06: the default's own route neither carried nor checked, the zoo's
+                    checked by one Jacobi step
+    default-checkK  the default's own route checked against Box2D's start by the solver's K-th
+                    sweep from each (face `against_builtin` with `check_sweeps` K,
+                    deepcontact.faces.sweep_changes), for K in CHECK_SWEEPS; zoo-checkK and
+                    default-zoo-checkK the zoo route's check so (one Jacobi step as shipped);
+                    default-all-checkK both checked so; default-carry-checkK with both routes
+                    carried, default-own-carry-checkK only its own (the zoo route as shipped),
+                    default-own-carry-all-checkK only its own, both checked;
+                    default-carry-r50-checkK, -all- both carried, its own in 50 rounds
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -75,11 +92,22 @@ RHOS = (30, 100, 300, 1000, 3000)
 RHO_ROUNDS = (60, 80, 120, 200, 1000)
 #: Over-relaxations (x 10) of the default's route at the penalty 1000 (tuned at 100: 1.6).
 RHO_RELAX = (14, 18, 19)
+#: Rounds of the default's route with its admission carried along the stream.
+CARRY_ROUNDS = (10, 20, 30, 50, 60)
+#: Sweeps of the check against Box2D's start (face check_sweeps).
+CHECK_SWEEPS = (4, 8, 12, 16, 24)
 
 
 def _fill(tmp: Path) -> None:
     default = json.loads((tmp / "default.json").read_text())
     zoo = json.loads((tmp / "zoo.json").read_text())
+    # Every variant below changes the routes as they were until 2026-12-06's last change (the
+    # default's own route neither carried nor checked, the zoo's checked by one Jacobi step), so
+    # that each keeps its meaning whatever ships later; those of carry and check_sweeps add them.
+    plain = {"carry": False, "against_builtin": False, "check_sweeps": None}
+    card(tmp, "zoo-jacobi", alias_of=zoo["alias_of"], face={**zoo["face"], "check_sweeps": None})
+    default = {**default, "face": {**default["face"], **plain, "fallback": "zoo-jacobi"}}
+    zoo = {**zoo, "face": {**zoo["face"], "check_sweeps": None}}
     for rounds, relax in VARIANTS:
         card(tmp, f"default-r{rounds}-x{relax}", alias_of=default["alias_of"],
              face={**default["face"], "rounds": rounds, "relax": relax / 10})
@@ -124,6 +152,35 @@ def _fill(tmp: Path) -> None:
                          ("zoo-rho1000-r40-x16", {"relax": 1.6, "rounds": 40})):
         card(tmp, name, alias_of=zoo["alias_of"], face={**zoo["face"], "rho": 1000.0, **change})
         card(tmp, f"default-{name}", alias_of=default["alias_of"], face={**default["face"], "fallback": name})
+    card(tmp, "zoo-carry", alias_of=zoo["alias_of"], face={**zoo["face"], "carry": True})
+    card(tmp, "default-carry", alias_of=default["alias_of"], face={**default["face"], "carry": True, "fallback": "zoo-carry"})
+    card(tmp, "default-carry-own", alias_of=default["alias_of"], face={**default["face"], "carry": True})
+    card(tmp, "default-carry-against-builtin", alias_of=default["alias_of"],
+         face={**default["face"], "carry": True, "against_builtin": True, "fallback": "zoo-carry"})
+    for rounds in CARRY_ROUNDS:
+        card(tmp, f"default-carry-r{rounds}", alias_of=default["alias_of"],
+             face={**default["face"], "carry": True, "rounds": rounds, "fallback": "zoo-carry"})
+    card(tmp, "default-uncarried", alias_of=default["alias_of"], face=default["face"])
+    checked = {"against_builtin": True}
+    for sweeps in CHECK_SWEEPS:
+        check = {**checked, "check_sweeps": sweeps}
+        card(tmp, f"zoo-check{sweeps}", alias_of=zoo["alias_of"], face={**zoo["face"], **check})
+        card(tmp, f"zoo-carry-check{sweeps}", alias_of=zoo["alias_of"], face={**zoo["face"], **check, "carry": True})
+        card(tmp, f"default-check{sweeps}", alias_of=default["alias_of"], face={**default["face"], **check})
+        card(tmp, f"default-zoo-check{sweeps}", alias_of=default["alias_of"],
+             face={**default["face"], "fallback": f"zoo-check{sweeps}"})
+        card(tmp, f"default-all-check{sweeps}", alias_of=default["alias_of"],
+             face={**default["face"], **check, "fallback": f"zoo-check{sweeps}"})
+        card(tmp, f"default-carry-check{sweeps}", alias_of=default["alias_of"],
+             face={**default["face"], **check, "carry": True, "fallback": "zoo-carry"})
+        card(tmp, f"default-own-carry-check{sweeps}", alias_of=default["alias_of"],
+             face={**default["face"], **check, "carry": True})
+        card(tmp, f"default-own-carry-all-check{sweeps}", alias_of=default["alias_of"],
+             face={**default["face"], **check, "carry": True, "fallback": f"zoo-check{sweeps}"})
+        card(tmp, f"default-carry-r50-check{sweeps}", alias_of=default["alias_of"],
+             face={**default["face"], **check, "carry": True, "rounds": 50, "fallback": "zoo-carry"})
+        card(tmp, f"default-carry-r50-all-check{sweeps}", alias_of=default["alias_of"],
+             face={**default["face"], **check, "carry": True, "rounds": 50, "fallback": f"zoo-carry-check{sweeps}"})
 
 
 def residual_variant(residual: float | None) -> str:

@@ -16,6 +16,8 @@ COMMANDS = [
             "`deepcontact bench iterations` with the lab's warm starts too (price:, shadow:, pick:, oracle:, ...)"),
     Command(("admission",), "lab.admission",
             "what admitting a motion (nearest_admissible) costs a step, beside Box2D's solve"),
+    Command(("admission-carry",), "lab.admission_carry",
+            "where should a step's admission begin along a stream? cold, or where its points' stopped the step before"),
     Command(("corrections",), "lab.corrections",
             "a served model's corrections against the solver's, by size: where it errs"),
     Command(("face-solve",), "lab.face_solve",

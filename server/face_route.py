@@ -33,8 +33,11 @@ begun after the deadline); where the admitted solve misses its labels by more th
 max_residual, the labels are read again at each of retry_pressing's thresholds (none begun
 after the deadline), and the fallback answers where no reading meets it. With the card's
 against_builtin, an answer that one projected Jacobi step would change more than it would change
-Box2D's warm start (deepcontact.kinematics.jacobi_change) is not served: Box2D's is
-("builtin"). Its Prediction's stages:
+Box2D's warm start (deepcontact.kinematics.jacobi_change), or with its check_sweeps the solver's
+N-th sweep (deepcontact.faces.sweep_changes), is not served: Box2D's is ("builtin"). With the
+card's carry, the admission of a stream's step begins where the same points' stopped on the step
+before (deepcontact.admission.AdmissionCarry, kept in the memory the server keeps per stream
+and model). Its Prediction's stages:
 
     features   the classifier's point channels
     inference  the classifier's network (with a mirrored classifier also the route's geometry,
@@ -56,7 +59,8 @@ import time
 
 import numpy as np
 
-from deepcontact.faces import admit_solved, prepare_route, read_and_solve, route_compiled
+from deepcontact.admission import AdmissionCarry
+from deepcontact.faces import admit_solved, prepare_route, read_and_solve, route_compiled, sweep_changes
 from deepcontact.kinematics import contact_frame, effective_masses, jacobi_change
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
@@ -82,6 +86,7 @@ class FaceRoutePredictor(Predictor):
     card its face names, or None for Box2D's warm start."""
 
     takes_deadline = True
+    takes_memory = True  # predict(..., memory=): a stream's state between its steps (the card's carry)
 
     def __init__(self, card: ModelCard, classifier: GraphPredictor, fallback: Predictor | None = None):
         if card.face is None:
@@ -125,11 +130,14 @@ class FaceRoutePredictor(Predictor):
         return self.fallback.warm_up(domain) if self.fallback is not None else 0.0
 
     def predict(self, bodies, points, world, step, previous=None, friction=None, deadline=None,
-                slowdown: float = 1.0) -> Prediction:
+                slowdown: float = 1.0, memory: dict | None = None) -> Prediction:
         """As Predictor.predict; friction: (P,) each point's friction coefficient (the request's
         point_friction, required); deadline: time.perf_counter() s by which the answer is due
         (None: none), see fits; slowdown: how many times its own time a step's work is expected
-        to take in wall time (the requests the server answers at once, over its cores)."""
+        to take in wall time (the requests the server answers at once, over its cores); memory:
+        a dict the server keeps for this stream and model between its steps (None: a step
+        alone), where a card with carry keeps its admission's state (AdmissionCarry, by card
+        name: a fallback route keeps its own)."""
         started, cpu = time.perf_counter(), time.thread_time()
         if len(points) == 0:
             return Prediction(np.zeros((0, 2), np.float32))
@@ -150,11 +158,12 @@ class FaceRoutePredictor(Predictor):
                 or (lane is not None and not lane.acquire(blocking=False)):
             # A world the classifier was not trained on, too large a step to solve, or to solve
             # in time, or every lane busy with another step's route: no labels asked for.
-            answer = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown)
+            answer = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown,
+                                    memory=memory)
         else:
             try:
                 answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown,
-                                     scaled)
+                                     scaled, memory)
             finally:
                 if lane is not None:
                     lane.release()
@@ -163,37 +172,44 @@ class FaceRoutePredictor(Predictor):
         return Prediction(answer.impulses, answer.stages, answer.served_by, verdict)
 
     def _route(self, bodies, points, world, step, previous, friction, deadline, cpu: float,
-               slowdown: float = 1.0, scaled=None) -> Prediction:
+               slowdown: float = 1.0, scaled=None, memory: dict | None = None) -> Prediction:
         """predict's answer along the route (module docstring); cpu: the thread's CPU time when
         the step began; scaled: (bodies, points, previous, world) the classifier reads instead
         (the card's rescale), or None."""
         # The route's geometry (the frame, the admission's factorization) does not depend on the
         # labels: on a server with a core to spare it is built there while the classifier runs.
-        ahead, mirror, prepared = None, {}, None
+        # So does Box2D's start's side of the check against it (check_sweeps).
+        ahead, mirror, prepared, builtin_change = None, {}, None, None
         free = self._helper is not None and slowdown <= 1.0
+        checks = self.settings["against_builtin"] or scaled is not None
+        sweeps = self.settings["check_sweeps"] if checks else None
         if isinstance(self.classifier, MirroredGraphPredictor):
             # The reflected half on the spare core while the step's half runs here, and the
             # geometry here after it, filling the wait. Without a free core the step's half
             # alone: in turn the reflection would add the network's time again to the step.
-            later = _Later(prepare_route, bodies, points, world.physics) if self.compiled and free else None
+            later = _Later(_ahead, bodies, points, world.physics, friction, sweeps) if self.compiled and free else None
             mirror = {"spare": self._helper, "reflected": free, "meanwhile": later}
         elif self.compiled and free and len(points) >= AHEAD_POINTS:
-            ahead = self._helper.submit(prepare_route, bodies, points, world.physics)
+            ahead = self._helper.submit(_ahead, bodies, points, world.physics, friction, sweeps)
         asked = scaled if scaled is not None else (bodies, points, previous, world)
         labels = self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction, **mirror)
         if ahead is not None:
-            prepared = ahead.result()
-        elif mirror.get("meanwhile") is not None:
-            prepared = mirror["meanwhile"].value
+            prepared, builtin_change = ahead.result()
+        elif mirror.get("meanwhile") is not None and mirror["meanwhile"].value is not None:
+            prepared, builtin_change = mirror["meanwhile"].value
         stages = {"features": labels.stages["features"], "inference": labels.stages["inference"],
                   "solve": labels.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
-        impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared)
+        carry = None
+        if self.settings["carry"] and memory is not None:
+            carry = (memory.setdefault(self.name, AdmissionCarry()), step)
+        impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared,
+                                          carry)
         served_by = None
         # A step read at another scale than its own is one the classifier was not trained on:
         # checked as the card's against_builtin checks every step.
-        if impulses is not None and (self.settings["against_builtin"] or scaled is not None):
+        if impulses is not None and checks:
             t0 = time.perf_counter()
-            if not self._beats_builtin(bodies, points, impulses, friction, world):
+            if not self._beats_builtin(bodies, points, impulses, friction, world, prepared, builtin_change):
                 impulses, served_by = points["builtin"].copy(), BUILTIN
             stages["admit"] += time.perf_counter() - t0
         if impulses is None:  # labels the limits would not let the solve meet
@@ -212,16 +228,23 @@ class FaceRoutePredictor(Predictor):
             stages["admit"] += time.perf_counter() - t0
         return Prediction(np.asarray(impulses).astype(np.float32, copy=False), stages, served_by)
 
-    @staticmethod
-    def _beats_builtin(bodies, points, impulses, friction, world) -> bool:
+    def _beats_builtin(self, bodies, points, impulses, friction, world, prepared=None,
+                       builtin_change: float | None = None) -> bool:
         """Whether one projected Jacobi step from the route's answer ((P, 2) N s) would change the
         impulses less than one from Box2D's warm start (the request's builtin): the card's
-        against_builtin. On worlds the classifier was not trained on, labels it reads as right
+        against_builtin; with its check_sweeps N, whether the solver's N-th sweep from it would
+        (deepcontact.faces.sweep_changes; prepared: prepare_route's geometry, or None;
+        builtin_change: Box2D's start's side, N s, where _ahead has priced it). On worlds the classifier was not trained on, labels it reads as right
         can still leave the solver further from its end than Box2D's start, which at rest is
         nearly there (at a time step of 1/30 s the zoo route alone cost 1.42x Builtin's
         iterations on Builtin's states of 850-854; checked so, 0.97x)."""
-        masses = effective_masses(bodies, points)
         mu = np.asarray(friction, np.float64)
+        sweeps = self.settings["check_sweeps"]
+        if sweeps is not None:
+            if builtin_change is None:
+                builtin_change = _sweep_change(bodies, points, points["builtin"], mu, world.physics, sweeps, prepared)
+            return _sweep_change(bodies, points, impulses, mu, world.physics, sweeps, prepared) < builtin_change
+        masses = effective_masses(bodies, points)
         route = jacobi_change(bodies, points, impulses, mu, world.physics, masses)
         return route < jacobi_change(bodies, points, points["builtin"], mu, world.physics, masses)
 
@@ -237,7 +260,7 @@ class FaceRoutePredictor(Predictor):
         return self.cost.fits(n_points, now, deadline, slowdown)
 
     def _solved_on_labels(self, bodies, points, world, labels, friction, deadline,
-                          stages: dict[str, float], prepared=None) -> np.ndarray | None:
+                          stages: dict[str, float], prepared=None, carry=None) -> np.ndarray | None:
         """(P, 2) N s, the route's answer: the classifier's answer (labels, (P, 2) N s) read as
         each point's label, the step solved on them and admitted (deepcontact.faces, as
         solved_on_labels); where the admitted solve misses its labels by more than
@@ -245,12 +268,19 @@ class FaceRoutePredictor(Predictor):
         None where no reading meets it. friction: (P,) each point's friction coefficient;
         deadline: perf_counter() s after which no admission round begins (a route begun late
         answers with what it has rather than miss), and no retry. Adds each reading's seconds
-        to stages["solve"] and stages["admit"]."""
+        to stages["solve"] and stages["admit"]. carry: (AdmissionCarry, step) where the card's
+        carry keeps the admission's state along the stream (the compiled route only), or None."""
         face = self.settings
         if self.compiled:
+            args = carry[0].begin(points, carry[1]) if carry is not None else None
             answer = route_compiled(bodies, points, labels, friction, world.physics, face["pressing"], face["share"],
                                     face["label_friction"], face["rounds"], deadline, prepared, face["relax"],
-                                    face["rho"])
+                                    face["rho"], args)
+            if carry is not None:
+                if answer is not None:
+                    carry[0].keep(points, carry[1], args)
+                else:
+                    carry[0].forget()
             if answer is not None:
                 stages["solve"] += answer.solve_seconds
                 stages["admit"] += answer.admit_seconds
@@ -298,7 +328,7 @@ class FaceRoutePredictor(Predictor):
         return envelope is None or envelope.unfamiliar(bodies, points, friction, world.physics, None) is None
 
     def _fallback(self, bodies, points, world, step, previous, friction, deadline=None,
-                  slowdown: float = 1.0, second_route: bool = True) -> Prediction:
+                  slowdown: float = 1.0, second_route: bool = True, memory: dict | None = None) -> Prediction:
         """The answer where the route is not served: the fallback card's where the step lies in
         what it was trained on, else Box2D's warm start (the request's builtin impulses), with
         served_by naming it. With a deadline, Box2D's
@@ -317,11 +347,28 @@ class FaceRoutePredictor(Predictor):
         extra = {"friction": friction} if "point_friction" in self.fallback.requires else {}
         if getattr(self.fallback, "takes_deadline", False):  # another route: it keeps to the same deadline
             extra.update(deadline=deadline, slowdown=slowdown)
+        if getattr(self.fallback, "takes_memory", False):
+            extra["memory"] = memory
         cpu = time.thread_time()
         answer = self.fallback.predict(bodies, points, world, step, previous, **extra)
         self.fallback_cost.observe(len(points), time.thread_time() - cpu)
         # A route's own fallback, where it answered, is named rather than the route.
         return Prediction(answer.impulses, answer.stages, answer.served_by or self.fallback.name)
+
+
+def _ahead(bodies, points, physics, friction, sweeps: int | None):
+    """(prepare_route's geometry, Box2D's start's change at its sweep `sweeps`, N s, or None
+    where there is no check by sweeps): a step's work that does not wait on its labels."""
+    prepared = prepare_route(bodies, points, physics)
+    if sweeps is None:
+        return prepared, None
+    return prepared, _sweep_change(bodies, points, points["builtin"], friction, physics, sweeps, prepared)
+
+
+def _sweep_change(bodies, points, start, friction, physics, sweeps: int, prepared=None) -> float:
+    """deepcontact.faces.sweep_changes of one start (P, 2) N s."""
+    return float(sweep_changes(bodies, points, np.asarray(start, np.float64)[None], friction, physics, sweeps,
+                               prepared)[0])
 
 
 class _Later:

@@ -111,6 +111,7 @@ class Predictor:
     requires: tuple[str, ...] = ()
     batchable: bool = False  # infer(x) on one (1, ny, nx, C) grid, which server.batching can stack
     takes_deadline: bool = False  # predict(..., deadline=) may answer otherwise to meet it
+    takes_memory: bool = False  # predict(..., memory=) keeps state along a stream (a dict per stream and model)
     envelope: Envelope | None = None  # what the model was trained on (its card's trained_on); None: not recorded
     wins_where_trained: bool = False  # its card records a measured gain over Box2D's start there
 

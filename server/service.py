@@ -162,7 +162,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                     elif world is None:
                         raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                                       "world: required on the first message of a stream")
-                    reply, points = self._step(request, world, steps.before(request.step), streamed=True, local=local)
+                    reply, points = self._step(request, world, steps.before(request.step), streamed=True, local=local,
+                                               memory=steps.memory)
                     steps.record(request.step, points)
                     yield reply
                 except _Reject as r:
@@ -207,10 +208,11 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         return [need for need in predictor.requires if not sent[need]]
 
     def _step(self, request: pb.StepRequest, world: World, previous=None, streamed: bool = False,
-              local: bool = False):
+              local: bool = False, memory: dict | None = None):
         """(reply, the step's decoded points). streamed: the request is a stream's step (a shed
         step is answered, not refused: a refusal would end the stream); local: its client is on
-        this host, so its sending time (sent_unix_us) is on this host's clock."""
+        this host, so its sending time (sent_unix_us) is on this host's clock; memory: the
+        stream's dict of predictors' state by model name (_StreamSteps.memory), or None."""
         # From the start of parsing when gRPC parsed this request in this thread.
         t0 = _parse_started.__dict__.pop("t", None) or time.perf_counter()
         with self._flight:
@@ -219,7 +221,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         waited = 1e-6 * _waited_us(request, t0) if local else None
         cpu = time.thread_time()
         try:
-            return self._answer(request, world, previous, t0, in_flight, streamed, local)
+            return self._answer(request, world, previous, t0, in_flight, streamed, local, memory)
         finally:
             cpu = time.thread_time() - cpu
             with self._flight:
@@ -234,7 +236,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         return 1.0 + self._wait / max(self._work, 1e-5)
 
     def _answer(self, request: pb.StepRequest, world: World, previous, t0: float, in_flight: int, streamed: bool,
-                local: bool):
+                local: bool, memory: dict | None = None):
         """_step's work, t0 when its parsing began, in_flight the requests in a handler now, this
         one among them."""
         predictor = self.predictors.get(request.model)
@@ -262,6 +264,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                 waited = _waited_us(request, t0) if local else 0
                 deadline = (t0 + 1e-6 * (request.budget_us - waited) - self.deadline_margin_s
                             - (load - 1) * LOAD_SHARE_S)
+            if predictor.takes_memory and memory is not None:
+                extra["memory"] = memory.setdefault(request.model, {})
             if predictor.takes_deadline and deadline is not None:
                 extra["deadline"], extra["slowdown"] = deadline, max(1.0, load / self.cores)
             predictor.check_domain(world.domain)
@@ -376,10 +380,13 @@ class _StreamSteps:
     request before. A step without points is not sent, so the step before a gap is the
     last one that had points."""
 
-    __slots__ = ("step", "points", "_before")
+    __slots__ = ("step", "points", "_before", "memory")
 
     def __init__(self):
         self.step, self.points, self._before = None, None, None
+        # What predictors keep along the stream (takes_memory), a dict per model name: a model
+        # asked about the same states as others (price:) keeps its own.
+        self.memory: dict[str, dict] = {}
 
     def before(self, step: int):
         """(P,) CONTACT_DTYPE of the step before `step`, or None."""

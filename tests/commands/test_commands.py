@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PRODUCT = ["demo", "serve", "health", "simulate", "generate", "train", "train-graph", "export", "evaluate",
            "transfer-table"]
 BENCH = ["engine", "iterations", "load", "scale", "server", "soak", "transfer", "walltime"]
-INSTRUMENTS = ["admission", "corrections", "face-solve", "faces", "generate", "graph-size", "inference",
+INSTRUMENTS = ["admission", "admission-carry", "corrections", "face-solve", "faces", "generate", "graph-size", "inference",
                "joint-route", "joints-price", "label-reuse", "order", "spread", "step-gate", "surrogate", "simulate", "iterations"]
 
 

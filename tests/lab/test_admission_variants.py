@@ -15,31 +15,42 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     names = {f"default-r{rounds}-x{relax}" for rounds, relax in VARIANTS}
     assert names | {"default", "zoo", "zoo-r40-x16"} <= set(served)
     assert not (out / "stale.json").exists() and not out.with_name("variants.part").exists()
-    # Each variant is the default's route with only the admission changed: the same classifier
-    # and fallback chain, its rounds and over-relaxation as named.
+    # Each variant changes the routes as they were before the admission was carried and checked by
+    # sweeps (default-uncarried, falling back to zoo-jacobi): the shipped routes with those off.
+    base = served["default-uncarried"].settings
+    shipped, zoo = served["default"].settings, served["zoo"].settings
+    assert shipped["carry"] and shipped["check_sweeps"] == 12 and zoo["check_sweeps"] == 12 and not zoo["carry"]
+    off = {"carry": False, "against_builtin": False, "check_sweeps": None, "fallback": "zoo-jacobi"}
+    assert base == {**shipped, **off} and served["zoo-jacobi"].settings == {**zoo, "check_sweeps": None}
+    # ... and the shipped default is the variant that adds them back (its fallback renamed).
+    chosen = served["default-own-carry-all-check12"]
+    assert {**chosen.settings, "fallback": "zoo"} == shipped and chosen.fallback.settings == zoo
+    assert served["default-carry-check12"].fallback.settings["carry"]  # both routes carried there
+    # Each is the route with only its setting changed: the same classifier and fallback chain,
+    # here its rounds and over-relaxation as named.
     plain = served["default-r50-x10"].settings
     assert (plain["rounds"], plain["relax"]) == (50, 1.0)
     assert {k: v for k, v in plain.items() if k not in ("rounds", "relax")} == \
-        {k: v for k, v in served["default"].settings.items() if k not in ("rounds", "relax")}
-    assert served["default-r50-x10"].fallback.name == "zoo"
+        {k: v for k, v in base.items() if k not in ("rounds", "relax")}
+    assert served["default-r50-x10"].fallback.name == "zoo-jacobi"
     assert (served["zoo-r40-x16"].settings["rounds"], served["zoo-r40-x16"].settings["relax"]) == (40, 1.6)
     # The mirrored classifier under the default's route, trusted where contact-modes is.
-    assert served["default-mirror"].settings == served["default"].settings
+    assert served["default-mirror"].settings == base
     assert served["default-mirror"].envelope == served["default"].envelope
     assert served["default-mirror"].wins_where_trained
     # The same mirror image as two calls, the reflected one on the spare core.
     from server.mirror_image import MirroredGraphPredictor
 
     assert isinstance(served["default-mirrored"].classifier, MirroredGraphPredictor)
-    assert served["default-mirrored"].settings == served["default"].settings
+    assert served["default-mirrored"].settings == base
     # The classifier trained on reflected steps under the default's route.
-    assert served["default-aug"].settings == served["default"].settings
+    assert served["default-aug"].settings == base
     assert served["default-aug"].classifier.card.onnx_file == "modes-aug.onnx"
     # The default's route with its answer checked against Box2D's start, as the zoo route's is.
     checked = served["default-against-builtin"].settings
-    assert checked["against_builtin"] and not served["default"].settings["against_builtin"]
+    assert checked["against_builtin"] and not base["against_builtin"] and checked["check_sweeps"] is None
     assert {k: v for k, v in checked.items() if k != "against_builtin"} == \
-        {k: v for k, v in served["default"].settings.items() if k != "against_builtin"}
+        {k: v for k, v in base.items() if k != "against_builtin"}
     # The graph fallback as it was served, with its mirror image in one graph, and no graph fallback
     # at all: the same routes, only the last fallback changed.
     from server.predictors import GraphPredictor
@@ -47,7 +58,7 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     mirrored = served["default-graph-mirror"].fallback
     assert mirrored.name == "zoo-graph-mirror"
     assert {k: v for k, v in mirrored.settings.items() if k != "fallback"} == \
-        {k: v for k, v in served["zoo"].settings.items() if k != "fallback"}
+        {k: v for k, v in served["zoo-jacobi"].settings.items() if k != "fallback"}
     assert isinstance(mirrored.fallback, GraphPredictor) and mirrored.fallback.name == "graph-mirror"
     assert mirrored.fallback.envelope == served["contact-graph"].envelope
     assert served["default-no-graph"].fallback.name == "zoo-no-graph"
@@ -58,7 +69,7 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
         settings = served[residual_variant(residual)].settings
         assert settings["max_residual"] == residual
         assert {k: v for k, v in settings.items() if k != "max_residual"} == \
-            {k: v for k, v in served["default"].settings.items() if k != "max_residual"}
+            {k: v for k, v in base.items() if k != "max_residual"}
     assert residual_variant(0.35) == "default-res35" and residual_variant(None) == "default-resnone"
     # The zoo route's own test, and the default falling back to each.
     for residual in ZOO_RESIDUALS:
@@ -70,7 +81,7 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
         own, zoo = served[f"default-rho{rho}"].settings, served[f"default-rho{rho}"].fallback
         assert own["rho"] == rho and zoo.name == f"zoo-rho{rho}" and zoo.settings["rho"] == rho
         assert {k: v for k, v in own.items() if k not in ("rho", "fallback")} == \
-            {k: v for k, v in served["default"].settings.items() if k not in ("rho", "fallback")}
+            {k: v for k, v in base.items() if k not in ("rho", "fallback")}
     assert served["default-rho100-r200"].settings["rounds"] == 200 and served["default-rho100-r200"].settings["rho"] == 100
     assert served["default-rho1000-x18"].settings["relax"] == 1.8 and served["default-rho1000-x18"].settings["rho"] == 1000
     relaxed = served["default-zoo-rho1000-r40-x16"].fallback.settings

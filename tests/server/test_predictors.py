@@ -543,7 +543,11 @@ def test_a_face_routes_step_reports_its_features_inference_solve_and_admission(t
     assert set(answer.stages) == {"features", "inference", "solve", "admit", "g2p"}
 
 
-def test_a_route_against_builtin_serves_its_answer_only_where_it_beats_box2ds_start(tmp_path, thesis_steps):
+@pytest.mark.parametrize("check", [{}, {"check_sweeps": 12}], ids=["one-jacobi-step", "twelve-sweeps"])
+def test_a_route_against_builtin_serves_its_answer_only_where_it_beats_box2ds_start(tmp_path, thesis_steps, check):
+    """against_builtin compares the route's answer with Box2D's start by one projected Jacobi
+    step from each, or with check_sweeps by the solver's own sweeps played on the server's copy
+    of the step (deepcontact.faces.sweep_changes)."""
     from server.predictors import load_model
 
     classifier = shipped_classifier(tmp_path)
@@ -551,7 +555,7 @@ def test_a_route_against_builtin_serves_its_answer_only_where_it_beats_box2ds_st
     world = thesis_world(world_msg)
     bodies, points = steps[0]
     mu = np.full(len(points), 0.5, np.float32)
-    checked = load_model(face_card(tmp_path, "checked", classifier, against_builtin=True))
+    checked = load_model(face_card(tmp_path, "checked", classifier, against_builtin=True, **check))
     plain = load_model(face_card(tmp_path, "plain", classifier))
     assert checked.settings["against_builtin"] and not plain.settings["against_builtin"]
     # Box2D's start where the solver ended (the recorded final impulses): nothing beats it.
@@ -566,6 +570,32 @@ def test_a_route_against_builtin_serves_its_answer_only_where_it_beats_box2ds_st
     answer = checked.predict(bodies, cold, world, 0, friction=mu)
     assert answer.served_by is None
     np.testing.assert_array_equal(answer.impulses, plain.predict(bodies, cold, world, 0, friction=mu).impulses)
+
+
+def test_a_route_with_carry_keeps_its_admission_in_the_streams_memory(tmp_path, thesis_steps):
+    """With carry, the route's admission goes on along a stream (the memory the server keeps for
+    it and its model): each step's state is kept under the route's name, the next step begins
+    there, and a step alone (no memory) is the route without carry."""
+    from deepcontact.admission import AdmissionCarry
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = thesis_world(world_msg)
+    carried = load_model(face_card(tmp_path, "carried", classifier, rounds=3, rho=1000.0, solver="dual", carry=True))
+    plain = load_model(face_card(tmp_path, "plain", classifier, rounds=3, rho=1000.0, solver="dual"))
+    assert carried.takes_memory
+    memory, differ = {}, 0
+    for k, (bodies, points) in enumerate(steps):
+        mu = np.full(len(points), 0.5, np.float32)
+        along = carried.predict(bodies, points, world, k, friction=mu, memory=memory)
+        alone = carried.predict(bodies, points, world, k, friction=mu)
+        np.testing.assert_array_equal(alone.impulses, plain.predict(bodies, points, world, k, friction=mu).impulses)
+        if k == 0:  # nothing kept yet: the cold route
+            np.testing.assert_array_equal(along.impulses, alone.impulses)
+        differ += not np.array_equal(along.impulses, alone.impulses)
+        assert isinstance(memory["carried"], AdmissionCarry)
+    assert differ > 0
 
 
 def test_a_step_declined_whole_for_its_joints_is_served_box2ds_start_by_builtin(thesis_steps):

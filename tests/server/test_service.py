@@ -294,3 +294,39 @@ def test_a_kinematic_body_travels_with_mass_zero_and_is_decoded_as_kinematic(the
     decoded, _ = wire.decode_step(wire.encode_step(0, "m", bodies, points), max_bodies=10**4, max_points=10**5)
     # Row 0 is the walls' stand-in; the request's bodies follow in order (the box, static, does not travel).
     assert decoded["type"][5] == 1 and (np.delete(decoded["type"][1:], 4) == 2).all()
+
+
+def test_a_stream_keeps_each_models_memory_of_its_own(tmp_path, thesis_steps):
+    """A route with carry (its admission goes on along the stream) answers a stream's steps as
+    the same route in process with one memory for the stream; asked about the same states beside
+    another model (price:), it keeps its own; a single request (Predict) has none and is answered
+    cold."""
+    from deepcontact.kinematics import Physics
+    from server.predictors import World, load_model
+    from server.serve import Server
+    from tests.server.test_predictors import face_card, shipped_classifier
+
+    classifier = shipped_classifier(tmp_path)
+    face_card(tmp_path, "carried", classifier, rounds=3, rho=1000.0, solver="dual", carry=True)
+    world, steps = thesis_steps
+    mu = [np.full(len(p), 0.5, np.float32) for _, p in steps]
+    srv = Server(models=tmp_path, bind="127.0.0.1:0").start()
+    try:
+        with grpc.insecure_channel(srv.address) as channel:
+            stub = pb_grpc.WarmStartStub(channel)
+            asks = [request(world if k == 0 else None, b, p, model, step=k, builtin=p["builtin"], friction=mu[k])
+                    for k, (b, p) in enumerate(steps) for model in ("zero", "carried")]
+            served = [np.stack(wire.decode_impulses(r), 1) for r in stub.Stream(iter(asks))][1::2]
+            single = np.stack(wire.decode_impulses(stub.Predict(request(
+                world, *steps[-1], "carried", step=len(steps) - 1, builtin=steps[-1][1]["builtin"], friction=mu[-1]))), 1)
+    finally:
+        srv.stop()
+    route = load_model(tmp_path / "carried.json")
+    declared = World(tuple(map(tuple, wire.decode_world(world)[:2])), Physics.thesis())
+    memory = {}
+    along = [route.predict(b, p, declared, k, friction=mu[k], memory=memory).impulses for k, (b, p) in enumerate(steps)]
+    for got, want in zip(served, along):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    cold = route.predict(*steps[-1], declared, len(steps) - 1, friction=mu[-1]).impulses
+    np.testing.assert_allclose(single, cold, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(along[-1], cold, rtol=1e-5, atol=1e-6)
