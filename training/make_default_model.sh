@@ -159,7 +159,11 @@ ZOO_NET=graph-labels-scaled-zoo-r12-e4
 # default needs 0.972x of 100's iterations on the thesis world, 0.982x on family A's, 0.996x on
 # family B's, 0.83-1.00x on the scaled worlds, 0.96-1.00x on the zoo's classes
 # (docs/research/2026-12-06-the-admissions-penalty.md).
-ROUTE='"pressing": 0.75, "rounds": 50, "rho": 1000, "max_residual": 0.5, "max_points": 1000, "solver": "dual", "against_builtin": true'
+# Both routes' answers are checked against Box2D's start by the solver's twelfth sweep from each,
+# played on the server's copy of the step (check_sweeps 12; one Jacobi step until 2026-12-06's
+# last change): on Builtin's states of the zoo's and the examples' 850-854, 0.983-1.009x of the
+# Jacobi check's iterations, 0.985x on the zoo's pyramids (docs/research/2026-12-06-carried-and-swept.md).
+ROUTE='"pressing": 0.75, "rounds": 50, "rho": 1000, "max_residual": 0.5, "max_points": 1000, "solver": "dual", "against_builtin": true, "check_sweeps": 12'
 # The default's own route admits in 40 over-relaxed rounds (the same iterations as 50 plain ones
 # on the thesis world's states, 45 us less a step); on the zoo's discs they cost 1.2 %, so the
 # zoo route keeps 50 plain ones (docs/research/2026-12-06-over-relaxed-admission.md). Its labels
@@ -168,7 +172,11 @@ ROUTE='"pressing": 0.75, "rounds": 50, "rho": 1000, "max_residual": 0.5, "max_po
 # family B's and on the scaled worlds' 0.8-3.2 % fewer at 0.5, 0.6-1.4 % fewer again at 0.75,
 # at half the fallback's steps
 # (docs/research/2026-12-06-the-graph-fallbacks-share.md).
-DEFAULT_ROUTE='"pressing": 0.75, "rounds": 40, "relax": 1.6, "rho": 1000, "max_residual": 0.75, "max_points": 1000, "solver": "dual", "rescale": true'
+# Its admission goes on along the stream where each point's stopped the step before (carry: the
+# rounds' iterate kept, their dual not) and its answer is checked as the zoo route's is: on
+# Builtin's states of the thesis world's 850-899, 0.973x of the iterations unchecked and begun
+# cold (docs/research/2026-12-06-carried-and-swept.md).
+DEFAULT_ROUTE='"pressing": 0.75, "rounds": 40, "relax": 1.6, "rho": 1000, "max_residual": 0.75, "max_points": 1000, "solver": "dual", "rescale": true, "carry": true, "against_builtin": true, "check_sweeps": 12'
 tmp=$STORE/.zoo.json.part
 printf '%s\n' "{" '  "name": "zoo",' "  \"alias_of\": \"$ZOO_NET\"," \
     "  \"face\": {$ROUTE, \"fallback\": \"$DEFAULT\"}" "}" > "$tmp"
