@@ -99,7 +99,10 @@ time step than the classifier's `trained_on` is labelled scaled into it, deepcon
 solved in its own units; the reply's familiar verdict stays the unscaled step's), carry (default
 false; true: along a stream, each point's admission begins where the same point's ended on the
 step before, deepcontact.admission.AdmissionCarry, so that the rounds cut at `rounds` go on
-across steps; a step alone, or a point new to the stream, begins cold as before).
+across steps; a step alone, or a point new to the stream, begins cold as before),
+extrapolate_jointed (default false: at points on jointed bodies, which no model speaks for,
+server.joints, Box2D's start as it is; true: along a stream, that start extrapolated in time
+from the point's last two steps, deepcontact.temporal.ImpulseHistory).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -157,7 +160,7 @@ ALIAS_OVERRIDES = ("step_gate", "face", "mirror", "description", "measured")
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
-                 "carry": False, "check_sweeps": None}
+                 "carry": False, "check_sweeps": None, "extrapolate_jointed": False}
 
 
 class ModelCardError(ValueError):
@@ -331,7 +334,8 @@ def _face_settings(face: Any, kind: str) -> dict:
     optional = ("label_friction", "max_residual", "close")
     sweeps = out["check_sweeps"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
-                  for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry")
+                  for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
+                                           "extrapolate_jointed")
                   and not (k in optional + ("max_points", "check_sweeps") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -344,20 +348,21 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not retries_ok or not 0 < out["relax"] < 2 or not out["rho"] > 0 \
             or not isinstance(out["against_builtin"], bool) \
             or not isinstance(out["rescale"], bool) or not isinstance(out["carry"], bool) \
+            or not isinstance(out["extrapolate_jointed"], bool) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
                              f"between 0 and 2, rho > 0, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
-                             f"rescale and carry true or false, check_sweeps null or a whole number 1-1000, "
+                             f"rescale, carry and extrapolate_jointed true or false, check_sweeps null or a whole number 1-1000, "
                              f"got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
-            "check_sweeps": sweeps}
+            "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"]}
 
 
 def _measured(m: Any) -> dict:

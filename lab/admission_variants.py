@@ -62,6 +62,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
                     carried, default-own-carry-checkK only its own (the zoo route as shipped),
                     default-own-carry-all-checkK only its own, both checked;
                     default-carry-r50-checkK, -all- both carried, its own in 50 rounds
+    default-jointed-builtin  the default as shipped but at its points on jointed bodies Box2D's
+                    start as it is, not extrapolated in time along the stream (face
+                    `extrapolate_jointed`, deepcontact.temporal; every variant above is without it)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -104,10 +107,15 @@ def _fill(tmp: Path) -> None:
     # Every variant below changes the routes as they were until 2026-12-06's last change (the
     # default's own route neither carried nor checked, the zoo's checked by one Jacobi step), so
     # that each keeps its meaning whatever ships later; those of carry and check_sweeps add them.
-    plain = {"carry": False, "against_builtin": False, "check_sweeps": None}
-    card(tmp, "zoo-jacobi", alias_of=zoo["alias_of"], face={**zoo["face"], "check_sweeps": None})
+    plain = {"carry": False, "against_builtin": False, "check_sweeps": None, "extrapolate_jointed": False}
+    # The default as shipped but for Box2D's start extrapolated at its jointed points (face
+    # extrapolate_jointed, shipped on 2026-12-06 after everything above): Box2D's start as it is there.
+    card(tmp, "default-jointed-builtin", alias_of=default["alias_of"],
+         face={**default["face"], "extrapolate_jointed": False})
+    card(tmp, "zoo-jacobi", alias_of=zoo["alias_of"], face={**zoo["face"], "check_sweeps": None,
+                                                           "extrapolate_jointed": False})
     default = {**default, "face": {**default["face"], **plain, "fallback": "zoo-jacobi"}}
-    zoo = {**zoo, "face": {**zoo["face"], "check_sweeps": None}}
+    zoo = {**zoo, "face": {**zoo["face"], "check_sweeps": None, "extrapolate_jointed": False}}
     for rounds, relax in VARIANTS:
         card(tmp, f"default-r{rounds}-x{relax}", alias_of=default["alias_of"],
              face={**default["face"], "rounds": rounds, "relax": relax / 10})

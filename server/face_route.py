@@ -96,6 +96,7 @@ class FaceRoutePredictor(Predictor):
         self.envelope, self.wins_where_trained = card.envelope, card.wins_where_trained
         self.gridspec = card.gridspec
         self.settings = card.face
+        self.extrapolates_jointed = self.settings["extrapolate_jointed"]
         self.classifier = classifier
         self.fallback = fallback
         # A gate on the card decides between the route's answer and Box2D's, as on a graph card.

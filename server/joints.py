@@ -7,10 +7,15 @@ answers Box2D's own warm start (the request's builtin impulses) at every point
 that touches a jointed body, and asks the model only about the rest: the
 points between free bodies (and the static world), with the bodies'
 velocities taken after the fixed impulses at the jointed points, so that the
-rest is the contact problem left once those are given.
+rest is the contact problem left once those are given. A card that asks for it
+(the face setting extrapolate_jointed) gets Box2D's start at the jointed points
+extrapolated in time along the stream instead (deepcontact.temporal): on a
+car's sprung wheels or a chain swinging onto a heap the impulses move steadily
+from step to step, and the line through their last two values lands nearer.
 
     rows = wire.decode_joints(request)                 # (J, 2) body rows, 0 static
     answer = predict_around_joints(predictor, bodies, points, rows, world, step, ...)  # a Prediction
+    answer = predict_around_joints(..., history=ImpulseHistory())  # extrapolated at the jointed points
 """
 
 from __future__ import annotations
@@ -18,10 +23,13 @@ from __future__ import annotations
 import numpy as np
 
 from deepcontact.kinematics import after_impulses
+from deepcontact.temporal import ImpulseHistory
 from server.predictors import Prediction
 
-#: served_by of a step whose every point touches a jointed body: nothing was left to ask a model about.
+#: served_by of a step whose every point touches a jointed body: nothing was left to ask a model
+#: about; Box2D's start answered, or (with a history) Box2D's start extrapolated.
 ALL_JOINTED = "builtin"
+ALL_JOINTED_EXTRAPOLATED = "extrapolated"
 
 
 def jointed_points(points: np.ndarray, joints: np.ndarray, n_bodies: int) -> np.ndarray:
@@ -34,18 +42,23 @@ def jointed_points(points: np.ndarray, joints: np.ndarray, n_bodies: int) -> np.
 
 
 def predict_around_joints(predictor, bodies: np.ndarray, points: np.ndarray, joints: np.ndarray, world, step: int,
-                          previous=None, friction: np.ndarray | None = None, **extra) -> Prediction:
+                          previous=None, friction: np.ndarray | None = None, history: ImpulseHistory | None = None,
+                          **extra) -> Prediction:
     """The step's Prediction as predictor.predict gives it, with Box2D's own warm start at the
     points that touch a jointed body (joints: (J, 2) body rows, 0 static; friction: (P,) when
-    the predictor takes it): impulses (P, 2) float32 N s at every point, the stages and
-    served_by of the predictor's answer about the free ones. served_by is ALL_JOINTED where
-    no point is free of joints (no predictor was asked)."""
-    builtin = points["builtin"].astype(np.float32)
+    the predictor takes it; history: the stream's ImpulseHistory where that start is
+    extrapolated in time, or None): impulses (P, 2) float32 N s at every point, the stages and
+    served_by of the predictor's answer about the free ones. served_by is ALL_JOINTED (with a
+    history ALL_JOINTED_EXTRAPOLATED) where no point is free of joints (no predictor was asked)."""
     fixed = jointed_points(points, joints, len(bodies))
+    if history is not None:  # every step recorded, so that a point's last two starts are known when it needs them
+        builtin = history.extrapolated(points, step, fixed)
+    else:
+        builtin = points["builtin"].astype(np.float32)
     if not fixed.any():
         return predictor.predict(bodies, points, world, step, previous, **_with(friction, None, extra))
     if fixed.all():
-        return Prediction(builtin.copy(), served_by=ALL_JOINTED)
+        return Prediction(builtin, served_by=ALL_JOINTED if history is None else ALL_JOINTED_EXTRAPOLATED)
     free = ~fixed
     moved = after_impulses(bodies, points[fixed], builtin[fixed].astype(np.float64))
     answer = predictor.predict(moved, points[free], world, step, previous, **_with(friction, free, extra))

@@ -112,6 +112,9 @@ class Predictor:
     batchable: bool = False  # infer(x) on one (1, ny, nx, C) grid, which server.batching can stack
     takes_deadline: bool = False  # predict(..., deadline=) may answer otherwise to meet it
     takes_memory: bool = False  # predict(..., memory=) keeps state along a stream (a dict per stream and model)
+    # At points on jointed bodies, which no model speaks for (server.joints), Box2D's start
+    # extrapolated in time along the stream (deepcontact.temporal) rather than as it is.
+    extrapolates_jointed: bool = False
     envelope: Envelope | None = None  # what the model was trained on (its card's trained_on); None: not recorded
     wins_where_trained: bool = False  # its card records a measured gain over Box2D's start there
 

@@ -22,6 +22,7 @@ import grpc
 import numpy as np
 
 from deepcontact import wire
+from deepcontact.temporal import ImpulseHistory
 from deepcontact.v1 import warmstart_pb2 as pb
 from deepcontact.v1 import warmstart_pb2_grpc as pb_grpc
 from server import metrics
@@ -163,7 +164,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                         raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                                       "world: required on the first message of a stream")
                     reply, points = self._step(request, world, steps.before(request.step), streamed=True, local=local,
-                                               memory=steps.memory)
+                                               memory=steps.memory, histories=steps.histories)
                     steps.record(request.step, points)
                     yield reply
                 except _Reject as r:
@@ -208,11 +209,12 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         return [need for need in predictor.requires if not sent[need]]
 
     def _step(self, request: pb.StepRequest, world: World, previous=None, streamed: bool = False,
-              local: bool = False, memory: dict | None = None):
+              local: bool = False, memory: dict | None = None, histories: dict | None = None):
         """(reply, the step's decoded points). streamed: the request is a stream's step (a shed
         step is answered, not refused: a refusal would end the stream); local: its client is on
         this host, so its sending time (sent_unix_us) is on this host's clock; memory: the
-        stream's dict of predictors' state by model name (_StreamSteps.memory), or None."""
+        stream's dict of predictors' state by model name (_StreamSteps.memory), or None;
+        histories: the stream's ImpulseHistory by model name (_StreamSteps.histories), or None."""
         # From the start of parsing when gRPC parsed this request in this thread.
         t0 = _parse_started.__dict__.pop("t", None) or time.perf_counter()
         with self._flight:
@@ -221,7 +223,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         waited = 1e-6 * _waited_us(request, t0) if local else None
         cpu = time.thread_time()
         try:
-            return self._answer(request, world, previous, t0, in_flight, streamed, local, memory)
+            return self._answer(request, world, previous, t0, in_flight, streamed, local, memory, histories)
         finally:
             cpu = time.thread_time() - cpu
             with self._flight:
@@ -236,7 +238,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         return 1.0 + self._wait / max(self._work, 1e-5)
 
     def _answer(self, request: pb.StepRequest, world: World, previous, t0: float, in_flight: int, streamed: bool,
-                local: bool, memory: dict | None = None):
+                local: bool, memory: dict | None = None, histories: dict | None = None):
         """_step's work, t0 when its parsing began, in_flight the requests in a handler now, this
         one among them."""
         predictor = self.predictors.get(request.model)
@@ -289,8 +291,11 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             if len(points) == 0:  # nothing to warm-start (e.g. a message that only declares the world)
                 answer = Prediction(np.zeros((0, 2), np.float32))
             elif joints is not None and predictor.kind != "provider":  # a provider (zero, ...) answers as it is
+                history = None
+                if predictor.extrapolates_jointed and histories is not None and request.point_keys:
+                    history = histories.setdefault(request.model, ImpulseHistory())
                 answer = predict_around_joints(predictor, bodies, points, joints, world, request.step, previous,
-                                               **extra)
+                                               history=history, **extra)
             else:
                 answer = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:
@@ -380,13 +385,16 @@ class _StreamSteps:
     request before. A step without points is not sent, so the step before a gap is the
     last one that had points."""
 
-    __slots__ = ("step", "points", "_before", "memory")
+    __slots__ = ("step", "points", "_before", "memory", "histories")
 
     def __init__(self):
         self.step, self.points, self._before = None, None, None
         # What predictors keep along the stream (takes_memory), a dict per model name: a model
         # asked about the same states as others (price:) keeps its own.
         self.memory: dict[str, dict] = {}
+        # Box2D's starts of the last two steps by model name, for a card that extrapolates them
+        # at jointed points (Predictor.extrapolates_jointed).
+        self.histories: dict[str, ImpulseHistory] = {}
 
     def before(self, step: int):
         """(P,) CONTACT_DTYPE of the step before `step`, or None."""

@@ -20,11 +20,17 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     base = served["default-uncarried"].settings
     shipped, zoo = served["default"].settings, served["zoo"].settings
     assert shipped["carry"] and shipped["check_sweeps"] == 12 and zoo["check_sweeps"] == 12 and not zoo["carry"]
-    off = {"carry": False, "against_builtin": False, "check_sweeps": None, "fallback": "zoo-jacobi"}
-    assert base == {**shipped, **off} and served["zoo-jacobi"].settings == {**zoo, "check_sweeps": None}
-    # ... and the shipped default is the variant that adds them back (its fallback renamed).
+    off = {"carry": False, "against_builtin": False, "check_sweeps": None, "extrapolate_jointed": False,
+           "fallback": "zoo-jacobi"}
+    assert base == {**shipped, **off}
+    assert served["zoo-jacobi"].settings == {**zoo, "check_sweeps": None, "extrapolate_jointed": False}
+    # ... and the shipped default is the variant that adds them back (its fallback renamed), then
+    # draws Box2D's start on at its jointed points (default-jointed-builtin: all but that).
     chosen = served["default-own-carry-all-check12"]
-    assert {**chosen.settings, "fallback": "zoo"} == shipped and chosen.fallback.settings == zoo
+    assert {**chosen.settings, "fallback": "zoo", "extrapolate_jointed": True} == shipped
+    assert chosen.fallback.settings == {**zoo, "extrapolate_jointed": False}
+    assert served["default-jointed-builtin"].settings == {**shipped, "extrapolate_jointed": False}
+    assert served["default-jointed-builtin"].fallback.name == "zoo" and shipped["extrapolate_jointed"]
     assert served["default-carry-check12"].fallback.settings["carry"]  # both routes carried there
     # Each is the route with only its setting changed: the same classifier and fallback chain,
     # here its rounds and over-relaxation as named.

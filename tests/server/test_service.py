@@ -286,6 +286,55 @@ def test_a_step_whose_every_point_is_on_a_joint_is_answered_with_box2ds_start(st
     assert not np.stack(wire.decode_impulses(zero), 1).any()  # a provider answers as it is
 
 
+def test_the_shipped_default_extrapolates_box2ds_start_along_a_stream_at_jointed_points(thesis_steps):
+    """The default's card asks for Box2D's start extrapolated in time at the points no model speaks
+    for (face extrapolate_jointed): on a stream's third step, each jointed point carried over all
+    three starts at builtin + (builtin - builtin before) where that line would have beaten the copy
+    on the step before; the first steps, the other points, and a lone Predict keep Box2D's start."""
+    from pathlib import Path
+
+    from simclient.client import WarmStartClient
+
+    world, steps = thesis_steps
+    models = Path(__file__).parents[2] / "models"
+    srv = Server(models=models, bind="127.0.0.1:0").start()
+    try:
+        replies = []
+        with WarmStartClient(srv.address, world=world) as client:  # the world goes once, on the stream's first step
+            for k, (bodies, points) in enumerate(steps[:3]):
+                chain = np.stack([np.arange(1, len(bodies) - 1), np.arange(2, len(bodies))], 1)  # every body jointed
+                replies.append(client.step(wire.encode_step(k, "default", bodies, points, builtin=points["builtin"],
+                                                            friction=np.full(len(points), 0.5, np.float32),
+                                                            joints=chain), 10.0))
+        for reply, (_, points) in zip(replies[:2], steps):
+            np.testing.assert_array_equal(np.stack(wire.decode_impulses(reply), 1), points["builtin"])
+        got = np.stack(wire.decode_impulses(replies[2]), 1)
+        assert replies[2].served_by == "extrapolated"
+        by_key = [dict(zip(p["key"].tolist(), p["builtin"].astype(np.float32))) for _, p in steps[:3]]
+        expected, drawn = [], 0
+        for key, now in by_key[2].items():
+            before, older = by_key[1].get(key), by_key[0].get(key)
+            if before is None or older is None or not (now.any() and before.any() and older.any()):
+                expected.append(now)
+                continue
+            d1 = now - before
+            d2 = d1 - (before - older)
+            line = np.abs(d2).max() < np.abs(d1).max()
+            drawn += line
+            expected.append(now + d1 if line else now)
+        assert drawn > 0
+        np.testing.assert_allclose(got, np.array(expected), rtol=1e-6, atol=1e-7)
+        bodies, points = steps[2]
+        chain = np.stack([np.arange(1, len(bodies) - 1), np.arange(2, len(bodies))], 1)
+        with grpc.insecure_channel(srv.address) as channel:  # a step alone has no steps before it
+            alone = pb_grpc.WarmStartStub(channel).Predict(
+                request(world, bodies, points, "default", step=2, builtin=points["builtin"],
+                        friction=np.full(len(points), 0.5, np.float32), joints=chain))
+        np.testing.assert_array_equal(np.stack(wire.decode_impulses(alone), 1), points["builtin"])
+    finally:
+        srv.stop()
+
+
 def test_a_kinematic_body_travels_with_mass_zero_and_is_decoded_as_kinematic(thesis_steps):
     _, steps = thesis_steps
     bodies, points = steps[0]
