@@ -9,9 +9,13 @@ the model (`server.predictors.load_model`, one ONNX Runtime thread) and hands it
 a stream hands it: the step's bodies and points as the engine exports them (the
 records the wire carries, float32 already), the world the stream declares, passed
 through the wire once as the server decodes it (its time step and gravity are
-float32 there), the last step's points for temporal channels, and each point's
-friction (float32, as the wire carries it) to a model that reads it. So the warm start
-is the served one to the bit, and a simulation takes the served trajectory. What it measures is what a round trip costs beyond the model's own work:
+float32 there), the last step's points for temporal channels, each point's
+friction (float32, as the wire carries it) to a model that reads it, and to a model that
+keeps state along a stream (a face card's carried admission, Predictor.takes_memory) the
+state a stream keeps, one per simulation. So on a world without joints the warm start is
+the served one to the bit, and a simulation takes the served trajectory. (A world with
+joints is not declined around them here as the server declines it, server.joints: the
+engine's body indices are not the wire's rows.) What it measures is what a round trip costs beyond the model's own work:
 `bench walltime` times a simulation this way beside the served one.
 
 It lives in bench/, above both simclient and server, because it composes the two;
@@ -42,6 +46,7 @@ class InProcess(Provider):
         self.world: World | None = declared_world(spec, None) if isinstance(spec, SceneSpec) else None
         self.name = f"in-process:{predictor.name}"
         self._points: np.ndarray | None = None  # the last step with points: temporal channels' previous
+        self._memory: dict = {}  # what a stream keeps for the model between its steps (server.service._StreamSteps)
         #: per step with points, the predictor's stage times (s), named as in the server's
         #: timings (server.predictors.STAGES)
         self.stages: list[dict[str, float]] = []
@@ -58,7 +63,7 @@ class InProcess(Provider):
 
     def prepare(self, engine) -> None:
         super().prepare(engine)
-        self._points, self.stages = None, []
+        self._points, self.stages, self._memory = None, [], {}
         self.world = declared_world(self.spec, engine)
         self.predictor.warm_up(self.world.domain)  # as the server does when a stream declares its world
 
@@ -69,6 +74,8 @@ class InProcess(Provider):
         # Each point's friction as the wire carries it (float32), to a model that reads it.
         extra = {"friction": point_friction(engine.body_friction(), points).astype(np.float32)} \
             if "point_friction" in self.predictor.requires else {}
+        if self.predictor.takes_memory:
+            extra["memory"] = self._memory
         answer = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
         self._points = points
         self.stages.append(answer.stages)

@@ -13,11 +13,13 @@ from simclient.scene import SceneSpec
 from simclient.simulate import connect, run_simulation
 from simclient.warmstarts import make_provider
 
-MODELS = Path(__file__).resolve().parents[2] / "lab" / "models"  # the research store
+# The shipped cards: the default carries its admission along the stream, which the in-process
+# run must keep as a stream does for the two to take one trajectory.
+MODELS = Path(__file__).resolve().parents[2] / "models"
 
 
 def test_the_default_called_in_process_takes_the_served_trajectory_step_for_step():
-    spec = dataclasses.replace(SceneSpec.thesis(), steps=40)
+    spec = dataclasses.replace(SceneSpec.thesis(), steps=120)  # past the fall: a pile whose points persist
     server = Server(models=MODELS).start()
     try:
         client = connect(server.address, "default", connect_timeout=10.0, allow_fallback=False)
@@ -39,5 +41,6 @@ def test_the_default_called_in_process_takes_the_served_trajectory_step_for_step
 
 
 def test_an_unknown_model_names_the_closest_ones_there():
+    store = MODELS.parent / "lab" / "models"  # the research store: too many cards to list them all
     with pytest.raises(FileNotFoundError, match="no model 'defualt' among .*the closest: default"):
-        InProcess.load(MODELS, "defualt", SceneSpec.thesis())
+        InProcess.load(store, "defualt", SceneSpec.thesis())
