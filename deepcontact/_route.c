@@ -80,11 +80,15 @@ static int geometry_build(struct geometry *g, const char *bodies, const char *po
         const char *body = bodies + k * BODY_SIZE;
         const int dynamic = i32_at(body, BODY_TYPE) == BODY_DYNAMIC;
         const double on = dynamic ? 1.0 : 0.0;
+        /* A kinematic body moves as it was sent (a turning drum, a lift) and no impulse moves it:
+         * its velocity enters the points' relative velocities, gravity does not. A static body's
+         * is zero. */
+        const double moves = i32_at(body, BODY_TYPE) == BODY_STATIC ? 0.0 : 1.0;
         g->dynamic[k] = (unsigned char)dynamic;
         g->row[k] = dynamic ? g->n_dyn++ : -1;
-        g->vx[k] = f32_at(body, BODY_VELOCITY) * on;
-        g->vy[k] = f32_at(body, BODY_VELOCITY + 4) * on;
-        g->w[k] = f32_at(body, BODY_ANGULAR_VELOCITY) * on;
+        g->vx[k] = f32_at(body, BODY_VELOCITY) * moves;
+        g->vy[k] = f32_at(body, BODY_VELOCITY + 4) * moves;
+        g->w[k] = f32_at(body, BODY_ANGULAR_VELOCITY) * moves;
         if (dt != 0.0) {
             g->vx[k] += (dt * gx) * on;
             g->vy[k] += (dt * gy) * on;

@@ -27,7 +27,7 @@ enum {
     POINT_NORMAL = 24,
     POINT_BUILTIN = 36,
 };
-enum { BODY_DYNAMIC = 2 };
+enum { BODY_STATIC = 0, BODY_DYNAMIC = 2 };  /* Box2D's b2BodyType; 1 is kinematic */
 
 static inline double f32_at(const char *record, int offset)
 {
