@@ -13,7 +13,7 @@ than the last one does:
 The test is the line's own record: on the step before, the line through the two impulses before
 it would have missed that step's impulse by d2 and the copy by d1, so the line is drawn only where
 it would have beaten the copy then. Where impulses jump (a joint reaching its limit, a body
-landing) it is not drawn: drawn at every point, it cost 3 % more of Box2D's sweeps on ragdolls
+landing) it is not drawn: drawn at every point, it cost more of Box2D's sweeps on ragdolls
 (docs/research/2026-12-06-jointed-points-extrapolated.md).
 
 The server answers it at the points a model cannot speak for, those on jointed bodies
