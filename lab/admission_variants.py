@@ -62,6 +62,9 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
                     carried, default-own-carry-checkK only its own (the zoo route as shipped),
                     default-own-carry-all-checkK only its own, both checked;
                     default-carry-r50-checkK, -all- both carried, its own in 50 rounds
+    default-shipped-rN  the default as shipped (carried, checked, extrapolated at jointed points) with
+                    its own route's admission in N rounds (SHIPPED_ROUNDS; 40 shipped): what the
+                    carried start lets the server stop earlier
     default-jointed-builtin  the default as shipped but at its points on jointed bodies Box2D's
                     start as it is, not extrapolated in time along the stream (face
                     `extrapolate_jointed`, deepcontact.temporal; every variant above is without it)
@@ -97,6 +100,8 @@ RHO_ROUNDS = (60, 80, 120, 200, 1000)
 RHO_RELAX = (14, 18, 19)
 #: Rounds of the default's route with its admission carried along the stream.
 CARRY_ROUNDS = (10, 20, 30, 50, 60)
+#: Rounds of the default's own route as shipped (carried, checked), for fewer than its 40.
+SHIPPED_ROUNDS = (20, 25, 30, 35)
 #: Sweeps of the check against Box2D's start (face check_sweeps).
 CHECK_SWEEPS = (4, 8, 12, 16, 24)
 
@@ -112,6 +117,8 @@ def _fill(tmp: Path) -> None:
     # extrapolate_jointed, shipped on 2026-12-06 after everything above): Box2D's start as it is there.
     card(tmp, "default-jointed-builtin", alias_of=default["alias_of"],
          face={**default["face"], "extrapolate_jointed": False})
+    for rounds in SHIPPED_ROUNDS:
+        card(tmp, f"default-shipped-r{rounds}", alias_of=default["alias_of"], face={**default["face"], "rounds": rounds})
     card(tmp, "zoo-jacobi", alias_of=zoo["alias_of"], face={**zoo["face"], "check_sweeps": None,
                                                            "extrapolate_jointed": False})
     default = {**default, "face": {**default["face"], **plain, "fallback": "zoo-jacobi"}}

@@ -21,6 +21,11 @@ every answer):
                    the joints left out of the problem
     labels:oracle-route  the oracle's labels through the shipped route's own solve and
                    admission (deepcontact.faces.solved_on_labels): the joints left out
+    labels:builtin Box2D's start read as labels (contact_face at the oracle's thresholds: the step
+                   before's converged impulses at the points it shares with this one), solved with
+                   the joints' rows and admitted the same way
+    labels:builtin-route  the same labels through the shipped route's own solve and admission
+                   (the joints left out)
     *-near-builtin the same solve, its unknowns taken nearest Box2D's start rather than least
                    norm (which of a redundant problem's solutions)
 
@@ -50,7 +55,7 @@ from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, contact_f
 from deepcontact.kinematics import contact_jacobian
 
 ANSWERS = ("builtin", "served", "oracle", "labels:oracle", "labels:oracle-route", "labels:oracle-near-builtin", "labels:zoo",
-           "labels:zoo-near-builtin", "labels:zoo-free")
+           "labels:zoo-near-builtin", "labels:zoo-free", "labels:builtin", "labels:builtin-route")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -274,7 +279,8 @@ def price(spec, seed: int, models: str, rounds: int) -> dict[str, np.ndarray]:
                                         friction=points["friction"].astype(np.float32)).impulses
         read_at = mu if face["label_friction"] is None else np.full(len(points), float(face["label_friction"]))
         faces = {"labels:oracle": contact_face(oracle.astype(np.float64), mu),
-                 "labels:zoo": contact_face(labels.astype(np.float64), read_at, face["pressing"], face["share"])}
+                 "labels:zoo": contact_face(labels.astype(np.float64), read_at, face["pressing"], face["share"]),
+                 "labels:builtin": contact_face(np.stack(builtin, 1).astype(np.float64), mu)}
         faces["labels:zoo-free"] = faces["labels:zoo"]
         faces["labels:oracle-near-builtin"] = faces["labels:oracle"]
         faces["labels:zoo-near-builtin"] = faces["labels:zoo"]
@@ -285,10 +291,10 @@ def price(spec, seed: int, models: str, rounds: int) -> dict[str, np.ndarray]:
             admitted = problem.admit(contact, joint, f, mu, rounds, joined).astype(np.float32)
             out[name].append(engine.trial(np.ascontiguousarray(admitted[:, 0]), np.ascontiguousarray(admitted[:, 1])))
         from deepcontact.faces import solved_on_labels
-        routed = solved_on_labels(bodies, points, oracle.astype(np.float64), mu, world.physics, 1e-6, 0.99,
-                                  rounds)[0].astype(np.float32)
-        out["labels:oracle-route"].append(engine.trial(np.ascontiguousarray(routed[:, 0]),
-                                                       np.ascontiguousarray(routed[:, 1])))
+        for name, source in (("labels:oracle-route", oracle), ("labels:builtin-route", np.stack(builtin, 1))):
+            routed = solved_on_labels(bodies, points, source.astype(np.float64), mu, world.physics, 1e-6, 0.99,
+                                      rounds)[0].astype(np.float32)
+            out[name].append(engine.trial(np.ascontiguousarray(routed[:, 0]), np.ascontiguousarray(routed[:, 1])))
         engine.set_warm_start(*builtin)
         engine.solve()
         previous = points

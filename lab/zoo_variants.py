@@ -22,6 +22,16 @@ network of the research store (lab/models):
     zoo-unchecked   the zoo route without against_builtin: its answer served without comparing it
                     with Box2D's start, as until 2026-12-06
     default-unchecked the default falling back to zoo-unchecked
+    zoo-r200        the zoo route with 200 admission rounds in place of 50
+    zoo-ungated     the zoo route with no max_residual (its fallback kept, unlike zoo-always);
+                    zoo-ungated-r200 the same in 200 rounds, zoo-ungated-r200-unchecked that
+                    without against_builtin (docs/research/2026-12-06-labels-from-box2ds-start.md)
+    zoo-checkK      the zoo route checked against Box2D's start by K of the solver's sweeps in
+                    place of 12, for K in CHECK_SWEEPS; zoo-ungated-r200-checkK the same for
+                    zoo-ungated-r200; default-zoo-checkK and default-zoo-ungated-r200-checkK the
+                    default falling back to each
+    zoo-resR-r200-check200  the zoo route in 200 rounds, checked by 200 sweeps, its max_residual
+                    R / 10 (for R in GATES); default-zoo-resR-r200-check200 the default falling back to it
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -39,6 +49,10 @@ from lab.variants import main as variants_main
 STORE = ROOT / "lab" / "models"
 FIRST = "graph-labels-scaled-zoo-first-r12-e4"
 WIDER = "graph-labels-scaled-zoo500-r12-e4"
+#: Sweeps of the zoo route's check against Box2D's start (face check_sweeps; 12 shipped).
+CHECK_SWEEPS = (4, 24, 48, 96, 200)
+#: max_residual x 10 of the zoo route in 200 rounds checked by 200 sweeps (0.5 shipped, at 50 rounds and 12 sweeps).
+GATES = (5, 10, 20, 50)
 
 
 def _fill(tmp: Path) -> None:
@@ -63,6 +77,21 @@ def _fill(tmp: Path) -> None:
     card(tmp, "default-zoo500", alias_of="contact-modes", face={**face, "fallback": "zoo500"})
     card(tmp, "zoo-unchecked", alias_of="contact-modes-zoo", face={**zoo_face, "against_builtin": False})
     card(tmp, "default-unchecked", alias_of="contact-modes", face={**face, "fallback": "zoo-unchecked"})
+    card(tmp, "zoo-r200", alias_of="contact-modes-zoo", face={**zoo_face, "rounds": 200})
+    ungated = {**zoo_face, "max_residual": None}
+    card(tmp, "zoo-ungated", alias_of="contact-modes-zoo", face=ungated)
+    card(tmp, "zoo-ungated-r200", alias_of="contact-modes-zoo", face={**ungated, "rounds": 200})
+    card(tmp, "zoo-ungated-r200-unchecked", alias_of="contact-modes-zoo",
+         face={**ungated, "rounds": 200, "against_builtin": False, "check_sweeps": None})
+    for sweeps in CHECK_SWEEPS:
+        for name, base in ((f"zoo-check{sweeps}", zoo_face), (f"zoo-ungated-r200-check{sweeps}", {**ungated, "rounds": 200})):
+            card(tmp, name, alias_of="contact-modes-zoo", face={**base, "check_sweeps": sweeps})
+            card(tmp, f"default-{name}", alias_of="contact-modes", face={**face, "fallback": name})
+    for gate in GATES:
+        name = f"zoo-res{gate}-r200-check200"
+        card(tmp, name, alias_of="contact-modes-zoo",
+             face={**zoo_face, "max_residual": gate / 10, "rounds": 200, "check_sweeps": 200})
+        card(tmp, f"default-{name}", alias_of="contact-modes", face={**face, "fallback": name})
 
 
 def build(out: Path) -> None:

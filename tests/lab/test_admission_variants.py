@@ -32,6 +32,9 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_admission_settin
     assert served["default-jointed-builtin"].settings == {**shipped, "extrapolate_jointed": False}
     assert served["default-jointed-builtin"].fallback.name == "zoo" and shipped["extrapolate_jointed"]
     assert served["default-carry-check12"].fallback.settings["carry"]  # both routes carried there
+    # The default as shipped in fewer admission rounds: only its rounds change, its fallback the shipped zoo route.
+    fewer = served["default-shipped-r30"]
+    assert fewer.settings == {**shipped, "rounds": 30} and fewer.fallback.name == "zoo"
     # Each is the route with only its setting changed: the same classifier and fallback chain,
     # here its rounds and over-relaxation as named.
     plain = served["default-r50-x10"].settings

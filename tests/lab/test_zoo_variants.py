@@ -22,3 +22,14 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path
     assert served["zoo-always"].settings["max_residual"] is None
     assert served["zoo-r0.6"].settings["max_residual"] == 0.6
     assert served["default-r0.6"].settings["max_residual"] == 0.6 and served["default-r0.6"].fallback.name == "zoo"
+    # The zoo route's gate, rounds and check, each variant the shipped zoo route with only those changed,
+    # and the default falling back to it.
+    zoo = served["zoo"].settings
+    assert served["zoo-ungated-r200"].settings == {**zoo, "max_residual": None, "rounds": 200}
+    assert served["zoo-ungated-r200-unchecked"].settings == \
+        {**zoo, "max_residual": None, "rounds": 200, "against_builtin": False, "check_sweeps": None}
+    assert served["zoo-check200"].settings == {**zoo, "check_sweeps": 200}
+    assert served["zoo-res10-r200-check200"].settings == {**zoo, "max_residual": 1.0, "rounds": 200, "check_sweeps": 200}
+    longer = served["default-zoo-ungated-r200-check200"]
+    assert longer.fallback.name == "zoo-ungated-r200-check200"
+    assert longer.settings == {**served["default"].settings, "fallback": "zoo-ungated-r200-check200"}
