@@ -88,4 +88,5 @@ def declared_world(spec, engine) -> World:
     The wire carries the step's time and gravity as float32, and the server's channels see them so."""
     declared = worlds.world_message(spec, engine)
     lower, upper, _edges = wire.decode_world(declared)
-    return World((tuple(map(float, lower)), tuple(map(float, upper))), wire.decode_physics(declared))
+    return World((tuple(map(float, lower)), tuple(map(float, upper))), wire.decode_physics(declared),
+                 wire.decode_tolerance(declared))

@@ -133,7 +133,7 @@ def _stream_worker(target, model, source, stream_index, timing, deadline_s, out:
     ok = wrong_order = 0
     period = 1.0 / rate if rate else 0.0  # a paced stream sends a step every period s, a simulation in real time
     thesis = SceneSpec.thesis()  # the worlds these steps come from
-    world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics)
+    world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics, thesis.solver.stopping_tolerance)
     with WarmStartClient(target, world=world, credentials=credentials, backoff_s=(0.01, 0.2)) as client:
         start_at, stop_at = timing()
         while time.time() < start_at:

@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         server.stop()
         return 2
     thesis = SceneSpec.thesis()  # the worlds these steps come from
-    world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics)
+    world = wire.encode_world(*thesis.domain, thesis.walls(), thesis.physics, thesis.solver.stopping_tolerance)
     try:
         stages, round_trip = time_steps(server.address, world, args.model, recorded, args.rounds)
     except StepFailed as exc:

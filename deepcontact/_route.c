@@ -555,7 +555,7 @@ static double solve_sweep(const struct geometry *g, const double *mu, const doub
  * gravity added); mu (P,); starts (n_starts, P, 2) N s; changes (n_starts,) out, N s. Returns
  * 0, or -1 (memory). */
 static int sweep_changes(const struct geometry *g, const double *mu, const double *starts, int n_starts, long sweeps,
-                         double *changes)
+                         double tolerance, double *changes, long *counts)
 {
     const int64_t P = g->P, B = g->B;
     double *vx = malloc(((size_t)3 * B + 1) * sizeof(double)), *vy = vx + B, *w = vy + B;
@@ -614,36 +614,48 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
             vx[b] += i0 * g->inv_mass[b], vy[b] += i1 * g->inv_mass[b];
             w[b] += (rb[0] * i1 - rb[1] * i0) * g->inv_inertia[b];
         }
+        /* With a tolerance, the start's run ends at the first sweep that changes nothing by more
+         * than it, where the client's solver would stop: counts[k] is that sweep's number, or
+         * sweeps + 1 where none of the first `sweeps` does. */
         double change = 0.0;
-        for (long sweep = 0; sweep < sweeps; sweep++)
+        counts[k] = sweeps + 1;
+        for (long sweep = 0; sweep < sweeps; sweep++) {
             change = solve_sweep(g, mu, mass, role, block, vx, vy, w, lam);
+            if (tolerance > 0.0 && change <= tolerance) {
+                counts[k] = sweep + 1;
+                break;
+            }
+        }
         changes[k] = change;
     }
     free(vx), free(mass), free(lam), free(block), free(role);
     return 0;
 }
 
-/* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry)
- *     -> [change, ...]
+/* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry, tolerance)
+ *     -> ([change, ...], [sweeps run, ...])
  *
  * sweep_changes of each start: starts float64 (n_starts, P, 2) N s (n_starts from its size);
- * mu float64 (P,); geometry: prepare's for these bodies, points and physics, or None. */
+ * mu float64 (P,); geometry: prepare's for these bodies, points and physics, or None;
+ * tolerance (N s): 0 runs every start `sweeps` sweeps and each change is its last sweep's;
+ * above 0 a start stops at its first sweep that changes nothing by more, and its count is that
+ * sweep's number (sweeps + 1 where it does not stop). */
 static PyObject *compare_starts(PyObject *self, PyObject *args)
 {
     Py_buffer b[4];
     Py_ssize_t n_bodies, n_points;
-    double dt, gx, gy;
+    double dt, gx, gy, tolerance;
     long sweeps;
     PyObject *prepared;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lO", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx, &gy, &b[3],
-                          &sweeps, &prepared))
+    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx, &gy, &b[3],
+                          &sweeps, &prepared, &tolerance))
         return NULL;
     PyObject *result = NULL;
     const Py_ssize_t per_start = 2 * n_points * (Py_ssize_t)sizeof(double);
     if (n_bodies < 0 || n_points <= 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
         || b[1].len != n_points * POINT_SIZE || b[2].len != per_start / 2 || b[3].len % per_start != 0
-        || b[3].len / per_start > 64 || sweeps < 1) {
+        || b[3].len / per_start > 64 || sweeps < 1 || !(tolerance >= 0.0)) {
         PyErr_SetString(PyExc_ValueError, "_route.compare_starts: arrays of the wrong size");
         goto done;
     }
@@ -656,26 +668,32 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         goto done;
     const int n_starts = (int)(b[3].len / per_start);
     double changes[64];
+    long counts[64];
     int status;
     Py_BEGIN_ALLOW_THREADS
     status = g == &own ? geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy) : 0;
     if (status == 0)
-        status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, changes);
+        status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, tolerance, changes, counts);
     geometry_free(&own);
     Py_END_ALLOW_THREADS
     if (status != 0) {
         PyErr_NoMemory();
         goto done;
     }
-    result = PyList_New(n_starts);
-    for (int k = 0; result != NULL && k < n_starts; k++) {
-        PyObject *x = PyFloat_FromDouble(changes[k]);
-        if (x == NULL) {
-            Py_CLEAR(result);
+    PyObject *last = PyList_New(n_starts), *run = PyList_New(n_starts);
+    for (int k = 0; last != NULL && run != NULL && k < n_starts; k++) {
+        PyObject *x = PyFloat_FromDouble(changes[k]), *c = PyLong_FromLong(counts[k]);
+        if (x == NULL || c == NULL) {
+            Py_XDECREF(x), Py_XDECREF(c);
+            Py_CLEAR(last);
             break;
         }
-        PyList_SET_ITEM(result, k, x);
+        PyList_SET_ITEM(last, k, x);
+        PyList_SET_ITEM(run, k, c);
     }
+    if (last != NULL && run != NULL)
+        result = PyTuple_Pack(2, last, run);
+    Py_XDECREF(last), Py_XDECREF(run);
 done:
     for (int k = 0; k < 4; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
@@ -688,7 +706,7 @@ static PyMethodDef methods[] = {
      "The face route after its classifier: labels, solve, admission, residual (see the C source)."},
     {"prepare", prepare, METH_VARARGS, "A step's geometry for solve_and_admit, built ahead (see the C source)."},
     {"compare_starts", compare_starts, METH_VARARGS,
-     "The largest change a sweep of the solver makes from each of several starts (see the C source)."},
+     "The largest change a sweep of the solver makes from each of several starts, and the sweeps each takes to a tolerance (see the C source)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -418,17 +418,39 @@ def sweep_changes(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu
     the nearer to where it stops: kinematics.jacobi_change is the one-step, every-point-at-once
     version of this. prepared: prepare_route's for the same bodies, points and physics, or
     None. At most 64 starts; about 1.8 us a sweep a start at 130 points."""
+    return _compare_starts(bodies, points, starts, mu, physics, sweeps, prepared, 0.0)[0]
+
+
+def sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
+                   physics: Physics, tolerance: float, most: int, prepared=None) -> tuple[np.ndarray, np.ndarray]:
+    """((S,) int, (S,) N s): for each start of starts (S, P, 2) N s, the sweeps the server's copy
+    of the step (as sweep_changes) takes to the client's stopping rule, the first sweep that
+    changes nothing by more than `tolerance` N s (> 0), or most + 1 where none of the first
+    `most` does; and the change of the last sweep run. Of two starts the one that stops sooner
+    is the nearer to where the solver stops; where neither stops within `most` sweeps, the one
+    whose last sweep changes less. Comparing the changes at a fixed sweep instead reads noise
+    where both starts stop before it (both changes then near zero). At most 64 starts."""
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be > 0 N s, got {tolerance}")
+    changes, counts = _compare_starts(bodies, points, starts, mu, physics, most, prepared, float(tolerance))
+    return counts, changes
+
+
+def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, prepared, tolerance: float):
+    """(changes (S,) N s, sweeps run (S,) int) of compare_starts in deepcontact/_route.c."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
     points = _records(np.asarray(points), CONTACT_DTYPE, "points")
     starts = np.ascontiguousarray(starts, np.float64)
     if starts.ndim != 3 or starts.shape[1:] != (len(points), 2) or not 1 <= len(starts) <= 64:
         raise ValueError(f"starts: (S, {len(points)}, 2) with 1 <= S <= 64, got {starts.shape}")
     if len(points) == 0:
-        return np.zeros(len(starts))
+        return np.zeros(len(starts)), np.ones(len(starts), np.int64)
     gx, gy = physics.gravity
-    return np.array(_compiled_route.compare_starts(bodies, len(bodies), points, len(points),
-                                                   np.ascontiguousarray(mu, np.float64), float(physics.dt), float(gx),
-                                                   float(gy), starts, int(sweeps), prepared))
+    changes, counts = _compiled_route.compare_starts(bodies, len(bodies), points, len(points),
+                                                     np.ascontiguousarray(mu, np.float64), float(physics.dt),
+                                                     float(gx), float(gy), starts, int(sweeps), prepared,
+                                                     float(tolerance))
+    return np.array(changes), np.array(counts, np.int64)
 
 
 def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,

@@ -93,7 +93,11 @@ one from Box2D's warm start, kinematics.jacobi_change, and Box2D's elsewhere: a 
 no trust in the labels, for a route on worlds its classifier may not know), check_sweeps
 (default null: against_builtin's comparison is that one Jacobi step; a whole number N >= 1: the
 largest change the solver's N-th sweep of sequential impulses would make from each start,
-faces.sweep_changes, nearer to how the solver itself stops), rescale (default
+faces.sweep_changes, nearer to how the solver itself stops), check_stop (default false; true,
+with check_sweeps N and a client that declares its stopping rule, World.solver_tolerance: the
+sweeps each start takes to that rule, up to N, faces.sweeps_to_stop, the route's answer served
+only where it stops sooner, and by the changes at sweep N where neither stops by then; a client
+that does not declare it is checked by the changes as without), rescale (default
 false; true: a step of larger or smaller bodies, denser, or with a larger or smaller gravity times
 time step than the classifier's `trained_on` is labelled scaled into it, deepcontact.envelope.Envelope.rescaled, and
 solved in its own units; the reply's familiar verdict stays the unscaled step's), carry (default
@@ -160,7 +164,7 @@ ALIAS_OVERRIDES = ("step_gate", "face", "mirror", "description", "measured")
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
-                 "carry": False, "check_sweeps": None, "extrapolate_jointed": False}
+                 "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False}
 
 
 class ModelCardError(ValueError):
@@ -335,7 +339,7 @@ def _face_settings(face: Any, kind: str) -> dict:
     sweeps = out["check_sweeps"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
-                                           "extrapolate_jointed")
+                                           "extrapolate_jointed", "check_stop")
                   and not (k in optional + ("max_points", "check_sweeps") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -348,21 +352,23 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not retries_ok or not 0 < out["relax"] < 2 or not out["rho"] > 0 \
             or not isinstance(out["against_builtin"], bool) \
             or not isinstance(out["rescale"], bool) or not isinstance(out["carry"], bool) \
-            or not isinstance(out["extrapolate_jointed"], bool) \
-            or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000):
+            or not isinstance(out["extrapolate_jointed"], bool) or not isinstance(out["check_stop"], bool) \
+            or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
+            or (out["check_stop"] and sweeps is None):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
                              f"between 0 and 2, rho > 0, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
                              f"rescale, carry and extrapolate_jointed true or false, check_sweeps null or a whole number 1-1000, "
+                             f"check_stop true or false and only with check_sweeps, "
                              f"got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
-            "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"]}
+            "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"]}
 
 
 def _measured(m: Any) -> dict:

@@ -38,11 +38,13 @@ class WireError(ValueError):
 # -- client side -------------------------------------------------------------
 
 def encode_world(lower: tuple[float, float], upper: tuple[float, float],
-                 edges: np.ndarray | None = None, physics: Physics | None = None) -> pb.World:
-    """Domain (m), static edges (E, 4) float (x0, y0, x1, y1) and the step's physics."""
+                 edges: np.ndarray | None = None, physics: Physics | None = None,
+                 tolerance: float = 0.0) -> pb.World:
+    """Domain (m), static edges (E, 4) float (x0, y0, x1, y1), the step's physics and the
+    solver's stopping rule (tolerance, N s; 0: not said)."""
     edges = np.zeros((0, 4), F32) if edges is None else np.ascontiguousarray(edges, F32).reshape(-1, 4)
     world = pb.World(x_min=lower[0], y_min=lower[1], x_max=upper[0], y_max=upper[1],
-                     edge_count=len(edges), edges=edges.tobytes())
+                     edge_count=len(edges), edges=edges.tobytes(), solver_tolerance=tolerance)
     if physics is not None:
         world.dt, (world.gravity_x, world.gravity_y) = physics.dt, physics.gravity
     return world
@@ -149,6 +151,15 @@ def decode_physics(world: pb.World) -> Physics:
         raise WireError("world", f"dt {world.dt} and gravity ({world.gravity_x}, {world.gravity_y}) must be "
                                  "finite, dt >= 0")
     return Physics(float(world.dt), (float(world.gravity_x), float(world.gravity_y)))
+
+
+def decode_tolerance(world: pb.World) -> float:
+    """The client's stopping rule (N s), 0.0 when it sent none; WireError where it is not finite
+    or below 0."""
+    tolerance = world.solver_tolerance
+    if not np.isfinite(tolerance) or tolerance < 0:
+        raise WireError("world", f"solver_tolerance {tolerance} must be finite and >= 0 N s")
+    return float(tolerance)
 
 
 def _word(dtype: np.dtype, field: str, component: int = 0) -> int:

@@ -65,6 +65,7 @@ Beside models/ it writes alias cards over the shipped classifiers, each with the
     default-shipped-rN  the default as shipped (carried, checked, extrapolated at jointed points) with
                     its own route's admission in N rounds (SHIPPED_ROUNDS; 40 shipped): what the
                     carried start lets the server stop earlier
+    zoo-before      the zoo route as lab.zoo_variants.ZOO_FACE has it, which every zoo variant here changes
     default-jointed-builtin  the default as shipped but at its points on jointed bodies Box2D's
                     start as it is, not extrapolated in time along the stream (face
                     `extrapolate_jointed`, deepcontact.temporal; every variant above is without it)
@@ -81,6 +82,7 @@ from pathlib import Path
 
 from lab.variants import ROOT, card, write_folder
 from lab.variants import main as variants_main
+from lab.zoo_variants import ZOO_FACE
 
 #: (rounds, relax x 10) of the default's route variants.
 VARIANTS = ((50, 10), (50, 15), (40, 16), (30, 15), (30, 17), (25, 18), (20, 18))
@@ -108,11 +110,14 @@ CHECK_SWEEPS = (4, 8, 12, 16, 24)
 
 def _fill(tmp: Path) -> None:
     default = json.loads((tmp / "default.json").read_text())
-    zoo = json.loads((tmp / "zoo.json").read_text())
+    # The zoo route as it was until its check counted sweeps to the stopping rule (lab.zoo_variants).
+    zoo = {**json.loads((tmp / "zoo.json").read_text()), "face": dict(ZOO_FACE)}
+    card(tmp, "zoo-before", alias_of=zoo["alias_of"], face=zoo["face"])
     # Every variant below changes the routes as they were until 2026-12-06's last change (the
     # default's own route neither carried nor checked, the zoo's checked by one Jacobi step), so
     # that each keeps its meaning whatever ships later; those of carry and check_sweeps add them.
-    plain = {"carry": False, "against_builtin": False, "check_sweeps": None, "extrapolate_jointed": False}
+    plain = {"carry": False, "against_builtin": False, "check_sweeps": None, "extrapolate_jointed": False,
+             "check_stop": False}
     # The default as shipped but for Box2D's start extrapolated at its jointed points (face
     # extrapolate_jointed, shipped on 2026-12-06 after everything above): Box2D's start as it is there.
     card(tmp, "default-jointed-builtin", alias_of=default["alias_of"],

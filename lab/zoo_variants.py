@@ -6,7 +6,10 @@ states (docs/research/2026-12-06-a-zoo-of-worlds.md):
         --models runs/zoo-variants --warm-starts builtin,price:server:default+server:zoo+server:zoo-first
 
 Beside models/ (whose `default` and `zoo` are the shipped ones) it writes, each a card over a
-network of the research store (lab/models):
+network of the research store (lab/models); every `zoo-...` variant changes the zoo route as it
+was shipped until its check counted sweeps to the stopping rule (ZOO_FACE, `zoo-before`), the
+`default-...` ones the shipped default's own route, falling back to `zoo-before` unless they
+name another:
 
     default-bf      the default with Box2D's start in place of its fallback (no `fallback`)
     default-graph   the default falling back to contact-graph directly, as until 2026-12-06
@@ -23,6 +26,7 @@ network of the research store (lab/models):
                     with Box2D's start, as until 2026-12-06
     default-unchecked the default falling back to zoo-unchecked
     zoo-r200        the zoo route with 200 admission rounds in place of 50
+    zoo-before      the zoo route as ZOO_FACE has it (default-zoo-before the default falling back to it)
     zoo-ungated     the zoo route with no max_residual (its fallback kept, unlike zoo-always);
                     zoo-ungated-r200 the same in 200 rounds, zoo-ungated-r200-unchecked that
                     without against_builtin (docs/research/2026-12-06-labels-from-box2ds-start.md)
@@ -32,6 +36,12 @@ network of the research store (lab/models):
                     default falling back to each
     zoo-resR-r200-check200  the zoo route in 200 rounds, checked by 200 sweeps, its max_residual
                     R / 10 (for R in GATES); default-zoo-resR-r200-check200 the default falling back to it
+    ...-stop        each check by sweeps above counting the sweeps each start takes to the client's
+                    stopping rule (face check_stop): zoo-stop (the shipped zoo route so),
+                    zoo-ungated-r200-checkK-stop for K in STOP_SWEEPS, default-zoo-... the default
+                    falling back to each; default-stop the default's own route so (its fallback
+                    zoo-before), default-stop-zoo-ungated-r200-checkK-stop both
+                    (docs/research/2026-12-06-the-zoo-checks-sweeps.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -49,15 +59,23 @@ from lab.variants import main as variants_main
 STORE = ROOT / "lab" / "models"
 FIRST = "graph-labels-scaled-zoo-first-r12-e4"
 WIDER = "graph-labels-scaled-zoo500-r12-e4"
-#: Sweeps of the zoo route's check against Box2D's start (face check_sweeps; 12 shipped).
+#: The zoo route's face as shipped until its check counted the sweeps to the client's stopping rule
+#: (2026-12-06): every zoo variant here changes this one, so that each keeps its meaning whatever
+#: ships later; `zoo-before` serves it as it is.
+ZOO_FACE = {"pressing": 0.75, "rounds": 50, "rho": 1000, "max_residual": 0.5, "max_points": 1000, "solver": "dual",
+            "against_builtin": True, "check_sweeps": 12, "extrapolate_jointed": True, "fallback": "contact-graph"}
+#: Sweeps of the zoo route's check against Box2D's start (face check_sweeps; 12 in ZOO_FACE).
 CHECK_SWEEPS = (4, 24, 48, 96, 200)
 #: max_residual x 10 of the zoo route in 200 rounds checked by 200 sweeps (0.5 shipped, at 50 rounds and 12 sweeps).
 GATES = (5, 10, 20, 50)
+#: Sweeps of the zoo route's check, without its gate and in 200 rounds, counted to the stopping rule.
+STOP_SWEEPS = (48, 96, 200)
 
 
 def _fill(tmp: Path) -> None:
-    face = json.loads((tmp / "default.json").read_text())["face"]
-    zoo_face = json.loads((tmp / "zoo.json").read_text())["face"]
+    # The default's variants fall back to the zoo route as it was (zoo-before) unless they name another.
+    face = {**json.loads((tmp / "default.json").read_text())["face"], "fallback": "zoo-before"}
+    zoo_face = dict(ZOO_FACE)
     for store_name, name in ((FIRST, "zoo-first-modes"), (WIDER, "zoo500-modes")):
         network = json.loads((STORE / f"{store_name}.json").read_text())
         network.update(name=name, onnx_file=f"{name}.onnx", measured=None)
@@ -87,6 +105,17 @@ def _fill(tmp: Path) -> None:
         for name, base in ((f"zoo-check{sweeps}", zoo_face), (f"zoo-ungated-r200-check{sweeps}", {**ungated, "rounds": 200})):
             card(tmp, name, alias_of="contact-modes-zoo", face={**base, "check_sweeps": sweeps})
             card(tmp, f"default-{name}", alias_of="contact-modes", face={**face, "fallback": name})
+    card(tmp, "zoo-before", alias_of="contact-modes-zoo", face=zoo_face)
+    card(tmp, "default-zoo-before", alias_of="contact-modes", face={**face, "fallback": "zoo-before"})
+    stop = {"check_stop": True}
+    card(tmp, "zoo-stop", alias_of="contact-modes-zoo", face={**zoo_face, **stop})
+    card(tmp, "default-zoo-stop", alias_of="contact-modes", face={**face, "fallback": "zoo-stop"})
+    card(tmp, "default-stop", alias_of="contact-modes", face={**face, **stop})
+    for sweeps in STOP_SWEEPS:
+        name = f"zoo-ungated-r200-check{sweeps}-stop"
+        card(tmp, name, alias_of="contact-modes-zoo", face={**ungated, "rounds": 200, "check_sweeps": sweeps, **stop})
+        card(tmp, f"default-{name}", alias_of="contact-modes", face={**face, "fallback": name})
+        card(tmp, f"default-stop-{name}", alias_of="contact-modes", face={**face, **stop, "fallback": name})
     for gate in GATES:
         name = f"zoo-res{gate}-r200-check200"
         card(tmp, name, alias_of="contact-modes-zoo",

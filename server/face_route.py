@@ -34,7 +34,9 @@ max_residual, the labels are read again at each of retry_pressing's thresholds (
 after the deadline), and the fallback answers where no reading meets it. With the card's
 against_builtin, an answer that one projected Jacobi step would change more than it would change
 Box2D's warm start (deepcontact.kinematics.jacobi_change), or with its check_sweeps the solver's
-N-th sweep (deepcontact.faces.sweep_changes), is not served: Box2D's is ("builtin"). With the
+N-th sweep (deepcontact.faces.sweep_changes), is not served: Box2D's is ("builtin"); with its
+check_stop too, where the client declared its stopping rule (World.tolerance), the sweeps each
+start takes to it decide (deepcontact.faces.sweeps_to_stop). With the
 card's carry, the admission of a stream's step begins where the same points' stopped on the step
 before (deepcontact.admission.AdmissionCarry, kept in the memory the server keeps per stream
 and model). Its Prediction's stages:
@@ -60,7 +62,8 @@ import time
 import numpy as np
 
 from deepcontact.admission import AdmissionCarry
-from deepcontact.faces import admit_solved, prepare_route, read_and_solve, route_compiled, sweep_changes
+from deepcontact.faces import (admit_solved, prepare_route, read_and_solve, route_compiled, sweep_changes,
+                               sweeps_to_stop)
 from deepcontact.kinematics import contact_frame, effective_masses, jacobi_change
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
@@ -152,7 +155,7 @@ class FaceRoutePredictor(Predictor):
             # labelled so and solved in its own units (the reply still says it is unfamiliar).
             b, p, prev, physics, factors = self.envelope.rescaled(bodies, points, previous, world.physics)
             if factors != (1.0, 1.0, 1.0):
-                scaled_world = World(world.domain, physics)
+                scaled_world = World(world.domain, physics, world.tolerance)
                 if self.unfamiliar(b, p, friction, scaled_world) is None:
                     scaled = (b, p, prev, scaled_world)
         if (verdict is not None and scaled is None) or not self.fits(len(points), started, deadline, slowdown) \
@@ -184,14 +187,15 @@ class FaceRoutePredictor(Predictor):
         free = self._helper is not None and slowdown <= 1.0
         checks = self.settings["against_builtin"] or scaled is not None
         sweeps = self.settings["check_sweeps"] if checks else None
+        stop = self._stop_tolerance(world)
         if isinstance(self.classifier, MirroredGraphPredictor):
             # The reflected half on the spare core while the step's half runs here, and the
             # geometry here after it, filling the wait. Without a free core the step's half
             # alone: in turn the reflection would add the network's time again to the step.
-            later = _Later(_ahead, bodies, points, world.physics, friction, sweeps) if self.compiled and free else None
+            later = _Later(_ahead, bodies, points, world.physics, friction, sweeps, stop) if self.compiled and free else None
             mirror = {"spare": self._helper, "reflected": free, "meanwhile": later}
         elif self.compiled and free and len(points) >= AHEAD_POINTS:
-            ahead = self._helper.submit(_ahead, bodies, points, world.physics, friction, sweeps)
+            ahead = self._helper.submit(_ahead, bodies, points, world.physics, friction, sweeps, stop)
         asked = scaled if scaled is not None else (bodies, points, previous, world)
         labels = self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction, **mirror)
         if ahead is not None:
@@ -229,22 +233,36 @@ class FaceRoutePredictor(Predictor):
             stages["admit"] += time.perf_counter() - t0
         return Prediction(np.asarray(impulses).astype(np.float32, copy=False), stages, served_by)
 
+    def _stop_tolerance(self, world: World) -> float:
+        """The client's stopping rule (N s) where the card's check counts the sweeps to it
+        (check_stop) and the client declared it; else 0, the check by the changes at sweep N."""
+        return world.tolerance if self.settings["check_stop"] and world.tolerance > 0 else 0.0
+
     def _beats_builtin(self, bodies, points, impulses, friction, world, prepared=None,
-                       builtin_change: float | None = None) -> bool:
+                       builtin_change: tuple[int, float] | None = None) -> bool:
         """Whether one projected Jacobi step from the route's answer ((P, 2) N s) would change the
         impulses less than one from Box2D's warm start (the request's builtin): the card's
         against_builtin; with its check_sweeps N, whether the solver's N-th sweep from it would
         (deepcontact.faces.sweep_changes; prepared: prepare_route's geometry, or None;
-        builtin_change: Box2D's start's side, N s, where _ahead has priced it). On worlds the classifier was not trained on, labels it reads as right
+        builtin_change: Box2D's start's side, (sweeps to the stopping rule, change), where _ahead
+        has priced it); with check_stop and the client's stopping rule, whether it stops in fewer
+        sweeps than Box2D's start (by the changes at sweep N where neither stops by then; Box2D's
+        where both stop at the same sweep). On worlds the classifier was not trained on, labels it reads as right
         can still leave the solver further from its end than Box2D's start, which at rest is
         nearly there (at a time step of 1/30 s the zoo route alone cost 1.42x Builtin's
         iterations on Builtin's states of 850-854; checked so, 0.97x)."""
         mu = np.asarray(friction, np.float64)
         sweeps = self.settings["check_sweeps"]
         if sweeps is not None:
+            stop = self._stop_tolerance(world)
             if builtin_change is None:
-                builtin_change = _sweep_change(bodies, points, points["builtin"], mu, world.physics, sweeps, prepared)
-            return _sweep_change(bodies, points, impulses, mu, world.physics, sweeps, prepared) < builtin_change
+                builtin_change = _sweep_change(bodies, points, points["builtin"], mu, world.physics, sweeps, prepared,
+                                               stop)
+            (route_sweeps, route), (box2d_sweeps, box2d) = \
+                _sweep_change(bodies, points, impulses, mu, world.physics, sweeps, prepared, stop), builtin_change
+            if route_sweeps == box2d_sweeps:  # both stop at the same sweep (Box2D's), or neither by sweep N
+                return route_sweeps > sweeps and route < box2d
+            return route_sweeps < box2d_sweeps
         masses = effective_masses(bodies, points)
         route = jacobi_change(bodies, points, impulses, mu, world.physics, masses)
         return route < jacobi_change(bodies, points, points["builtin"], mu, world.physics, masses)
@@ -357,19 +375,25 @@ class FaceRoutePredictor(Predictor):
         return Prediction(answer.impulses, answer.stages, answer.served_by or self.fallback.name)
 
 
-def _ahead(bodies, points, physics, friction, sweeps: int | None):
-    """(prepare_route's geometry, Box2D's start's change at its sweep `sweeps`, N s, or None
-    where there is no check by sweeps): a step's work that does not wait on its labels."""
+def _ahead(bodies, points, physics, friction, sweeps: int | None, stop: float = 0.0):
+    """(prepare_route's geometry, Box2D's start's side of the check by sweeps as _sweep_change
+    gives it, or None where there is no such check): a step's work that does not wait on its labels."""
     prepared = prepare_route(bodies, points, physics)
     if sweeps is None:
         return prepared, None
-    return prepared, _sweep_change(bodies, points, points["builtin"], friction, physics, sweeps, prepared)
+    return prepared, _sweep_change(bodies, points, points["builtin"], friction, physics, sweeps, prepared, stop)
 
 
-def _sweep_change(bodies, points, start, friction, physics, sweeps: int, prepared=None) -> float:
-    """deepcontact.faces.sweep_changes of one start (P, 2) N s."""
-    return float(sweep_changes(bodies, points, np.asarray(start, np.float64)[None], friction, physics, sweeps,
-                               prepared)[0])
+def _sweep_change(bodies, points, start, friction, physics, sweeps: int, prepared=None,
+                  stop: float = 0.0) -> tuple[int, float]:
+    """(sweeps run, the last one's change N s) from one start (P, 2) N s: with a stopping rule
+    `stop` > 0 (N s) deepcontact.faces.sweeps_to_stop's (sweeps + 1 where it does not stop by
+    then), else (sweeps + 1, faces.sweep_changes's change at sweep `sweeps`)."""
+    start = np.asarray(start, np.float64)[None]
+    if stop > 0:
+        counts, changes = sweeps_to_stop(bodies, points, start, friction, physics, stop, sweeps, prepared)
+        return int(counts[0]), float(changes[0])
+    return sweeps + 1, float(sweep_changes(bodies, points, start, friction, physics, sweeps, prepared)[0])
 
 
 class _Later:

@@ -53,10 +53,13 @@ Domain = tuple[tuple[float, float], tuple[float, float]]
 
 @dataclasses.dataclass(frozen=True)
 class World:
-    """What a stream declares once: the domain its grids cover (m) and the step's physics."""
+    """What a stream declares once: the domain its grids cover (m), the step's physics and the
+    client's stopping rule (tolerance, N s: its solver stops after the first sweep that changes no
+    impulse by more; 0 where the client did not say)."""
 
     domain: Domain
     physics: Physics = Physics()
+    tolerance: float = 0.0
 
 
 # The most grid nodes a request's domain may need, by default (`deepcontact serve

@@ -179,10 +179,10 @@ class WarmStartService(pb_grpc.WarmStartServicer):
     def _world(self, world: pb.World) -> World:
         try:
             lower, upper, _edges = wire.decode_world(world)
-            physics = wire.decode_physics(world)
+            physics, tolerance = wire.decode_physics(world), wire.decode_tolerance(world)
         except wire.WireError as exc:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(exc)) from None
-        return World(((float(lower[0]), float(lower[1])), (float(upper[0]), float(upper[1]))), physics)
+        return World(((float(lower[0]), float(lower[1])), (float(upper[0]), float(upper[1]))), physics, tolerance)
 
     def _warm_up(self, model: str, world: World) -> None:
         """Ready the stream's model for its world's grid before the first step

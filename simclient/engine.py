@@ -82,6 +82,12 @@ class SolverConfig:
                 f"{self.velocity_iterations} and {self.position_iterations}"
             )
 
+    @property
+    def stopping_tolerance(self) -> float:
+        """The velocity iterations' stopping rule as a stream declares it (World.solver_tolerance,
+        N s): velocity_threshold, or 0 where it is disabled (the solver then runs to its cap)."""
+        return max(float(self.velocity_threshold), 0.0)
+
 
 @dataclasses.dataclass(frozen=True)
 class StepStats:

@@ -164,7 +164,7 @@ class WarmStartSession:
             return
         first = self._physics is None
         self._physics = (dt, gravity)
-        self.client.set_world(describe(self.engine.world, dt))
+        self.client.set_world(describe(self.engine.world, dt, self.tolerance or 0.0))
         if first:
             try:
                 self.client.declare(self.model, DECLARE_TIMEOUT_S)

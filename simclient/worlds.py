@@ -131,14 +131,15 @@ def world_message(spec, engine: Engine):
     """What a stream declares for this simulation (deepcontact.v1.World)."""
     if isinstance(spec, SceneSpec):
         lower, upper = spec.domain
-        return wire.encode_world(lower, upper, spec.walls(), spec.physics)
-    return describe(engine.world, engine.config.dt)
+        return wire.encode_world(lower, upper, spec.walls(), spec.physics, spec.solver.stopping_tolerance)
+    return describe(engine.world, engine.config.dt, engine.config.stopping_tolerance)
 
 
-def describe(world: "Box2D.b2World", dt: float):
+def describe(world: "Box2D.b2World", dt: float, tolerance: float = 0.0):
     """A user's world as a stream declares it: the domain (every fixture's bounding box now,
-    widened by DOMAIN_MARGIN), the static bodies' edges and the physics (dt s, the world's
-    gravity). Read once per simulation: a loop over the world's fixtures in Python."""
+    widened by DOMAIN_MARGIN), the static bodies' edges, the physics (dt s, the world's
+    gravity) and the solver's stopping rule (tolerance, N s; 0: not said). Read once per
+    simulation: a loop over the world's fixtures in Python."""
     boxes, edges = [], []
     for body in world.bodies:
         static = body.type == Box2D.b2_staticBody
@@ -157,7 +158,7 @@ def describe(world: "Box2D.b2World", dt: float):
     lower, upper = lower - margin, upper + margin
     gravity = (float(world.gravity[0]), float(world.gravity[1]))
     return wire.encode_world((float(lower[0]), float(lower[1])), (float(upper[0]), float(upper[1])),
-                             np.array(edges, float).reshape(-1, 4), Physics(float(dt), gravity))
+                             np.array(edges, float).reshape(-1, 4), Physics(float(dt), gravity), float(tolerance))
 
 
 def _static_edges(body, shape) -> list[tuple[float, float, float, float]]:

@@ -83,7 +83,7 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
     assert face.face == {"pressing": 0.75, "share": 1.0, "rounds": 50, "label_friction": None, "max_residual": None,
                          "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [],
                          "close": None, "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
-                         "carry": False, "check_sweeps": None, "extrapolate_jointed": False}
+                         "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False}
     assert ModelCard.load(tmp_path / "classifier.json").face is None  # the classifier itself is served plain
     for bad, match in (({"pressing": -1}, "pressing >= 0"), ({"rounds": 0}, "rounds a whole number"),
                        ({"rounds": 2.5}, "rounds a whole number"), ({"labels": 1}, "keys among"),
@@ -99,6 +99,8 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                        ({"extrapolate_jointed": "on"}, "carry and extrapolate_jointed true or false"),
                        ({"check_sweeps": 0}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_sweeps": 12.5}, "check_sweeps null or a whole number 1-1000"),
+                       ({"check_stop": True}, "check_stop true or false and only with check_sweeps"),
+                       ({"check_stop": 1, "check_sweeps": 12}, "check_stop true or false"),
                        ({"fallback": 3, "max_residual": 0.3}, "fallback null or a card's name"), ("yes", "keys among")):
         (tmp_path / "bad.json").write_text(json.dumps({"name": "bad", "alias_of": "classifier", "face": bad}))
         with pytest.raises(ModelCardError, match=match):

@@ -167,6 +167,29 @@ def test_the_solvers_sweeps_from_the_solution_change_nothing_and_from_nothing_ch
         sweep_changes(bodies, points, exact, mu, physics)
 
 
+def test_the_sweeps_to_the_stopping_rule_are_where_the_replica_first_changes_nothing_by_more():
+    """sweeps_to_stop counts the sweeps each start takes to the client's stopping rule (the
+    first sweep that changes no impulse by more than the tolerance): from the converged impulses
+    one, from nothing more; where a start does not stop within `most` sweeps its count is most + 1
+    and its change that of sweep `most`, as sweep_changes gives it."""
+    from deepcontact.faces import sweep_changes, sweeps_to_stop
+
+    bodies, points, exact, mu = sliding_pile()
+    physics = Physics.thesis()
+    starts = np.stack([exact, np.zeros_like(exact)])
+    counts, changes = sweeps_to_stop(bodies, points, starts, mu, physics, 1e-3, 500)
+    assert counts[0] == 1 and changes[0] <= 1e-3
+    cold = int(counts[1])
+    assert 1 < cold <= 500 and changes[1] <= 1e-3
+    assert sweep_changes(bodies, points, starts, mu, physics, cold - 1)[1] > 1e-3  # the sweep before did not stop
+    np.testing.assert_allclose(sweep_changes(bodies, points, starts, mu, physics, cold)[1], changes[1])
+    counts, changes = sweeps_to_stop(bodies, points, starts, mu, physics, 1e-15, 5)
+    np.testing.assert_array_equal(counts, [6, 6])
+    np.testing.assert_array_equal(changes, sweep_changes(bodies, points, starts, mu, physics, 5))
+    with pytest.raises(ValueError, match="tolerance"):
+        sweeps_to_stop(bodies, points, starts, mu, physics, 0.0, 5)
+
+
 def test_the_sweeps_solve_a_boxs_two_points_as_one_block_as_box2d_does():
     """A box resting on another meets it at two points of one manifold, which Box2D solves
     together (its block solver): from the impulses the engine's own solve converged to, the

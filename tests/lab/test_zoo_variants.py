@@ -21,10 +21,11 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path
     assert served["default-bf"].fallback is None
     assert served["zoo-always"].settings["max_residual"] is None
     assert served["zoo-r0.6"].settings["max_residual"] == 0.6
-    assert served["default-r0.6"].settings["max_residual"] == 0.6 and served["default-r0.6"].fallback.name == "zoo"
+    assert served["default-r0.6"].settings["max_residual"] == 0.6
+    assert served["default-r0.6"].fallback.name == "zoo-before"  # the zoo route as the variants' research had it
     # The zoo route's gate, rounds and check, each variant the shipped zoo route with only those changed,
     # and the default falling back to it.
-    zoo = served["zoo"].settings
+    zoo = served["zoo-before"].settings  # the zoo route each variant changes (lab.zoo_variants.ZOO_FACE)
     assert served["zoo-ungated-r200"].settings == {**zoo, "max_residual": None, "rounds": 200}
     assert served["zoo-ungated-r200-unchecked"].settings == \
         {**zoo, "max_residual": None, "rounds": 200, "against_builtin": False, "check_sweeps": None}
@@ -33,3 +34,4 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path
     longer = served["default-zoo-ungated-r200-check200"]
     assert longer.fallback.name == "zoo-ungated-r200-check200"
     assert longer.settings == {**served["default"].settings, "fallback": "zoo-ungated-r200-check200"}
+    assert served["default-stop"].settings == {**served["default"].settings, "check_stop": True, "fallback": "zoo-before"}

@@ -543,16 +543,20 @@ def test_a_face_routes_step_reports_its_features_inference_solve_and_admission(t
     assert set(answer.stages) == {"features", "inference", "solve", "admit", "g2p"}
 
 
-@pytest.mark.parametrize("check", [{}, {"check_sweeps": 12}], ids=["one-jacobi-step", "twelve-sweeps"])
+@pytest.mark.parametrize("check", [{}, {"check_sweeps": 12}, {"check_sweeps": 200, "check_stop": True}],
+                         ids=["one-jacobi-step", "twelve-sweeps", "sweeps-to-the-stopping-rule"])
 def test_a_route_against_builtin_serves_its_answer_only_where_it_beats_box2ds_start(tmp_path, thesis_steps, check):
     """against_builtin compares the route's answer with Box2D's start by one projected Jacobi
     step from each, or with check_sweeps by the solver's own sweeps played on the server's copy
-    of the step (deepcontact.faces.sweep_changes)."""
+    of the step (deepcontact.faces.sweep_changes), and with check_stop by the sweeps each takes
+    to the stopping rule the client declared (the World's tolerance, deepcontact.faces.sweeps_to_stop)."""
+    import dataclasses
+
     from server.predictors import load_model
 
     classifier = shipped_classifier(tmp_path)
     world_msg, steps = thesis_steps
-    world = thesis_world(world_msg)
+    world = dataclasses.replace(thesis_world(world_msg), tolerance=1e-4)
     bodies, points = steps[0]
     mu = np.full(len(points), 0.5, np.float32)
     checked = load_model(face_card(tmp_path, "checked", classifier, against_builtin=True, **check))

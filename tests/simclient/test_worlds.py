@@ -12,6 +12,7 @@ import Box2D
 from deepcontact import wire
 from commands import main
 from simclient import worlds
+from simclient.engine import SolverConfig
 
 WORLD = textwrap.dedent("""
     import Box2D
@@ -104,3 +105,27 @@ def test_a_world_is_described_by_its_fixtures_box_and_its_static_edges():
     np.testing.assert_allclose(edges[0], [-4.0, 0.0, 6.0, 0.0])  # in world coordinates: the body sits at x = 1
     physics = wire.decode_physics(message)
     assert physics.dt == pytest.approx(0.02) and physics.gravity == pytest.approx((0.0, -3.0))
+    assert wire.decode_tolerance(message) == 0.0  # a stopping rule not said: none declared
+
+
+def test_a_stream_declares_its_solvers_stopping_rule():
+    """The World a simulation declares says where its solver stops (solver_tolerance, N s), a
+    project scene's and a user's world's alike; a solver run to its cap declares none (0)."""
+    import dataclasses
+
+    from simclient.scene import SceneSpec
+
+    thesis = SceneSpec.thesis()
+    declared = worlds.world_message(thesis, worlds.build(thesis, 901))
+    assert wire.decode_tolerance(declared) == pytest.approx(1e-4)
+    spec = dataclasses.replace(worlds.WorldSpec("examples/stack.py:build", steps=5),
+                               solver=SolverConfig(velocity_threshold=2e-3))
+    assert wire.decode_tolerance(worlds.world_message(spec, worlds.build(spec, 901))) == pytest.approx(2e-3)
+    capped = dataclasses.replace(spec, solver=SolverConfig(velocity_threshold=-1.0))
+    assert wire.decode_tolerance(worlds.world_message(capped, worlds.build(capped, 901))) == 0.0
+    declared.solver_tolerance = float("nan")
+    with pytest.raises(wire.WireError, match="solver_tolerance"):
+        wire.decode_tolerance(declared)
+    declared.solver_tolerance = -1e-4
+    with pytest.raises(wire.WireError, match="solver_tolerance"):
+        wire.decode_tolerance(declared)
