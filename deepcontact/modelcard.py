@@ -96,8 +96,8 @@ largest change the solver's N-th sweep of sequential impulses would make from ea
 faces.sweep_changes, nearer to how the solver itself stops), check_stop (default false; true,
 with check_sweeps N and a client that declares its stopping rule, World.solver_tolerance: the
 sweeps each start takes to that rule, up to N, faces.sweeps_to_stop, the route's answer served
-only where it stops sooner, and by the changes at sweep N where neither stops by then; a client
-that does not declare it is checked by the changes as without), rescale (default
+where it stops sooner, and by the last sweep's changes where both stop at the same sweep or neither
+by sweep N; a client that does not declare it is checked by the changes as without), rescale (default
 false; true: a step of larger or smaller bodies, denser, or with a larger or smaller gravity times
 time step than the classifier's `trained_on` is labelled scaled into it, deepcontact.envelope.Envelope.rescaled, and
 solved in its own units; the reply's familiar verdict stays the unscaled step's), carry (default

@@ -36,6 +36,8 @@ COMMANDS = [
             "can a stream keep the classifier's labels across steps? the route on held and fresh labels"),
     Command(("order",), "lab.order",
             "does the order of the solver's sweep choose its answer? a Gauss-Seidel replica in several orders"),
+    Command(("route-stages",), "lab.route_stages",
+            "where a served model's step goes on any world, by its size: each stage's median, in process"),
     Command(("spread",), "lab.closed_loop_spread",
             "how far a closed loop moves when nothing that matters changes: Builtin against itself perturbed"),
     Command(("step-gate",), "lab.step_gate",

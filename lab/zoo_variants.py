@@ -40,7 +40,9 @@ name another:
                     stopping rule (face check_stop): zoo-stop (the shipped zoo route so),
                     zoo-ungated-r200-checkK-stop for K in STOP_SWEEPS, default-zoo-... the default
                     falling back to each; default-stop the default's own route so (its fallback
-                    zoo-before), default-stop-zoo-ungated-r200-checkK-stop both
+                    zoo-before), default-stop-zoo-ungated-r200-checkK-stop both;
+                    zoo-ungated-rN-check200-stop the same in N rounds for N in STOP_ROUNDS,
+                    zoo-resR-rN-check200-stop those gated at R / 10 for R in STOP_GATES
                     (docs/research/2026-12-06-the-zoo-checks-sweeps.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
@@ -70,6 +72,11 @@ CHECK_SWEEPS = (4, 24, 48, 96, 200)
 GATES = (5, 10, 20, 50)
 #: Sweeps of the zoo route's check, without its gate and in 200 rounds, counted to the stopping rule.
 STOP_SWEEPS = (48, 96, 200)
+#: Admission rounds of the zoo route without its gate, checked by the sweeps to the stopping rule up to 200.
+STOP_ROUNDS = (50, 100)
+#: max_residual x 10 of those: a gate however loose sends the steps whose labels the compiled dual
+#: declines to the fallback, where without one the route solves them piece by piece in Python.
+STOP_GATES = (10, 50)
 
 
 def _fill(tmp: Path) -> None:
@@ -116,6 +123,15 @@ def _fill(tmp: Path) -> None:
         card(tmp, name, alias_of="contact-modes-zoo", face={**ungated, "rounds": 200, "check_sweeps": sweeps, **stop})
         card(tmp, f"default-{name}", alias_of="contact-modes", face={**face, "fallback": name})
         card(tmp, f"default-stop-{name}", alias_of="contact-modes", face={**face, **stop, "fallback": name})
+    for rounds in STOP_ROUNDS:
+        name = f"zoo-ungated-r{rounds}-check200-stop"
+        card(tmp, name, alias_of="contact-modes-zoo", face={**ungated, "rounds": rounds, "check_sweeps": 200, **stop})
+        card(tmp, f"default-{name}", alias_of="contact-modes", face={**face, "fallback": name})
+        for gate in STOP_GATES:
+            name = f"zoo-res{gate}-r{rounds}-check200-stop"
+            card(tmp, name, alias_of="contact-modes-zoo",
+                 face={**zoo_face, "max_residual": gate / 10, "rounds": rounds, "check_sweeps": 200, **stop})
+            card(tmp, f"default-{name}", alias_of="contact-modes", face={**face, "fallback": name})
     for gate in GATES:
         name = f"zoo-res{gate}-r200-check200"
         card(tmp, name, alias_of="contact-modes-zoo",

@@ -35,3 +35,5 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path
     assert longer.fallback.name == "zoo-ungated-r200-check200"
     assert longer.settings == {**served["default"].settings, "fallback": "zoo-ungated-r200-check200"}
     assert served["default-stop"].settings == {**served["default"].settings, "check_stop": True, "fallback": "zoo-before"}
+    assert served["zoo-ungated-r100-check200-stop"].settings == \
+        {**zoo, "max_residual": None, "rounds": 100, "check_sweeps": 200, "check_stop": True}

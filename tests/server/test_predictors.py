@@ -576,6 +576,34 @@ def test_a_route_against_builtin_serves_its_answer_only_where_it_beats_box2ds_st
     np.testing.assert_array_equal(answer.impulses, plain.predict(bodies, cold, world, 0, friction=mu).impulses)
 
 
+@pytest.mark.parametrize("route_change, served_by", [(1e-6, None), (1e-4, "builtin")],
+                         ids=["route-nearer-its-end", "box2d-nearer-its-end"])
+def test_a_route_checked_by_the_stopping_rule_breaks_a_tie_by_the_last_change(tmp_path, thesis_steps, monkeypatch,
+                                                                                 route_change, served_by):
+    """Where the route's answer and Box2D's start stop at the same sweep, the one whose last
+    sweep changed the impulses less is served: the solver's count is the same from either, and
+    the nearer start leaves the next step's warm start nearer its end too."""
+    import dataclasses
+
+    import server.face_route
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = dataclasses.replace(thesis_world(world_msg), tolerance=1e-4)
+    bodies, points = steps[0]
+    mu = np.full(len(points), 0.5, np.float32)
+
+    def both_stop_at_sweep_five(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0):
+        assert stop == 1e-4  # the client's stopping rule reached the check
+        return (5, 1e-5) if np.array_equal(start, points["builtin"]) else (5, route_change)
+
+    monkeypatch.setattr(server.face_route, "_sweep_change", both_stop_at_sweep_five)
+    checked = load_model(face_card(tmp_path, "checked", classifier, against_builtin=True, check_sweeps=200,
+                                   check_stop=True))
+    assert checked.predict(bodies, points, world, 0, friction=mu).served_by == served_by
+
+
 def test_a_route_with_carry_keeps_its_admission_in_the_streams_memory(tmp_path, thesis_steps):
     """With carry, the route's admission goes on along a stream (the memory the server keeps for
     it and its model): each step's state is kept under the route's name, the next step begins

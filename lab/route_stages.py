@@ -1,0 +1,79 @@
+"""`deepcontact lab route-stages`: where a served model's step goes, on any world, by its size.
+
+    deepcontact lab route-stages --world examples/pyramid.py:build --seed 850 --steps 120
+
+`deepcontact bench server` times the server's stages on the thesis world's steps; a user's world
+can hold steps five times larger, where one stage may outgrow the 10 ms deadline alone. This runs
+the model in the simulation's process (bench.inprocess.InProcess: the predictor the server
+loads, no gRPC) along its own trajectory of one seed and prints each stage's median time (ms)
+over every step with points and over the steps of at least --large points.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--world", default="examples/pyramid.py:build", metavar="PATH.py:FUNCTION",
+                        help="a world of your own, FUNCTION(seed) in PATH.py or MODULE:FUNCTION "
+                             "(default examples/pyramid.py:build, Box2D's Pyramid)")
+    parser.add_argument("--seed", type=int, default=850, help="the world's seed (default 850, a choosing seed)")
+    parser.add_argument("--steps", type=int, default=120, help="steps simulated (default 120)")
+    parser.add_argument("--models", default="models", metavar="DIR", help="model folder (default models/)")
+    parser.add_argument("--model", default="default", help="the model to time (default: default)")
+    parser.add_argument("--large", type=int, default=500, metavar="P",
+                        help="the steps of at least P points are also summarized alone (default 500)")
+
+
+def stage_medians(sizes: np.ndarray, stages: list[dict[str, float]], large: int) -> dict[str, tuple[float, float]]:
+    """{stage: (median ms over every step, median ms over steps of >= large points, NaN where
+    none)}, with "total" their sum a step. sizes: (S,) points a step; stages: S dicts of s."""
+    names = sorted({k for s in stages for k in s})
+    table = {k: np.array([s.get(k, 0.0) for s in stages]) * 1e3 for k in names}
+    table["total"] = sum(table.values()) if names else np.zeros(len(stages))
+    big = sizes >= large
+    return {k: (float(np.median(v)), float(np.median(v[big])) if big.any() else float("nan")) for k, v in table.items()}
+
+
+def run(args: argparse.Namespace) -> int:
+    from bench.inprocess import InProcess
+    from simclient.simulate import run_simulation
+    from simclient.worlds import WorldSpec
+
+    try:
+        if args.steps < 1 or args.large < 1:
+            raise ValueError(f"--steps and --large must be >= 1, got {args.steps} and {args.large}")
+        spec = WorldSpec(args.world, steps=args.steps)
+        spec.validate()
+        provider = InProcess.load(Path(args.models), args.model, spec)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"deepcontact lab route-stages: {exc}", file=sys.stderr)
+        return 2
+    sizes: list[int] = []  # points of each step the model answered, beside provider.stages
+
+    class Sized(type(provider)):
+        def warm_start(self, engine, bodies, points, step):
+            if len(points):
+                sizes.append(len(points))
+            return super().warm_start(engine, bodies, points, step)
+
+    provider.__class__ = Sized
+    run_simulation(spec, args.seed, provider)
+    n = np.array(sizes)
+    if len(n) == 0:
+        print(f"deepcontact lab route-stages: no step of {args.world} seed {args.seed} had contact points",
+              file=sys.stderr)
+        return 1
+    medians = stage_medians(n, provider.stages, args.large)
+    big = int((n >= args.large).sum())
+    print(f"`{args.world}` seed {args.seed}, {args.model} in process: {len(n)} steps with points (median "
+          f"{int(np.median(n))}), {big} of at least {args.large} (median {int(np.median(n[n >= args.large])) if big else 0})")
+    print(f"| stage | median ms, every step | median ms, {args.large} points and more |\n|---|---|---|")
+    for name, (every, large) in medians.items():
+        print(f"| {name} | {every:.2f} | {large:.2f} |")
+    return 0

@@ -1,0 +1,30 @@
+"""lab.route_stages: a served model's stages on a user's world, summarized by step size."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from commands import main
+from lab.route_stages import stage_medians
+
+
+def test_route_stages_prints_each_stage_of_the_default_on_a_users_world(capsys):
+    assert main(["lab", "route-stages", "--world", "examples/stack.py:build", "--steps", "12", "--large", "10"]) == 0
+    out = capsys.readouterr().out
+    assert "`examples/stack.py:build` seed 850, default in process" in out
+    for stage in ("features", "inference", "solve", "admit", "total"):
+        assert f"| {stage} |" in out
+
+
+def test_route_stages_refuses_a_world_it_cannot_load_in_one_line(capsys):
+    assert main(["lab", "route-stages", "--world", "no_such_file.py:build"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_the_large_steps_are_summarized_apart_and_total_is_the_stages_sum():
+    sizes = np.array([100, 600, 700])
+    stages = [{"solve": 0.001, "admit": 0.001}, {"solve": 0.010, "admit": 0.002}, {"solve": 0.020, "admit": 0.002}]
+    medians = stage_medians(sizes, stages, large=500)
+    assert medians["solve"] == (10.0, 15.0)
+    assert medians["total"] == (12.0, 17.0)
+    assert np.isnan(stage_medians(sizes, stages, large=1000)["solve"][1])
