@@ -42,7 +42,7 @@ struct geometry {
     int64_t *pa, *pb;
     int32_t *row, *jp, *ji, *order, *inverse;
     unsigned char *dynamic;
-    double *inv_mass, *inv_inertia, *n, *t, *ra, *rb, *vx, *vy, *w, *before, *jd;
+    double *inv_mass, *inv_inertia, *n, *t, *ra, *rb, *vx, *vy, *w, *before, *jd, *weight;
     spchol_factor_t factor;
     int factored;
 };
@@ -51,7 +51,7 @@ static void geometry_free(struct geometry *g)
 {
     free(g->pa), free(g->pb), free(g->row), free(g->jp), free(g->ji), free(g->order), free(g->inverse);
     free(g->dynamic), free(g->inv_mass), free(g->inv_inertia), free(g->n), free(g->t), free(g->ra), free(g->rb);
-    free(g->vx), free(g->vy), free(g->w), free(g->before), free(g->jd);
+    free(g->vx), free(g->vy), free(g->w), free(g->before), free(g->jd), free(g->weight);
     spchol_free(&g->factor);
     memset(g, 0, sizeof *g);
 }
@@ -109,11 +109,12 @@ static int geometry_build(struct geometry *g, const char *bodies, const char *po
     return 0;
 }
 
-/* The admission's J^T, its rows in a minimum degree order of the bodies, and J^T J's factor.
- * Returns 0, -1 (memory) or 1 (a pivot). */
-static int geometry_factor(struct geometry *g)
+/* The step's J^T and its rows in a minimum degree order of the bodies (each body's three rows
+ * together): what both the admission's factor and the face solve in the bodies' space
+ * (face_kernels.h, face_body_solve) are built on. Returns 0, or -1 (memory). */
+static int geometry_jacobian(struct geometry *g)
 {
-    if (g->factored)
+    if (g->jp != NULL)
         return 0;
     const int32_t rows = g->rows;
     const int64_t P = g->P;
@@ -122,15 +123,37 @@ static int geometry_factor(struct geometry *g)
     g->jd = malloc(((size_t)12 * P + 1) * sizeof(double));
     g->order = malloc(((size_t)rows + 1) * sizeof(int32_t));
     g->inverse = malloc(((size_t)rows + 1) * sizeof(int32_t));
-    if (g->jp == NULL || g->ji == NULL || g->jd == NULL || g->order == NULL || g->inverse == NULL)
+    g->weight = malloc(((size_t)rows + 1) * sizeof(double));
+    if (g->jp == NULL || g->ji == NULL || g->jd == NULL || g->order == NULL || g->inverse == NULL || g->weight == NULL) {
+        free(g->jp), free(g->ji), free(g->jd), free(g->order), free(g->inverse), free(g->weight);
+        g->jp = g->ji = g->order = g->inverse = NULL;
+        g->jd = g->weight = NULL;
         return -1;
+    }
     jacobian_transpose_csr(P, g->pa, g->pb, g->row, g->n, g->t, g->ra, g->rb, rows, g->jp, g->ji, g->jd);
+    for (int64_t k = 0; k < g->B; k++)
+        if (g->row[k] >= 0) {
+            const int32_t r = 3 * g->row[k];
+            g->weight[r] = g->weight[r + 1] = sqrt(g->inv_mass[k]);
+            g->weight[r + 2] = sqrt(g->inv_inertia[k]);
+        }
     if (body_order_min_degree(P, g->pa, g->pb, g->row, g->n_dyn, g->order) != 0)
         return -1;
     for (int32_t q = g->n_dyn - 1; q >= 0; q--) /* each body's three rows, in its order */
         for (int d = 2; d >= 0; d--)
             g->order[3 * q + d] = 3 * g->order[q] + d;
-    int status = gram_factor(rows, (int32_t)(2 * P), g->jp, g->ji, g->jd, g->order, 1e-9, g->inverse, &g->factor);
+    return 0;
+}
+
+/* The admission's factor of J^T J, on geometry_jacobian's J^T and order. Returns 0, -1
+ * (memory) or 1 (a pivot). */
+static int geometry_factor(struct geometry *g)
+{
+    if (g->factored)
+        return 0;
+    if (geometry_jacobian(g) != 0)
+        return -1;
+    int status = gram_factor(g->rows, (int32_t)(2 * g->P), g->jp, g->ji, g->jd, g->order, 1e-9, g->inverse, &g->factor);
     g->factored = status == 0;
     return status;
 }
@@ -284,7 +307,7 @@ done:
 
 /* solve_and_admit(bodies, n_bodies, points, n_points, labels, mu, read_mu, dt, gx, gy, pressing,
  *                 share, rounds, relax, rho, until, ridge, refinements, optimality, impulses, geometry[, carry])
- *     -> (outcome, residual, solve_seconds, admit_seconds, admission_rounds)
+ *     -> (outcome, residual, solve_seconds, admit_seconds, admission_rounds, in_bodies)
  *
  * bodies, points: BODY_DTYPE and CONTACT_DTYPE records; labels float64 (P, 2), the classifier's
  * answer (N s); mu float64 (P,) each point's friction; read_mu float64 (P,) the friction the
@@ -299,7 +322,8 @@ done:
  * (admission_kernels.h; (impulses, 0) where no round ran), for the next. outcome: ROUTE_SERVED (impulses written, residual
  * faces.face_residual of them), ROUTE_NOT_DEFINITE (the sparse factor met a pivot below zero:
  * the caller solves densely) or ROUTE_INCONSISTENT (the labels' system is far from
- * consistent). */
+ * consistent); in_bodies: 1 where the bodies' space answered the solve (face_body_solve), 0 where
+ * the dual did or nothing was solved. */
 static PyObject *solve_and_admit(PyObject *self, PyObject *args)
 {
     Py_buffer b[7];
@@ -346,7 +370,8 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     memset(&s, 0, sizeof s);
     int outcome = -1;
     long used = 0;
-    double residual = 0.0, t0, t1, t2;
+    int in_bodies = 0;
+    double residual = 0.0, t0, t1 = 0.0, t2;
     int32_t *sp = NULL, *si = NULL;
     double *sx = NULL, *scratch = NULL;
     Py_BEGIN_ALLOW_THREADS
@@ -375,17 +400,28 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     m = next_stick;
     memset(impulses, 0, (size_t)P * 2 * sizeof(double));
     if (m > 0) {
-        int64_t nnz;
-        if (face_system_csr(P, B, g->pa, g->pb, g->dynamic, g->inv_mass, g->inv_inertia, g->n, g->t, g->ra, g->rb,
-                            s.index, s.slide, m, &sp, &si, &sx, &nnz) != 0)
-            goto out;
         for (int64_t i = 0; i < P; i++) { /* rhs = -velocity at each unknown's equation */
             if (s.index[2 * i] >= 0)
                 s.rhs[s.index[2 * i]] = -g->before[2 * i];
             if (s.index[2 * i + 1] >= 0)
                 s.rhs[s.index[2 * i + 1]] = -g->before[2 * i + 1];
         }
-        int solved = face_dual_solve(m, sp, si, sx, s.rhs, ridge, refinements, optimality, s.x);
+        /* Solved in the bodies' space on factors of order 3 D (face_body_solve), where it answers;
+         * elsewhere by the dual. */
+        if (geometry_jacobian(g) != 0)
+            goto out;
+        int solved = face_body_solve(g->rows, g->jp, g->ji, g->jd, g->weight, g->order, s.index, s.slide, P, m, s.rhs,
+                                     FACE_BODY_RIDGE, refinements, optimality, s.x);
+        if (solved < 0)
+            goto out;
+        in_bodies = solved == 0;
+        if (solved != 0) {
+            int64_t nnz;
+            if (face_system_csr(P, B, g->pa, g->pb, g->dynamic, g->inv_mass, g->inv_inertia, g->n, g->t, g->ra,
+                                g->rb, s.index, s.slide, m, &sp, &si, &sx, &nnz) != 0)
+                goto out;
+            solved = face_dual_solve(m, sp, si, sx, s.rhs, ridge, refinements, optimality, s.x);
+        }
         if (solved != 0) {
             outcome = solved < 0 ? -1 : (solved == 1 ? ROUTE_NOT_DEFINITE : ROUTE_INCONSISTENT);
             goto out;
@@ -451,8 +487,8 @@ out:
     if (outcome < 0)
         PyErr_NoMemory();
     else
-        result = Py_BuildValue("(iddd l)", outcome, residual, (outcome == ROUTE_SERVED ? t1 : t2) - t0,
-                               outcome == ROUTE_SERVED ? t2 - t1 : 0.0, used);
+        result = Py_BuildValue("(iddd li)", outcome, residual, (outcome == ROUTE_SERVED ? t1 : t2) - t0,
+                               outcome == ROUTE_SERVED ? t2 - t1 : 0.0, used, in_bodies);
 done:
     for (int k = 0; k < 7; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)

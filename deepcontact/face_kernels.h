@@ -1,6 +1,7 @@
 /* The face route's solve, compiled: a face's linear system summed over the pairs of points
  * that share a body, as CSR, and its minimum-norm solution through the dual on a sparse
- * Cholesky factor of S S^T. Shared by deepcontact/_faces.c (faces.face_system_sparse,
+ * Cholesky factor of S S^T, or, where no point slides, in the bodies' space on a factor of
+ * order 3 D (face_body_solve; the compiled route's only). Shared by deepcontact/_faces.c (faces.face_system_sparse,
  * faces.minimum_norm_solve) and deepcontact/_route.c (the whole route in one call); faces.py
  * documents the system and the solve. Every function here runs without the GIL and
  * allocates with malloc.
@@ -270,6 +271,237 @@ out:
     spchol_free(&factor);
     free(cp), free(ci), free(cx), free(gp), free(gi), free(gx);
     free(order), free(inverse), free(up), free(ui), free(ux), free(work);
+    return status;
+}
+
+/* face_body_solve's ridge on K = W^1/2 A^T A W^1/2, relative to its mean diagonal. K's
+ * eigenvalues are S's own (not S S^T's, their squares), so the cut lies at about the same share
+ * of S's largest singular value as the dual's ridge (faces.DUAL_RIDGE, on squares) does: inside
+ * the gap a face's system leaves between the directions it resolves (above about 1e-6 of the
+ * largest) and rounding's (below 1e-12). On a pyramid of boxes 1e-12 to 1e-8 give the dual's
+ * answer to 1e-13; 1e-13 begins to read rounding. */
+#define FACE_BODY_RIDGE 1e-10
+
+/* y = K^+ y (K's pseudo-inverse by the ridged factor f of P K P^T, refined `refinements` times
+ * against K itself), in place, y in the factor's order. K whole (CSC kp, ki, kx) in the original
+ * order; inverse: original -> position; r (n,) scratch. The ridge's (K + r I)^-1 keeps a vector
+ * in K's range there, so a y in K's range comes out in it: the null space never enters. */
+static void face_body_pinv(int32_t n, const spchol_factor_t *f, const int32_t *kp, const int32_t *ki, const double *kx,
+                           const int32_t *inverse, int refinements, double *y, double *r, double *z)
+{
+    memcpy(z, y, (size_t)n * sizeof(double));
+    spchol_solve(f, z);
+    for (int round = 0; round < refinements; round++) {
+        memcpy(r, y, (size_t)n * sizeof(double));
+        for (int32_t c = 0; c < n; c++) { /* r = y - K z */
+            const double zc = z[inverse[c]];
+            for (int32_t q = kp[c]; q < kp[c + 1]; q++)
+                r[inverse[ki[q]]] -= kx[q] * zc;
+        }
+        spchol_solve(f, r);
+        for (int32_t k = 0; k < n; k++)
+            z[k] += r[k];
+    }
+    memcpy(y, z, (size_t)n * sizeof(double));
+}
+
+/* A pivot of face_body_solve's factors below this share of their matrix's mean diagonal marks a
+ * direction the face's rows or columns leave free (where points slide, the bodies' space answers
+ * only where neither K nor G has one but the bodies no unknown pushes at all). A face's system resolves nothing below about 1e-6 of its
+ * largest singular value, and the ridge (FACE_BODY_RIDGE) leaves a free direction's pivot at 1e-10. */
+#define FACE_BODY_FREE 1e-8
+
+/* L^T or R^T (rows, m) as CSR from J^T's entries (jt: jp, ji, jd): each on its column's unknown
+ * (index; -1: none) times its row's W^1/2; with slide (P,) non-NULL, a tangent entry of a point
+ * that slides also on its normal unknown, times slide (R^T: a sliding point's column is its
+ * normal plus slide times its tangent). ap (rows + 1,), ai and ax (2 nnz of J^T) out. */
+static void face_body_rows(int32_t rows, const int32_t *jp, const int32_t *ji, const double *jd, const double *weight,
+                           const int64_t *index, const double *slide, int32_t *ap, int32_t *ai, double *ax)
+{
+    int32_t at = 0;
+    ap[0] = 0;
+    for (int32_t r = 0; r < rows; r++) {
+        for (int32_t p = jp[r]; p < jp[r + 1]; p++) {
+            const int32_t col = ji[p];
+            if (index[col] >= 0) {
+                ai[at] = (int32_t)index[col];
+                ax[at++] = jd[p] * weight[r];
+            }
+            if (slide != NULL && (col & 1) && slide[col / 2] != 0.0 && index[col - 1] >= 0) {
+                ai[at] = (int32_t)index[col - 1];
+                ax[at++] = slide[col / 2] * jd[p] * weight[r];
+            }
+        }
+        ap[r + 1] = at;
+    }
+}
+
+/* One of face_body_solve's two body-space matrices, built and factored: the gram M = A A^T of
+ * A (rows, m) given by rows (ap, ai, ax) and by columns (cp, ci, cx), whole (CSC, *mp, *mi,
+ * *mx out, malloc'd), and P M P^T + ridge * mean diagonal = C C^T in `order` (inverse out), f
+ * out. *free_out: whether a pivot of a row A does not leave empty lies below FACE_BODY_FREE of
+ * the mean diagonal. Returns 0, -1
+ * (memory), 1 (a pivot not positive) or 3 (M = 0). */
+static int face_body_factor(int32_t rows, const int32_t *ap, const int32_t *ai, const double *ax, const int32_t *cp,
+                            const int32_t *ci, const double *cx, const int32_t *order, double ridge, int32_t *inverse,
+                            int32_t **mp, int32_t **mi, double **mx, spchol_factor_t *f, int *free_out)
+{
+    double trace;
+    if (spchol_gram(rows, ap, ai, ax, cp, ci, cx, mp, mi, mx, &trace) != 0)
+        return -1;
+    const double scale = rows ? trace / (double)rows : 0.0;
+    if (!(scale > 0))
+        return 3;
+    const int32_t entries = (*mp)[rows];
+    int32_t *up = malloc(((size_t)rows + 1) * sizeof(int32_t));
+    int32_t *ui = malloc(((size_t)entries + 1) * sizeof(int32_t));
+    double *ux = malloc(((size_t)entries + 1) * sizeof(double));
+    int status = -1;
+    if (up != NULL && ui != NULL && ux != NULL && spchol_permute_upper(rows, *mp, *mi, *mx, order, inverse, up, ui, ux) == 0)
+        status = spchol_factor(rows, up, ui, ux, ridge * scale, 0.0, f);
+    free(up), free(ui), free(ux);
+    *free_out = 0;
+    if (status == 0)
+        for (int32_t k = 0; k < rows && !*free_out; k++) {
+            const double pivot = f->Lx[f->Lp[k]];
+            /* A row A leaves empty (a body no unknown pushes, falling free) is free in K and G
+             * both, and answered 0 by both: only the others count. */
+            *free_out = ap[order[k] + 1] > ap[order[k]] && pivot * pivot < FACE_BODY_FREE * scale;
+        }
+    return status;
+}
+
+/* minimum_norm_solve's answer in the bodies' space. With A (m, 3 D) the face's rows of J (the
+ * pressing points' normals, the sticking points' tangents), C its columns (A, but a sliding
+ * point's normal plus slide times its tangent) and W the dynamic bodies' inverse masses and
+ * inertias, a face's system is S = A W C^T = L R^T, L = A W^1/2, R = C W^1/2, and with K = L^T L
+ * and G = R^T R (3 D, 3 D):
+ *   - where no point slides, R = L and S's pseudo-inverse is L K^+ K^+ L^T, whatever K's rank;
+ *   - where points slide, it is R G^-1 K^-1 L^T where K and G are both of full rank (L R^T a
+ *     full-rank factorization), but for the rows of bodies no unknown pushes, empty in both.
+ *     Where either leaves another direction free (a pivot below FACE_BODY_FREE) the product
+ *     is not the pseudo-inverse: declined (1), for the dual.
+ * The same x as the dual's S^T (S S^T)^+ b, from factors of order 3 D rather than m: on a
+ * pyramid of boxes (800 points, m = 1,600 unknowns, 630 body rows) a small share of S S^T's,
+ * whose graph joins every pair of points two bodies apart. jt: J^T as CSR (jp (rows + 1,), ji,
+ * jd: rows = 3 D, 2 P columns; contact_jacobian.h); weight (rows,): each row's W^1/2
+ * (1/sqrt(kg), 1/sqrt(kg m^2)); order (rows,): a fill-reducing order (position -> row); index
+ * (2 P,): each column's unknown or -1, below m; slide (P,): each point's slide (+-mu where it
+ * slides, else 0); rhs (m,); ridge relative to each matrix's mean diagonal (FACE_BODY_RIDGE);
+ * refinements and optimality as face_dual_solve's; x (m,) out. Returns 0 (x written), 1
+ * (declined: a pivot not positive, or a free direction where points slide), 2 (x is not a
+ * least-squares answer: |S^T (S x - b)| > optimality |S^T b|) or -1 (memory). */
+static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, const double *jd, const double *weight,
+                           const int32_t *order, const int64_t *index, const double *slide, int64_t n_points, int64_t m,
+                           const double *rhs, double ridge, int refinements, double optimality, double *x)
+{
+    int slides = 0;
+    for (int64_t i = 0; i < n_points && !slides; i++)
+        slides = slide[i] != 0.0 && index[2 * i] >= 0;
+    const int32_t nnz = rows ? jp[rows] : 0;
+    const int sides = slides ? 2 : 1; /* L, and R where it differs */
+    int32_t *ap[2] = {NULL, NULL}, *ai[2] = {NULL, NULL}, *cp[2] = {NULL, NULL}, *ci[2] = {NULL, NULL};
+    int32_t *mp[2] = {NULL, NULL}, *mi[2] = {NULL, NULL}, *inverse = NULL;
+    double *ax[2] = {NULL, NULL}, *cx[2] = {NULL, NULL}, *mx[2] = {NULL, NULL}, *work = NULL;
+    spchol_factor_t f[2] = {{0, NULL, NULL, NULL}, {0, NULL, NULL, NULL}};
+    int status = -1;
+    work = malloc(((size_t)4 * rows + (size_t)m + 1) * sizeof(double));
+    inverse = malloc(((size_t)rows + 1) * sizeof(int32_t));
+    if (work == NULL || inverse == NULL)
+        goto out;
+    for (int k = 0; k < sides; k++) {
+        const size_t room = (size_t)(k ? 2 : 1) * (size_t)nnz + 1;
+        ap[k] = malloc(((size_t)rows + 1) * sizeof(int32_t));
+        ai[k] = malloc(room * sizeof(int32_t));
+        ax[k] = malloc(room * sizeof(double));
+        cp[k] = calloc((size_t)m + 2, sizeof(int32_t));
+        ci[k] = malloc(room * sizeof(int32_t));
+        cx[k] = malloc(room * sizeof(double));
+        if (ap[k] == NULL || ai[k] == NULL || ax[k] == NULL || cp[k] == NULL || ci[k] == NULL || cx[k] == NULL)
+            goto out;
+        face_body_rows(rows, jp, ji, jd, weight, index, k ? slide : NULL, ap[k], ai[k], ax[k]);
+        if (slides && k == 0)
+            for (int32_t q = 0; q + 2 < rows; q += 3) {
+                /* A body one or two unknowns push (a row of J^T holds an entry for each, zero or
+                 * not) is free in K whatever the others: declined before any factor is made. */
+                const int32_t pushes = ap[0][q + 1] - ap[0][q];
+                if (pushes > 0 && pushes < 3) {
+                    status = 1;
+                    goto out;
+                }
+            }
+        spchol_transpose(rows, (int32_t)m, ap[k], ai[k], ax[k], cp[k], ci[k], cx[k]); /* by columns: by its rows */
+        int free_direction = 0;
+        int factored = face_body_factor(rows, ap[k], ai[k], ax[k], cp[k], ci[k], cx[k], order, ridge, inverse, &mp[k],
+                                        &mi[k], &mx[k], &f[k], &free_direction);
+        if (factored == 3) { /* no unknown moves a body: S = 0, and 0 the least of its answers */
+            memset(x, 0, (size_t)m * sizeof(double));
+            status = 0;
+            goto out;
+        }
+        if (factored != 0) {
+            status = factored > 0 ? 1 : -1;
+            goto out;
+        }
+        if (slides && free_direction) {
+            status = 1;
+            goto out;
+        }
+    }
+    /* R's side: L's where no point slides. */
+    const int r_ = sides - 1;
+    double *y = work, *r = work + rows, *z = work + 2 * rows, *u = work + 3 * rows, *v = work + 4 * rows;
+    for (int32_t q = 0; q < rows; q++) { /* y = L^T b, in the factors' order (one order, one inverse) */
+        double s_ = 0.0;
+        for (int32_t p = ap[0][q]; p < ap[0][q + 1]; p++)
+            s_ += ax[0][p] * rhs[ai[0][p]];
+        y[inverse[q]] = s_;
+    }
+    face_body_pinv(rows, &f[0], mp[0], mi[0], mx[0], inverse, refinements, y, r, z);
+    face_body_pinv(rows, &f[r_], mp[r_], mi[r_], mx[r_], inverse, refinements, y, r, z);
+    for (int64_t c = 0; c < m; c++) { /* x = R y */
+        double s_ = 0.0;
+        for (int32_t q = cp[r_][c]; q < cp[r_][c + 1]; q++)
+            s_ += cx[r_][q] * y[inverse[ci[r_][q]]];
+        x[c] = s_;
+    }
+    /* The dual's test, with S = L R^T: |S^T (S x - b)| = |R L^T (L R^T x - b)| against |R L^T b|. */
+    for (int32_t q = 0; q < rows; q++) { /* u = R^T x */
+        double s_ = 0.0;
+        for (int32_t p = ap[r_][q]; p < ap[r_][q + 1]; p++)
+            s_ += ax[r_][p] * x[ai[r_][p]];
+        u[q] = s_;
+    }
+    for (int64_t c = 0; c < m; c++) { /* v = L u - b */
+        double s_ = 0.0;
+        for (int32_t q = cp[0][c]; q < cp[0][c + 1]; q++)
+            s_ += cx[0][q] * u[ci[0][q]];
+        v[c] = s_ - rhs[c];
+    }
+    double norms[2] = {0.0, 0.0};
+    const double *of[2] = {v, rhs};
+    for (int k = 0; k < 2; k++) { /* |R L^T t| for t = v, then b */
+        for (int32_t q = 0; q < rows; q++) {
+            double s_ = 0.0;
+            for (int32_t p = ap[0][q]; p < ap[0][q + 1]; p++)
+                s_ += ax[0][p] * of[k][ai[0][p]];
+            u[q] = s_;
+        }
+        for (int64_t c = 0; c < m; c++) {
+            double s_ = 0.0;
+            for (int32_t q = cp[r_][c]; q < cp[r_][c + 1]; q++)
+                s_ += cx[r_][q] * u[ci[r_][q]];
+            norms[k] += s_ * s_;
+        }
+    }
+    status = sqrt(norms[0]) <= optimality * sqrt(norms[1]) ? 0 : 2;
+out:
+    for (int k = 0; k < 2; k++) {
+        spchol_free(&f[k]);
+        free(ap[k]), free(ai[k]), free(ax[k]), free(cp[k]), free(ci[k]), free(cx[k]);
+        free(mp[k]), free(mi[k]), free(mx[k]);
+    }
+    free(inverse), free(work);
     return status;
 }
 

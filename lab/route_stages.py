@@ -6,7 +6,9 @@
 can hold steps five times larger, where one stage may outgrow the 10 ms deadline alone. This runs
 the model in the simulation's process (bench.inprocess.InProcess: the predictor the server
 loads, no gRPC) along its own trajectory of one seed and prints each stage's median time (ms)
-over every step with points and over the steps of at least --large points.
+over every step with points and over the steps of at least --large points; then, of the
+compiled route's solves (deepcontact.faces.route_compiled), how many ran in the bodies' space
+(no point slides) and how many by the dual, and each way's median solve time.
 """
 
 from __future__ import annotations
@@ -40,7 +42,21 @@ def stage_medians(sizes: np.ndarray, stages: list[dict[str, float]], large: int)
     return {k: (float(np.median(v)), float(np.median(v[big])) if big.any() else float("nan")) for k, v in table.items()}
 
 
+def solve_ways(solves: list[tuple[int, float, bool]], large: int) -> dict[str, tuple[int, int, float, float]]:
+    """{"bodies" | "dual": (solves, solves of >= large points, median solve ms, median ms over the
+    large ones; NaN where none)}. solves: (points, solve seconds, in the bodies' space) each."""
+    out = {}
+    for way, flag in (("bodies", True), ("dual", False)):
+        rows = [(n, s) for n, s, b in solves if b == flag]
+        ms = np.array([s for _, s in rows]) * 1e3
+        big = np.array([n >= large for n, _ in rows], bool)
+        out[way] = (len(rows), int(big.sum()), float(np.median(ms)) if len(ms) else float("nan"),
+                    float(np.median(ms[big])) if big.any() else float("nan"))
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
+    import server.face_route
     from bench.inprocess import InProcess
     from simclient.simulate import run_simulation
     from simclient.worlds import WorldSpec
@@ -63,7 +79,20 @@ def run(args: argparse.Namespace) -> int:
             return super().warm_start(engine, bodies, points, step)
 
     provider.__class__ = Sized
-    run_simulation(spec, args.seed, provider)
+    solves: list[tuple[int, float, bool]] = []  # each compiled route's (points, solve s, in the bodies' space)
+    compiled = server.face_route.route_compiled
+
+    def recorded(bodies, points, *rest, **named):
+        answer = compiled(bodies, points, *rest, **named)
+        if answer is not None:
+            solves.append((len(points), answer.solve_seconds, answer.in_bodies))
+        return answer
+
+    server.face_route.route_compiled = recorded  # the route's own call, read on its way back
+    try:
+        run_simulation(spec, args.seed, provider)
+    finally:
+        server.face_route.route_compiled = compiled
     n = np.array(sizes)
     if len(n) == 0:
         print(f"deepcontact lab route-stages: no step of {args.world} seed {args.seed} had contact points",
@@ -76,4 +105,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"| stage | median ms, every step | median ms, {args.large} points and more |\n|---|---|---|")
     for name, (every, large) in medians.items():
         print(f"| {name} | {every:.2f} | {large:.2f} |")
+    if solves:
+        print(f"\nThe compiled route's {len(solves)} solves: in the bodies' space where it answers (deepcontact/face_kernels.h, face_body_solve), elsewhere by the dual.")
+        print(f"| way | solves | of at least {args.large} points | median solve ms | median ms, {args.large} points and more |"
+              "\n|---|---|---|---|---|")
+        for way, (count, big_count, every, large) in solve_ways(solves, args.large).items():
+            print(f"| {way} | {count} | {big_count} | {every:.2f} | {large:.2f} |")
     return 0

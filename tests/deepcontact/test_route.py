@@ -8,7 +8,7 @@ import pytest
 
 from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, route_compiled, solved_on_labels
 from deepcontact.kinematics import Physics
-from tests.deepcontact.piles import sliding_pile
+from tests.deepcontact.piles import pyramid_of_boxes, sliding_pile
 
 
 def labels_of(exact, mu, rng, wrong=0.0):
@@ -247,3 +247,56 @@ def test_the_sweeps_see_a_kinematic_body_move_as_it_was_sent():
     weight_step = float(bodies["mass"].max()) * 9.8 * engine.config.dt
     assert exact[:, 0].sum() > 0.5 * weight_step  # the lift carries the box
     assert settled < 1e-3 and cold > 0.2 * weight_step
+
+
+def test_where_no_point_slides_the_route_solves_in_the_bodies_space_to_the_duals_answer():
+    """A pyramid of boxes on labels where every pressing point sticks: the face's system is then
+    symmetric, and the compiled route solves it on a factor of its bodies' 3 D rows
+    (face_kernels.h, face_body_solve) rather than on the dual's S S^T of its unknowns, twice as
+    many as the pile has freedoms. Its answer is the route piece by piece's (the dual, whose
+    answer is the pseudo-inverse's: tests/deepcontact/test_faces.py), before the admission's
+    rounds and after them."""
+    from deepcontact.faces import STICKS, contact_face
+
+    bodies, points, exact, mu = pyramid_of_boxes()
+    face = contact_face(exact, mu, pressing=1e-6, share=0.99)
+    labels = np.zeros((len(points), 2))
+    labels[face != OPEN, 0] = FACE_IMPULSE  # pressing, and sticking: no tangent answer
+    assert (contact_face(labels, mu, pressing=0.5, share=1.0)[face != OPEN] == STICKS).all()
+    assert (face != OPEN).sum() > 150
+    for rounds in (0, 60):
+        settings = dict(physics=Physics.thesis(), pressing=0.5, share=1.0, rounds=rounds)
+        piecewise, residual = solved_on_labels(bodies, points, labels, mu, solver="dual", **settings)
+        compiled = route_compiled(bodies, points, labels, mu, **settings)
+        assert compiled.in_bodies
+        np.testing.assert_allclose(compiled.impulses, piecewise, atol=1e-9 * max(1.0, np.abs(piecewise).max()))
+        assert compiled.residual == pytest.approx(residual, rel=1e-6, abs=1e-12)
+
+
+def test_where_points_slide_the_bodies_space_answers_only_where_every_pushed_body_is_held():
+    """Where points slide the face's system S = L R^T is not symmetric; the compiled route takes
+    R G^-1 K^-1 L^T in the bodies' space where both K and G are of full rank, and leaves the step
+    to the dual where a body is pushed by fewer unknowns than it has freedoms. Either way the
+    answer is the route piece by piece's."""
+    from deepcontact.faces import SLIDES_MINUS, SLIDES_PLUS, contact_face
+
+    bodies, points, exact, mu = pyramid_of_boxes()
+    pressing = contact_face(exact, mu, pressing=1e-6, share=0.99) != OPEN
+    held = np.zeros((len(points), 2))
+    held[pressing, 0] = FACE_IMPULSE
+    # Three points low in the pile slide, one each way and one back.
+    low = np.flatnonzero(pressing)[np.argsort(points["point"][pressing, 1])][[20, 40, 60]]
+    held[low, 1] = [FACE_IMPULSE, -FACE_IMPULSE, FACE_IMPULSE]
+    # The same, with the top box let go at all but one of its points: pushed by two unknowns.
+    top = int(np.argmax(bodies["position"][:, 1]))
+    on_top = np.flatnonzero(pressing & ((points["body_a"] == top) | (points["body_b"] == top)))
+    loose = held.copy()
+    loose[on_top[1:]] = 0.0
+    for labels, in_bodies in ((held, True), (loose, False)):
+        face = contact_face(labels, mu, pressing=0.5, share=1.0)
+        assert set(face[low]) <= {SLIDES_PLUS, SLIDES_MINUS}
+        settings = dict(physics=Physics.thesis(), pressing=0.5, share=1.0, rounds=60)
+        piecewise, residual = solved_on_labels(bodies, points, labels, mu, solver="dual", **settings)
+        compiled = route_compiled(bodies, points, labels, mu, **settings)
+        assert compiled.in_bodies == in_bodies
+        np.testing.assert_allclose(compiled.impulses, piecewise, atol=1e-9 * max(1.0, np.abs(piecewise).max()))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from commands import main
-from lab.route_stages import stage_medians
+from lab.route_stages import solve_ways, stage_medians
 
 
 def test_route_stages_prints_each_stage_of_the_default_on_a_users_world(capsys):
@@ -14,6 +14,8 @@ def test_route_stages_prints_each_stage_of_the_default_on_a_users_world(capsys):
     assert "`examples/stack.py:build` seed 850, default in process" in out
     for stage in ("features", "inference", "solve", "admit", "total"):
         assert f"| {stage} |" in out
+    # A resting stack of boxes: no point slides, so its solves run in the bodies' space.
+    assert "| bodies |" in out and "| dual |" in out
 
 
 def test_route_stages_refuses_a_world_it_cannot_load_in_one_line(capsys):
@@ -28,3 +30,11 @@ def test_the_large_steps_are_summarized_apart_and_total_is_the_stages_sum():
     assert medians["solve"] == (10.0, 15.0)
     assert medians["total"] == (12.0, 17.0)
     assert np.isnan(stage_medians(sizes, stages, large=1000)["solve"][1])
+
+
+def test_the_solves_are_counted_by_the_way_they_ran():
+    solves = [(100, 0.001, True), (600, 0.002, True), (700, 0.010, False)]
+    ways = solve_ways(solves, large=500)
+    assert ways["bodies"] == (2, 1, 1.5, 2.0)
+    assert ways["dual"][:3] == (1, 1, 10.0)
+    assert np.isnan(solve_ways(solves[:1], large=500)["dual"][2])
