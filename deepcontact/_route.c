@@ -306,7 +306,8 @@ done:
 }
 
 /* solve_and_admit(bodies, n_bodies, points, n_points, labels, mu, read_mu, dt, gx, gy, pressing,
- *                 share, rounds, relax, rho, until, ridge, refinements, optimality, impulses, geometry[, carry])
+ *                 share, rounds, relax, rho, until, ridge, refinements, optimality, slide_in_bodies,
+ *                 impulses, geometry[, carry])
  *     -> (outcome, residual, solve_seconds, admit_seconds, admission_rounds, in_bodies)
  *
  * bodies, points: BODY_DTYPE and CONTACT_DTYPE records; labels float64 (P, 2), the classifier's
@@ -314,7 +315,9 @@ done:
  * sliding labels are read at (mu, or the card's label_friction everywhere); dt (s), gx, gy
  * (m/s^2); pressing (N s) and share: how the labels are read (faces.contact_face); rounds,
  * relax (its over-relaxation, admission_kernels.h), rho (its ADMM penalty), until (CLOCK_MONOTONIC
- * s, 0: none): the admission's; ridge, refinements, optimality: the dual solve's (faces.DUAL_*); impulses float64 (P, 2) out; geometry: prepare's for these
+ * s, 0: none): the admission's; ridge, refinements, optimality: the dual solve's (faces.DUAL_*);
+ * slide_in_bodies: whether a step where points slide is tried in the bodies' space
+ * (face_body_solve); impulses float64 (P, 2) out; geometry: prepare's for these
  * bodies and points, or None (built here); carry: None, or (kept_keys, kept, state, dual): the
  * admission state (z, s) of the stream's step before, kept (Q, 4) float64 under kept_keys (Q,)
  * uint64 point keys, each point of this step that is among them begins there (its s only with
@@ -330,15 +333,15 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     Py_ssize_t n_bodies, n_points;
     double dt, gx, gy, pressing, share, relax, rho, until, ridge, optimality;
     long rounds;
-    int refinements;
+    int refinements, slide_in_bodies;
     PyObject *prepared, *carried = Py_None;
     Py_buffer kept[2];
     int dual = 0;
     memset(b, 0, sizeof b);
     memset(kept, 0, sizeof kept);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddddidw*O|O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3], &b[4],
-                          &dt, &gx, &gy, &pressing, &share, &rounds, &relax, &rho, &until, &ridge, &refinements, &optimality,
-                          &b[5], &prepared, &carried))
+    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddddidpw*O|O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3],
+                          &b[4], &dt, &gx, &gy, &pressing, &share, &rounds, &relax, &rho, &until, &ridge, &refinements,
+                          &optimality, &slide_in_bodies, &b[5], &prepared, &carried))
         return NULL;
     if (carried != Py_None && !PyArg_ParseTuple(carried, "y*y*w*p", &kept[0], &kept[1], &b[6], &dual)) {
         for (int k = 0; k < 6; k++)
@@ -411,7 +414,7 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
         if (geometry_jacobian(g) != 0)
             goto out;
         int solved = face_body_solve(g->rows, g->jp, g->ji, g->jd, g->weight, g->order, s.index, s.slide, P, m, s.rhs,
-                                     FACE_BODY_RIDGE, refinements, optimality, s.x);
+                                     FACE_BODY_RIDGE, refinements, optimality, slide_in_bodies, s.x);
         if (solved < 0)
             goto out;
         in_bodies = solved == 0;

@@ -307,8 +307,10 @@ static void face_body_pinv(int32_t n, const spchol_factor_t *f, const int32_t *k
 
 /* A pivot of face_body_solve's factors below this share of their matrix's mean diagonal marks a
  * direction the face's rows or columns leave free (where points slide, the bodies' space answers
- * only where neither K nor G has one but the bodies no unknown pushes at all). A face's system resolves nothing below about 1e-6 of its
- * largest singular value, and the ridge (FACE_BODY_RIDGE) leaves a free direction's pivot at 1e-10. */
+ * only where neither K nor G has one but those it has set apart: the bodies no unknown pushes,
+ * and those one or two do along the directions their pushes leave). A face's system resolves
+ * nothing below about 1e-6 of its largest singular value, and the ridge (FACE_BODY_RIDGE) leaves
+ * a free direction's pivot at 1e-10. */
 #define FACE_BODY_FREE 1e-8
 
 /* L^T or R^T (rows, m) as CSR from J^T's entries (jt: jp, ji, jd): each on its column's unknown
@@ -371,6 +373,106 @@ static int face_body_factor(int32_t rows, const int32_t *ap, const int32_t *ai, 
     return status;
 }
 
+/* The directions a body's own pushes leave free, where one or two unknowns push it: the 3-vectors
+ * (x, y, rotation, scaled by W^1/2) ortho-normal to its rows of L^T (their k-th entries on the
+ * body's three rows are one unknown's: contact_jacobian.h writes a point's rows together).
+ * ap, ax: L^T as CSR; q: the body's first row; out (6,): up to two vectors. Returns how many:
+ * two where one unknown pushes (or two along one line), one where two do, 0 where nothing does. */
+static int face_body_free_directions(const int32_t *ap, const double *ax, int32_t q, double *out)
+{
+    const int32_t pushes = ap[q + 1] - ap[q];
+    double l[2][3] = {{0.0, 0.0, 0.0}, {0.0, 0.0, 0.0}};
+    for (int32_t k = 0; k < pushes && k < 2; k++)
+        for (int d = 0; d < 3; d++)
+            l[k][d] = ax[ap[q + d] + k];
+    const double n0 = sqrt(l[0][0] * l[0][0] + l[0][1] * l[0][1] + l[0][2] * l[0][2]);
+    const double n1 = sqrt(l[1][0] * l[1][0] + l[1][1] * l[1][1] + l[1][2] * l[1][2]);
+    if (pushes == 2) {
+        double c[3] = {l[0][1] * l[1][2] - l[0][2] * l[1][1], l[0][2] * l[1][0] - l[0][0] * l[1][2],
+                       l[0][0] * l[1][1] - l[0][1] * l[1][0]};
+        const double nc = sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+        if (nc > 1e-12 * n0 * n1) {
+            for (int d = 0; d < 3; d++)
+                out[d] = c[d] / nc;
+            return 1;
+        }
+    }
+    /* One line of pushes: the plane normal to it. */
+    const double *a = n0 >= n1 ? l[0] : l[1];
+    const double na = n0 >= n1 ? n0 : n1;
+    if (!(na > 0.0))
+        return 0;
+    double e[3] = {a[0] / na, a[1] / na, a[2] / na}, axis[3] = {0.0, 0.0, 0.0};
+    int least = 0; /* the axis least along e */
+    for (int d = 1; d < 3; d++)
+        if (fabs(e[d]) < fabs(e[least]))
+            least = d;
+    axis[least] = 1.0;
+    double u[3] = {e[1] * axis[2] - e[2] * axis[1], e[2] * axis[0] - e[0] * axis[2], e[0] * axis[1] - e[1] * axis[0]};
+    const double nu = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    for (int d = 0; d < 3; d++)
+        u[d] /= nu;
+    out[0] = u[0], out[1] = u[1], out[2] = u[2];
+    out[3] = e[1] * u[2] - e[2] * u[1], out[4] = e[2] * u[0] - e[0] * u[2], out[5] = e[0] * u[1] - e[1] * u[0];
+    return 2;
+}
+
+/* A body's free directions out of its rows of R^T (R^T P, P = I - N N^T: its first `count`
+ * entries on each of its three rows, one unknown's at a time), then each direction appended to
+ * those rows as a column of its own (m + j), times sqrt(weight): L'^T or R'^T, whose gram is P M P
+ * + weight N N^T. ap, ai, ax: CSR with room for 3 entries more a direction (moved here);
+ * directions: `free` (F,) body first rows and `dirs` (3 F,); project: whether to project first. */
+static void face_body_ridge_columns(int32_t rows, int32_t *ap, int32_t *ai, double *ax, int32_t n_free,
+                                    const int32_t *free_rows, const double *dirs, int64_t m, double weight, int project)
+{
+    if (n_free == 0)
+        return;
+    if (project)
+        for (int32_t j = 0; j < n_free;) { /* a body's directions are consecutive */
+            const int32_t q = free_rows[j];
+            int32_t end = j;
+            while (end < n_free && free_rows[end] == q)
+                end++;
+            for (int32_t k = 0; k < ap[q + 1] - ap[q]; k++) {
+                double v[3] = {ax[ap[q] + k], ax[ap[q + 1] + k], ax[ap[q + 2] + k]};
+                for (int32_t t = j; t < end; t++) {
+                    const double *n = dirs + 3 * t;
+                    const double along = n[0] * v[0] + n[1] * v[1] + n[2] * v[2];
+                    for (int d = 0; d < 3; d++)
+                        v[d] -= along * n[d];
+                }
+                for (int d = 0; d < 3; d++)
+                    ax[ap[q + d] + k] = v[d];
+            }
+            j = end;
+        }
+    /* Each row's new start: its old one plus the entries appended to the rows before it (each
+     * direction adds one to each of its body's three rows). Moved from the last row back, so that
+     * no entry is written over before it has moved. */
+    const double root = sqrt(weight);
+    int32_t before = 3 * n_free, j = n_free; /* appended before row r's end; directions not yet placed */
+    for (int32_t r = rows - 1; r >= 0; r--) {
+        const int32_t body = r - r % 3;
+        int32_t first = j;
+        while (first > 0 && free_rows[first - 1] == body)
+            first--;
+        const int32_t here = j - first; /* this body's directions: first .. j */
+        before -= here;
+        const int32_t begin = ap[r], end = ap[r + 1];
+        for (int32_t p = end - 1; p >= begin; p--) {
+            ai[p + before] = ai[p];
+            ax[p + before] = ax[p];
+        }
+        for (int32_t t = 0; t < here; t++) {
+            ai[end + before + t] = (int32_t)(m + first + t);
+            ax[end + before + t] = root * dirs[3 * (first + t) + r % 3];
+        }
+        ap[r + 1] = end + before + here;
+        if (r % 3 == 0)
+            j = first;
+    }
+}
+
 /* minimum_norm_solve's answer in the bodies' space. With A (m, 3 D) the face's rows of J (the
  * pressing points' normals, the sticking points' tangents), C its columns (A, but a sliding
  * point's normal plus slide times its tangent) and W the dynamic bodies' inverse masses and
@@ -378,9 +480,13 @@ static int face_body_factor(int32_t rows, const int32_t *ap, const int32_t *ai, 
  * and G = R^T R (3 D, 3 D):
  *   - where no point slides, R = L and S's pseudo-inverse is L K^+ K^+ L^T, whatever K's rank;
  *   - where points slide, it is R G^-1 K^-1 L^T where K and G are both of full rank (L R^T a
- *     full-rank factorization), but for the rows of bodies no unknown pushes, empty in both.
- *     Where either leaves another direction free (a pivot below FACE_BODY_FREE) the product
- *     is not the pseudo-inverse: declined (1), for the dual.
+ *     full-rank factorization), but for the rows of bodies no unknown pushes, empty in both,
+ *     and the directions a body one or two unknowns push leaves free: with Q a basis of L's
+ *     rows, S^+ = R Q (Q^T G Q)^-1 (Q^T K Q)^-1 Q^T L^T, those directions N taken off R's rows
+ *     (L P = L, P = I - N N^T) and given columns of their own in both, so that K + c N N^T and
+ *     P G P + c N N^T act as the inverses on P's range, where the solve's vectors lie
+ *     (face_body_ridge_columns). Where either leaves another direction free (a pivot below
+ *     FACE_BODY_FREE) the product is not the pseudo-inverse: declined (1), for the dual.
  * The same x as the dual's S^T (S S^T)^+ b, from factors of order 3 D rather than m: on a
  * pyramid of boxes (800 points, m = 1,600 unknowns, 630 body rows) a small share of S S^T's,
  * whose graph joins every pair of points two bodies apart. jt: J^T as CSR (jp (rows + 1,), ji,
@@ -388,49 +494,74 @@ static int face_body_factor(int32_t rows, const int32_t *ap, const int32_t *ai, 
  * (1/sqrt(kg), 1/sqrt(kg m^2)); order (rows,): a fill-reducing order (position -> row); index
  * (2 P,): each column's unknown or -1, below m; slide (P,): each point's slide (+-mu where it
  * slides, else 0); rhs (m,); ridge relative to each matrix's mean diagonal (FACE_BODY_RIDGE);
- * refinements and optimality as face_dual_solve's; x (m,) out. Returns 0 (x written), 1
- * (declined: a pivot not positive, or a free direction where points slide), 2 (x is not a
+ * refinements and optimality as face_dual_solve's; slide_in_bodies: 0 sends a step where points
+ * slide to the dual at once (a card's slide_in_bodies: in a pile of discs, whose sliding points
+ * leave turnings that only the pile's sticking points hold, K is nearly always left free); x
+ * (m,) out. Returns 0 (x written), 1 (declined: a pivot not positive, a free direction where
+ * points slide, or points slide and slide_in_bodies is 0), 2 (x is not a
  * least-squares answer: |S^T (S x - b)| > optimality |S^T b|) or -1 (memory). */
 static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, const double *jd, const double *weight,
                            const int32_t *order, const int64_t *index, const double *slide, int64_t n_points, int64_t m,
-                           const double *rhs, double ridge, int refinements, double optimality, double *x)
+                           const double *rhs, double ridge, int refinements, double optimality, int slide_in_bodies,
+                           double *x)
 {
     int slides = 0;
     for (int64_t i = 0; i < n_points && !slides; i++)
         slides = slide[i] != 0.0 && index[2 * i] >= 0;
+    if (slides && !slide_in_bodies)
+        return 1;
     const int32_t nnz = rows ? jp[rows] : 0;
     const int sides = slides ? 2 : 1; /* L, and R where it differs */
     int32_t *ap[2] = {NULL, NULL}, *ai[2] = {NULL, NULL}, *cp[2] = {NULL, NULL}, *ci[2] = {NULL, NULL};
-    int32_t *mp[2] = {NULL, NULL}, *mi[2] = {NULL, NULL}, *inverse = NULL;
-    double *ax[2] = {NULL, NULL}, *cx[2] = {NULL, NULL}, *mx[2] = {NULL, NULL}, *work = NULL;
+    int32_t *mp[2] = {NULL, NULL}, *mi[2] = {NULL, NULL}, *inverse = NULL, *free_rows = NULL;
+    double *ax[2] = {NULL, NULL}, *cx[2] = {NULL, NULL}, *mx[2] = {NULL, NULL}, *work = NULL, *dirs = NULL;
     spchol_factor_t f[2] = {{0, NULL, NULL, NULL}, {0, NULL, NULL, NULL}};
     int status = -1;
-    work = malloc(((size_t)4 * rows + (size_t)m + 1) * sizeof(double));
+    int32_t n_free = 0; /* where points slide: the free directions of bodies one or two unknowns push */
+    const int32_t most_free = 2 * (rows / 3);
+    free_rows = malloc(((size_t)most_free + 1) * sizeof(int32_t));
+    dirs = malloc(((size_t)3 * most_free + 1) * sizeof(double));
     inverse = malloc(((size_t)rows + 1) * sizeof(int32_t));
-    if (work == NULL || inverse == NULL)
+    if (free_rows == NULL || dirs == NULL || inverse == NULL)
         goto out;
     for (int k = 0; k < sides; k++) {
-        const size_t room = (size_t)(k ? 2 : 1) * (size_t)nnz + 1;
+        const size_t room = (size_t)(k ? 2 : 1) * (size_t)nnz + 3 * (size_t)most_free + 1;
         ap[k] = malloc(((size_t)rows + 1) * sizeof(int32_t));
         ai[k] = malloc(room * sizeof(int32_t));
         ax[k] = malloc(room * sizeof(double));
-        cp[k] = calloc((size_t)m + 2, sizeof(int32_t));
+        cp[k] = calloc((size_t)m + (size_t)most_free + 2, sizeof(int32_t));
         ci[k] = malloc(room * sizeof(int32_t));
         cx[k] = malloc(room * sizeof(double));
         if (ap[k] == NULL || ai[k] == NULL || ax[k] == NULL || cp[k] == NULL || ci[k] == NULL || cx[k] == NULL)
             goto out;
         face_body_rows(rows, jp, ji, jd, weight, index, k ? slide : NULL, ap[k], ai[k], ax[k]);
-        if (slides && k == 0)
+        if (slides && k == 0) {
+            /* A body one or two unknowns push (a row of J^T holds an entry for each, zero or not)
+             * is free in K along the directions its pushes leave: those are taken out of R's rows
+             * and given a column of their own in both (face_body_ridge_columns), so that K and G
+             * are of full rank on the rest, where L R^T is a full-rank factorization. */
+            double scale = 0.0;
+            for (int32_t p = 0; p < ap[0][rows]; p++)
+                scale += ax[0][p] * ax[0][p];
+            scale = rows ? scale / (double)rows : 0.0; /* K's mean diagonal */
             for (int32_t q = 0; q + 2 < rows; q += 3) {
-                /* A body one or two unknowns push (a row of J^T holds an entry for each, zero or
-                 * not) is free in K whatever the others: declined before any factor is made. */
                 const int32_t pushes = ap[0][q + 1] - ap[0][q];
                 if (pushes > 0 && pushes < 3) {
-                    status = 1;
-                    goto out;
+                    const int found = face_body_free_directions(ap[0], ax[0], q, dirs + 3 * n_free);
+                    for (int t = 0; t < found; t++)
+                        free_rows[n_free++] = q;
                 }
             }
-        spchol_transpose(rows, (int32_t)m, ap[k], ai[k], ax[k], cp[k], ci[k], cx[k]); /* by columns: by its rows */
+            face_body_ridge_columns(rows, ap[0], ai[0], ax[0], n_free, free_rows, dirs, m, scale, 0);
+        } else if (k == 1) {
+            double scale = 0.0;
+            for (int32_t p = 0; p < ap[1][rows]; p++)
+                scale += ax[1][p] * ax[1][p];
+            scale = rows ? scale / (double)rows : 0.0; /* G's mean diagonal */
+            face_body_ridge_columns(rows, ap[1], ai[1], ax[1], n_free, free_rows, dirs, m, scale, 1);
+        }
+        /* by columns (the free directions' after the unknowns): by its rows */
+        spchol_transpose(rows, (int32_t)(m + n_free), ap[k], ai[k], ax[k], cp[k], ci[k], cx[k]);
         int free_direction = 0;
         int factored = face_body_factor(rows, ap[k], ai[k], ax[k], cp[k], ci[k], cx[k], order, ridge, inverse, &mp[k],
                                         &mi[k], &mx[k], &f[k], &free_direction);
@@ -448,13 +579,20 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
             goto out;
         }
     }
-    /* R's side: L's where no point slides. */
+    /* R's side: L's where no point slides. Vectors over the columns run to m + n_free, the free
+     * directions' entries 0: b's and x's have none there. */
     const int r_ = sides - 1;
+    const int64_t columns = m + n_free;
+    work = calloc((size_t)4 * rows + 3 * (size_t)columns + 1, sizeof(double));
+    if (work == NULL)
+        goto out;
     double *y = work, *r = work + rows, *z = work + 2 * rows, *u = work + 3 * rows, *v = work + 4 * rows;
+    double *b = v + columns, *xe = b + columns;
+    memcpy(b, rhs, (size_t)m * sizeof(double));
     for (int32_t q = 0; q < rows; q++) { /* y = L^T b, in the factors' order (one order, one inverse) */
         double s_ = 0.0;
         for (int32_t p = ap[0][q]; p < ap[0][q + 1]; p++)
-            s_ += ax[0][p] * rhs[ai[0][p]];
+            s_ += ax[0][p] * b[ai[0][p]];
         y[inverse[q]] = s_;
     }
     face_body_pinv(rows, &f[0], mp[0], mi[0], mx[0], inverse, refinements, y, r, z);
@@ -463,13 +601,14 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
         double s_ = 0.0;
         for (int32_t q = cp[r_][c]; q < cp[r_][c + 1]; q++)
             s_ += cx[r_][q] * y[inverse[ci[r_][q]]];
-        x[c] = s_;
+        xe[c] = x[c] = s_;
     }
-    /* The dual's test, with S = L R^T: |S^T (S x - b)| = |R L^T (L R^T x - b)| against |R L^T b|. */
+    /* The dual's test, with S = L R^T: |S^T (S x - b)| = |R L^T (L R^T x - b)| against |R L^T b|
+     * (R's rows taken off the free directions change neither product: L P = L). */
     for (int32_t q = 0; q < rows; q++) { /* u = R^T x */
         double s_ = 0.0;
         for (int32_t p = ap[r_][q]; p < ap[r_][q + 1]; p++)
-            s_ += ax[r_][p] * x[ai[r_][p]];
+            s_ += ax[r_][p] * xe[ai[r_][p]];
         u[q] = s_;
     }
     for (int64_t c = 0; c < m; c++) { /* v = L u - b */
@@ -479,7 +618,7 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
         v[c] = s_ - rhs[c];
     }
     double norms[2] = {0.0, 0.0};
-    const double *of[2] = {v, rhs};
+    const double *of[2] = {v, b};
     for (int k = 0; k < 2; k++) { /* |R L^T t| for t = v, then b */
         for (int32_t q = 0; q < rows; q++) {
             double s_ = 0.0;
@@ -501,7 +640,7 @@ out:
         free(ap[k]), free(ai[k]), free(ax[k]), free(cp[k]), free(ci[k]), free(cx[k]);
         free(mp[k]), free(mi[k]), free(mx[k]);
     }
-    free(inverse), free(work);
+    free(inverse), free(work), free(free_rows), free(dirs);
     return status;
 }
 

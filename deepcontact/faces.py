@@ -460,7 +460,8 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
                    physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                    label_friction: float | None = None, rounds: int = 1000,
                    until: float | None = None, prepared=None, relax: float = 1.0,
-                   rho: float = ADMISSION_RHO, carry: tuple | None = None) -> CompiledRoute | None:
+                   rho: float = ADMISSION_RHO, carry: tuple | None = None,
+                   slide_in_bodies: bool = True) -> CompiledRoute | None:
     """solved_on_labels with solver "dual", no damping and no `close`, in one compiled call
     (deepcontact/_route.c, on the same kernels as the pieces here): the same numbers to rounding,
     without the NumPy calls between the pieces (about 0.15-0.25 ms of a served step). The solve's
@@ -470,7 +471,9 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
     R G^-1 K^-1 L^T b where points slide and both are of full rank. The dual's answer to
     rounding, on factors a small share of S S^T's where a pile is held at many more points than
     its bodies have freedoms (a pyramid of boxes at 800 points: about 0.8 ms against 15 ms);
-    elsewhere the dual. Arguments
+    elsewhere the dual. slide_in_bodies False sends a step where points slide to the dual at once
+    (a pile of discs: their sliding points leave turnings free, and the bodies' space declines
+    nearly every such step after its first factor). Arguments
     as in solved_on_labels; bodies (B,) BODY_DTYPE and points (P,) CONTACT_DTYPE records;
     prepared: prepare_route's for the same bodies, points and physics, or None; carry: None, or
     admission.AdmissionCarry.begin's: the rounds begin where each point's ended on the stream's
@@ -487,7 +490,7 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
         bodies, len(bodies), points, len(points), np.ascontiguousarray(labels, np.float64), mu, read_at,
         float(physics.dt), float(gx), float(gy), float(pressing), float(share), int(rounds), float(relax), float(rho),
         _monotonic(until),
-        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, impulses, prepared, carry)
+        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, bool(slide_in_bodies), impulses, prepared, carry)
     if outcome != _compiled_route.SERVED:
         return None
     return CompiledRoute(impulses, residual, solve_s, admit_s, used, bool(in_bodies))

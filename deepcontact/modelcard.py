@@ -106,7 +106,11 @@ step before, deepcontact.admission.AdmissionCarry, so that the rounds cut at `ro
 across steps; a step alone, or a point new to the stream, begins cold as before),
 extrapolate_jointed (default false: at points on jointed bodies, which no model speaks for,
 server.joints, Box2D's start as it is; true: along a stream, that start extrapolated in time
-from the point's last two steps, deepcontact.temporal.ImpulseHistory).
+from the point's last two steps, deepcontact.temporal.ImpulseHistory), slide_in_bodies (default
+true: the compiled route's solve tries the bodies' space where points slide too, and answers there
+where every body they push is held, deepcontact.faces.route_compiled; false: such a step goes to
+the dual at once, for a card whose world is a pile of discs, where sliding points leave turnings
+free and the bodies' space declines nearly every such step after its first factor).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -164,7 +168,8 @@ ALIAS_OVERRIDES = ("step_gate", "face", "mirror", "description", "measured")
 FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction": None, "max_residual": None,
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
-                 "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False}
+                 "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
+                 "slide_in_bodies": True}
 
 
 class ModelCardError(ValueError):
@@ -339,7 +344,7 @@ def _face_settings(face: Any, kind: str) -> dict:
     sweeps = out["check_sweeps"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
-                                           "extrapolate_jointed", "check_stop")
+                                           "extrapolate_jointed", "check_stop", "slide_in_bodies")
                   and not (k in optional + ("max_points", "check_sweeps") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -353,6 +358,7 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not isinstance(out["against_builtin"], bool) \
             or not isinstance(out["rescale"], bool) or not isinstance(out["carry"], bool) \
             or not isinstance(out["extrapolate_jointed"], bool) or not isinstance(out["check_stop"], bool) \
+            or not isinstance(out["slide_in_bodies"], bool) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
             or (out["check_stop"] and sweeps is None):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
@@ -360,7 +366,8 @@ def _face_settings(face: Any, kind: str) -> dict:
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
-                             f"rescale, carry and extrapolate_jointed true or false, check_sweeps null or a whole number 1-1000, "
+                             f"rescale, carry, extrapolate_jointed and slide_in_bodies true or false, check_sweeps null or a "
+                             f"whole number 1-1000, "
                              f"check_stop true or false and only with check_sweeps, "
                              f"got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
@@ -368,7 +375,8 @@ def _face_settings(face: Any, kind: str) -> dict:
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
-            "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"]}
+            "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
+            "slide_in_bodies": out["slide_in_bodies"]}
 
 
 def _measured(m: Any) -> dict:

@@ -294,7 +294,7 @@ class FaceRoutePredictor(Predictor):
             args = carry[0].begin(points, carry[1]) if carry is not None else None
             answer = route_compiled(bodies, points, labels, friction, world.physics, face["pressing"], face["share"],
                                     face["label_friction"], face["rounds"], deadline, prepared, face["relax"],
-                                    face["rho"], args)
+                                    face["rho"], args, slide_in_bodies=face["slide_in_bodies"])
             if carry is not None:
                 if answer is not None:
                     carry[0].keep(points, carry[1], args)

@@ -176,7 +176,7 @@ ZOO_NET=graph-labels-scaled-zoo-r12-e4
 ROUTE='"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": null, "max_points": 1000, "solver": "dual", "against_builtin": true, "check_sweeps": 200, "check_stop": true, "extrapolate_jointed": true'
 # The default's own route admits in 40 over-relaxed rounds (the same iterations as 50 plain ones
 # on the thesis world's states, 45 us less a step); on the zoo's discs they cost 1.2 %, so the
-# zoo route keeps 50 plain ones (docs/research/2026-12-06-over-relaxed-admission.md). Its labels
+# zoo route keeps plain ones (docs/research/2026-12-06-over-relaxed-admission.md). Its labels
 # may leave the admitted solve's equations unmet by up to 0.75 of the step's velocities before the
 # fallback answers: the same iterations as 0.3 on the thesis and family-A states, 1.4 % fewer on
 # family B's and on the scaled worlds' 0.8-3.2 % fewer at 0.5, 0.6-1.4 % fewer again at 0.75,
@@ -185,8 +185,11 @@ ROUTE='"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": null, "max_
 # Its admission goes on along the stream where each point's stopped the step before (carry: the
 # rounds' iterate kept, their dual not) and its answer is checked as the zoo route's is: on
 # Builtin's states of the thesis world's 850-899, 0.973x of the iterations unchecked and begun
-# cold (docs/research/2026-12-06-carried-and-swept.md).
-DEFAULT_ROUTE='"pressing": 0.75, "rounds": 40, "relax": 1.6, "rho": 1000, "max_residual": 0.75, "max_points": 1000, "solver": "dual", "rescale": true, "carry": true, "against_builtin": true, "check_sweeps": 12, "extrapolate_jointed": true'
+# cold (docs/research/2026-12-06-carried-and-swept.md). Where its discs slide, its solve goes to
+# the dual at once: in the bodies' space such a step leaves turnings free and declines nearly
+# always, after a factor that cost about 90 us a step
+# (docs/research/2026-12-07-the-solve-in-the-bodies-space.md).
+DEFAULT_ROUTE='"pressing": 0.75, "rounds": 40, "relax": 1.6, "rho": 1000, "max_residual": 0.75, "max_points": 1000, "solver": "dual", "rescale": true, "carry": true, "against_builtin": true, "check_sweeps": 12, "extrapolate_jointed": true, "slide_in_bodies": false'
 tmp=$STORE/.zoo.json.part
 printf '%s\n' "{" '  "name": "zoo",' "  \"alias_of\": \"$ZOO_NET\"," \
     "  \"face\": {$ROUTE, \"fallback\": \"$DEFAULT\"}" "}" > "$tmp"

@@ -273,11 +273,11 @@ def test_where_no_point_slides_the_route_solves_in_the_bodies_space_to_the_duals
         assert compiled.residual == pytest.approx(residual, rel=1e-6, abs=1e-12)
 
 
-def test_where_points_slide_the_bodies_space_answers_only_where_every_pushed_body_is_held():
+def test_where_points_slide_the_bodies_space_answers_where_its_factorization_is_of_full_rank():
     """Where points slide the face's system S = L R^T is not symmetric; the compiled route takes
-    R G^-1 K^-1 L^T in the bodies' space where both K and G are of full rank, and leaves the step
-    to the dual where a body is pushed by fewer unknowns than it has freedoms. Either way the
-    answer is the route piece by piece's."""
+    R G^-1 K^-1 L^T in the bodies' space, a body one or two unknowns push taken out of both along
+    the directions its pushes leave free. Asked not to (a card's slide_in_bodies false), the dual
+    answers. Either way the answer is the route piece by piece's."""
     from deepcontact.faces import SLIDES_MINUS, SLIDES_PLUS, contact_face
 
     bodies, points, exact, mu = pyramid_of_boxes()
@@ -292,11 +292,11 @@ def test_where_points_slide_the_bodies_space_answers_only_where_every_pushed_bod
     on_top = np.flatnonzero(pressing & ((points["body_a"] == top) | (points["body_b"] == top)))
     loose = held.copy()
     loose[on_top[1:]] = 0.0
-    for labels, in_bodies in ((held, True), (loose, False)):
+    for labels, in_bodies in ((held, True), (loose, True), (held, False)):
         face = contact_face(labels, mu, pressing=0.5, share=1.0)
         assert set(face[low]) <= {SLIDES_PLUS, SLIDES_MINUS}
         settings = dict(physics=Physics.thesis(), pressing=0.5, share=1.0, rounds=60)
         piecewise, residual = solved_on_labels(bodies, points, labels, mu, solver="dual", **settings)
-        compiled = route_compiled(bodies, points, labels, mu, **settings)
+        compiled = route_compiled(bodies, points, labels, mu, slide_in_bodies=in_bodies, **settings)
         assert compiled.in_bodies == in_bodies
         np.testing.assert_allclose(compiled.impulses, piecewise, atol=1e-9 * max(1.0, np.abs(piecewise).max()))
