@@ -292,7 +292,10 @@ def test_where_points_slide_the_bodies_space_answers_where_its_factorization_is_
     on_top = np.flatnonzero(pressing & ((points["body_a"] == top) | (points["body_b"] == top)))
     loose = held.copy()
     loose[on_top[1:]] = 0.0
-    for labels, in_bodies in ((held, True), (loose, True), (held, False)):
+    # And with that one point sliding: the top box pushed by one unknown, free two ways.
+    looser = loose.copy()
+    looser[on_top[0], 1] = FACE_IMPULSE
+    for labels, in_bodies in ((held, True), (loose, True), (looser, True), (held, False)):
         face = contact_face(labels, mu, pressing=0.5, share=1.0)
         assert set(face[low]) <= {SLIDES_PLUS, SLIDES_MINUS}
         settings = dict(physics=Physics.thesis(), pressing=0.5, share=1.0, rounds=60)
