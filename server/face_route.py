@@ -258,8 +258,14 @@ class FaceRoutePredictor(Predictor):
             if builtin_change is None:
                 builtin_change = _sweep_change(bodies, points, points["builtin"], mu, world.physics, sweeps, prepared,
                                                stop)
-            (route_sweeps, route), (box2d_sweeps, box2d) = \
-                _sweep_change(bodies, points, impulses, mu, world.physics, sweeps, prepared, stop), builtin_change
+            box2d_sweeps, box2d = builtin_change
+            # By the stopping rule the route's side need not go past the sweep where Box2D's start
+            # stopped: stopped by then, its count and last change are the same; not, it has lost
+            # either way (its count then one more than Box2D's). On a step the route loses that
+            # spares up to `sweeps` of them.
+            most = min(sweeps, box2d_sweeps) if stop > 0 else sweeps
+            route_sweeps, route = _sweep_change(bodies, points, impulses, mu, world.physics, max(1, most), prepared,
+                                                stop)
             if route_sweeps == box2d_sweeps:  # both stop at the same sweep, or neither by sweep N
                 return route < box2d
             return route_sweeps < box2d_sweeps

@@ -604,6 +604,49 @@ def test_a_route_checked_by_the_stopping_rule_breaks_a_tie_by_the_last_change(tm
     assert checked.predict(bodies, points, world, 0, friction=mu).served_by == served_by
 
 
+def test_by_the_stopping_rule_the_routes_side_is_counted_no_further_than_box2ds(tmp_path, thesis_steps, monkeypatch):
+    """Checked by the client's stopping rule, the route's side of the check stops counting at the
+    sweep where Box2D's start stopped: past it the route has lost whatever its count. The verdict
+    is the one a count to the card's 200 sweeps gives, for fewer sweeps where the route loses."""
+    import server.face_route
+    from deepcontact.faces import sweeps_to_stop
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = dataclasses.replace(thesis_world(world_msg), tolerance=1e-3)
+    checked = load_model(face_card(tmp_path, "checked", classifier, against_builtin=True, check_sweeps=200,
+                                   check_stop=True))
+    counted = []
+    real = server.face_route._sweep_change
+
+    def recorded(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0):
+        answer = real(bodies, points, start, friction, physics, sweeps, prepared, stop)
+        counted.append((sweeps, answer))
+        return answer
+
+    monkeypatch.setattr(server.face_route, "_sweep_change", recorded)
+    rng = np.random.default_rng(3)
+    verdicts, spared = set(), []
+    for bodies, points in steps:
+        mu = points["friction"].astype(np.float64)
+        builtin = points["builtin"].astype(np.float64)
+        solution = points["impulse"].astype(np.float64)  # the solver's own end: it stops at once
+        for start in (solution, builtin * rng.uniform(0.9, 1.1, builtin.shape), np.zeros_like(builtin)):
+            counted.clear()
+            verdict = checked._beats_builtin(bodies, points, start, mu, world)
+            (_, (box2d_sweeps, box2d)), (route_most, _) = counted
+            assert route_most <= box2d_sweeps
+            spared.append(200 - route_most)
+            counts, changes = sweeps_to_stop(bodies, points, np.stack([start, builtin]), mu, world.physics, 1e-3, 200)
+            full = counts[0] < counts[1] or (counts[0] == counts[1] and changes[0] < changes[1])
+            assert (int(counts[1]), float(changes[1])) == (box2d_sweeps, box2d)
+            assert verdict == full
+            verdicts.add(verdict)
+    assert verdicts == {True, False}  # both ways were met
+    assert max(spared) > 0  # where Box2D's start stopped before sweep 200, the rest were spared
+
+
 def test_a_route_with_carry_keeps_its_admission_in_the_streams_memory(tmp_path, thesis_steps):
     """With carry, the route's admission goes on along a stream (the memory the server keeps for
     it and its model): each step's state is kept under the route's name, the next step begins
