@@ -110,7 +110,11 @@ from the point's last two steps, deepcontact.temporal.ImpulseHistory), slide_in_
 true: the compiled route's solve tries the bodies' space where points slide too, and answers there
 where every body they push is held, deepcontact.faces.route_compiled; false: such a step goes to
 the dual at once, for a card whose world is a pile of discs, where sliding points leave turnings
-free and the bodies' space declines nearly every such step after its first factor).
+free and the bodies' space declines nearly every such step after its first factor), min_rounds
+(default null: with a deadline the route is taken where it is expected to end in all its `rounds`;
+a whole number 1 to `rounds`: where it is expected to end in min_rounds of them, its admission then
+running rounds up to `rounds` while the check after them would still end by the deadline, so a
+large step gets fewer rounds rather than no route).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -169,7 +173,7 @@ FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction"
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                  "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
-                 "slide_in_bodies": True}
+                 "slide_in_bodies": True, "min_rounds": None}
 
 
 class ModelCardError(ValueError):
@@ -341,11 +345,11 @@ def _face_settings(face: Any, kind: str) -> dict:
         raise ModelCardError(f"model card face: an object with keys among {sorted(FACE_DEFAULTS)}, got {face!r}")
     out = {**FACE_DEFAULTS, **face}
     optional = ("label_friction", "max_residual", "close")
-    sweeps = out["check_sweeps"]
+    sweeps, fewest = out["check_sweeps"], out["min_rounds"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
                                            "extrapolate_jointed", "check_stop", "slide_in_bodies")
-                  and not (k in optional + ("max_points", "check_sweeps") and out[k] is None))
+                  and not (k in optional + ("max_points", "check_sweeps", "min_rounds") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
                                                    for r in retries) and (not retries or out["max_residual"] is not None)
@@ -360,7 +364,8 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not isinstance(out["extrapolate_jointed"], bool) or not isinstance(out["check_stop"], bool) \
             or not isinstance(out["slide_in_bodies"], bool) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
-            or (out["check_stop"] and sweeps is None):
+            or (out["check_stop"] and sweeps is None) \
+            or not (fewest is None or isinstance(fewest, int) and 1 <= fewest <= out["rounds"]):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
                              f"between 0 and 2, rho > 0, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
@@ -368,15 +373,15 @@ def _face_settings(face: Any, kind: str) -> dict:
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
                              f"rescale, carry, extrapolate_jointed and slide_in_bodies true or false, check_sweeps null or a "
                              f"whole number 1-1000, "
-                             f"check_stop true or false and only with check_sweeps, "
-                             f"got {face!r}")
+                             f"check_stop true or false and only with check_sweeps, min_rounds null or a whole "
+                             f"number 1 to rounds, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
             "fallback": fallback, "damping": float(out["damping"]), "max_points": most, "solver": out["solver"],
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
             "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
-            "slide_in_bodies": out["slide_in_bodies"]}
+            "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest}
 
 
 def _measured(m: Any) -> dict:

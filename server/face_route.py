@@ -29,7 +29,8 @@ Per step, where the route fits (not past max_points, and expected to end by the 
 deadline, learned per step size on this host: server.deadline.CostBySize), the classifier's
 answer is read as labels, the step solved on them (deepcontact.faces.read_and_solve) and the
 result admitted (deepcontact.faces.admit_solved, admission.nearest_admissible's rounds, none
-begun after the deadline); where the admitted solve misses its labels by more than
+begun after the deadline; with the card's min_rounds the route fits where it would end in that
+many rounds, and its rounds end where the check after them would still end by the deadline); where the admitted solve misses its labels by more than
 max_residual, the labels are read again at each of retry_pressing's thresholds (none begun
 after the deadline), and the fallback answers where no reading meets it. With the card's
 against_builtin, an answer that one projected Jacobi step would change more than it would change
@@ -107,7 +108,12 @@ class FaceRoutePredictor(Predictor):
         gate_needs = ("builtin", "point_separation") if self.gate is not None else ()
         self.requires = tuple(sorted(set(classifier.requires) | set(ROUTE_NEEDS) | set(gate_needs)
                                      | set(fallback.requires if fallback is not None else ())))
-        self.cost = CostBySize()  # the route's seconds by step size, on this host
+        # The route's seconds by step size, on this host: with the card's min_rounds, its seconds
+        # had its admission stopped at min_rounds (what fits asks); and the check's seconds a sweep
+        # (where the admission's rounds past min_rounds must stop: the check's sweeps vary from
+        # step to step far more than its cost a sweep does).
+        self.cost = CostBySize()
+        self.sweep_cost = CostBySize()
         self.fallback_cost = CostBySize()  # the fallback card's
         # A step with a budget runs the route only in a free lane, one a core: on a server
         # answering several streams at once, routes that ran side by side stretched one another
@@ -207,16 +213,31 @@ class FaceRoutePredictor(Predictor):
         carry = None
         if self.settings["carry"] and memory is not None:
             carry = (memory.setdefault(self.name, AdmissionCarry()), step)
-        impulses = self._solved_on_labels(bodies, points, world, labels.impulses, friction, deadline, stages, prepared,
-                                          carry)
+        until = deadline
+        if deadline is not None and self.settings["min_rounds"] is not None and checks:
+            # Rounds past min_rounds only while the check after them would still end in time: its
+            # sweeps are known where Box2D's side has run ahead, else at most both sides' in full.
+            planned = self._route_sweeps(builtin_change, stop) if builtin_change is not None \
+                else 2 * (sweeps or 1)
+            until = deadline - slowdown * planned * self.sweep_cost.estimate(len(points))
+        impulses, extra_rounds = self._solved_on_labels(bodies, points, world, labels.impulses, friction, until,
+                                                        stages, prepared, carry)
         served_by = None
         # A step read at another scale than its own is one the classifier was not trained on:
         # checked as the card's against_builtin checks every step.
         if impulses is not None and checks:
             t0 = time.perf_counter()
+            counted = 0
+            if sweeps is not None and builtin_change is None:  # Box2D's side here, not run ahead
+                builtin_change = _sweep_change(bodies, points, points["builtin"], np.asarray(friction, np.float64),
+                                               world.physics, sweeps, prepared, stop)
+                counted = min(builtin_change[0], sweeps)
+            counted += self._route_sweeps(builtin_change, stop)
             if not self._beats_builtin(bodies, points, impulses, friction, world, prepared, builtin_change):
                 impulses, served_by = points["builtin"].copy(), BUILTIN
-            stages["admit"] += time.perf_counter() - t0
+            checked = time.perf_counter() - t0
+            stages["admit"] += checked
+            self.sweep_cost.observe(len(points), checked / counted)
         if impulses is None:  # labels the limits would not let the solve meet
             # Not a second route after this one: on the thesis world it would double a fifth of
             # the steps' cost (round trip p99 5.5 ms against 2.3) for 0.7 % of the iterations.
@@ -225,7 +246,7 @@ class FaceRoutePredictor(Predictor):
             impulses, served_by = fallback.impulses, fallback.served_by
             for name, seconds in fallback.stages.items():
                 stages[name] = stages.get(name, 0.0) + seconds
-        self.cost.observe(len(points), time.thread_time() - cpu)
+        self.cost.observe(len(points), time.thread_time() - cpu - extra_rounds)
         if self.gate is not None:
             t0 = time.perf_counter()
             if not self.gate.serves_model(step_features(bodies, points, impulses)):
@@ -259,19 +280,25 @@ class FaceRoutePredictor(Predictor):
                 builtin_change = _sweep_change(bodies, points, points["builtin"], mu, world.physics, sweeps, prepared,
                                                stop)
             box2d_sweeps, box2d = builtin_change
-            # By the stopping rule the route's side need not go past the sweep where Box2D's start
-            # stopped: stopped by then, its count and last change are the same; not, it has lost
-            # either way (its count then one more than Box2D's). On a step the route loses that
-            # spares up to `sweeps` of them.
-            most = min(sweeps, box2d_sweeps) if stop > 0 else sweeps
-            route_sweeps, route = _sweep_change(bodies, points, impulses, mu, world.physics, max(1, most), prepared,
-                                                stop)
+            route_sweeps, route = _sweep_change(bodies, points, impulses, mu, world.physics,
+                                                self._route_sweeps(builtin_change, stop), prepared, stop)
             if route_sweeps == box2d_sweeps:  # both stop at the same sweep, or neither by sweep N
                 return route < box2d
             return route_sweeps < box2d_sweeps
         masses = effective_masses(bodies, points)
         route = jacobi_change(bodies, points, impulses, mu, world.physics, masses)
         return route < jacobi_change(bodies, points, points["builtin"], mu, world.physics, masses)
+
+    def _route_sweeps(self, builtin_change: tuple[int, float] | None, stop: float) -> int:
+        """The sweeps the check plays from the route's answer (1 for the Jacobi check, which has
+        none): the card's check_sweeps, but by the stopping rule (stop > 0 N s) none past the
+        sweep where Box2D's start stopped (builtin_change[0]): stopped by then, its count and last
+        change are the same; not, it has lost either way (its count then one more than Box2D's).
+        On a step the route loses that spares up to check_sweeps of them."""
+        sweeps = self.settings["check_sweeps"]
+        if sweeps is None:
+            return 1
+        return max(1, min(sweeps, builtin_change[0])) if stop > 0 else sweeps
 
     def fits(self, n_points: int, now: float, deadline: float | None, slowdown: float = 1.0) -> bool:
         """Whether the route serves a step of n_points points begun at `now`: not past the
@@ -285,12 +312,13 @@ class FaceRoutePredictor(Predictor):
         return self.cost.fits(n_points, now, deadline, slowdown)
 
     def _solved_on_labels(self, bodies, points, world, labels, friction, deadline,
-                          stages: dict[str, float], prepared=None, carry=None) -> np.ndarray | None:
-        """(P, 2) N s, the route's answer: the classifier's answer (labels, (P, 2) N s) read as
-        each point's label, the step solved on them and admitted (deepcontact.faces, as
-        solved_on_labels); where the admitted solve misses its labels by more than
-        max_residual, the labels read again at each of retry_pressing's thresholds in turn.
-        None where no reading meets it. friction: (P,) each point's friction coefficient;
+                          stages: dict[str, float], prepared=None, carry=None) -> tuple[np.ndarray | None, float]:
+        """(impulses, extra): impulses (P, 2) N s, the route's answer: the classifier's answer
+        (labels, (P, 2) N s) read as each point's label, the step solved on them and admitted
+        (deepcontact.faces, as solved_on_labels); where the admitted solve misses its labels by
+        more than max_residual, the labels read again at each of retry_pressing's thresholds in
+        turn. None where no reading meets it. extra: the seconds its admission spent past the
+        card's min_rounds rounds (0 without min_rounds). friction: (P,) each point's friction coefficient;
         deadline: perf_counter() s after which no admission round begins (a route begun late
         answers with what it has rather than miss), and no retry. Adds each reading's seconds
         to stages["solve"] and stages["admit"]. carry: (AdmissionCarry, step) where the card's
@@ -309,13 +337,16 @@ class FaceRoutePredictor(Predictor):
             if answer is not None:
                 stages["solve"] += answer.solve_seconds
                 stages["admit"] += answer.admit_seconds
+                extra = 0.0
+                if face["min_rounds"] is not None and answer.rounds_run > face["min_rounds"]:
+                    extra = answer.admit_seconds * (answer.rounds_run - face["min_rounds"]) / answer.rounds_run
                 served = face["max_residual"] is None or answer.residual <= face["max_residual"]
-                return answer.impulses if served else None
+                return (answer.impulses if served else None), extra
             if face["max_residual"] is not None:
                 # The compiled dual declined the labels' system, far from consistent: labels that
                 # are not this step's. Solved by least squares piece by piece (3 ms at 160 points),
                 # 10 of 11 such steps of seeds 900-903 then missed max_residual: the fallback at once.
-                return None
+                return None, 0.0
             # Without max_residual every reading is served: the route piece by piece, whose least
             # squares answers it.
         t0 = time.perf_counter()
@@ -335,8 +366,8 @@ class FaceRoutePredictor(Predictor):
             stages["admit"] += t2 - t1
             t0 = t2
             if face["max_residual"] is None or residual <= face["max_residual"]:
-                return impulses
-        return None
+                return impulses, 0.0
+        return None, 0.0
 
     def unfamiliar(self, bodies, points, friction, world) -> str | None:
         """Why the step lies outside what the classifier was trained on (the card's trained_on;
@@ -357,7 +388,8 @@ class FaceRoutePredictor(Predictor):
         """The answer where the route is not served: the fallback card's where the step lies in
         what it was trained on, else Box2D's warm start (the request's builtin impulses), with
         served_by naming it. With a deadline, Box2D's
-        also where the fallback is not expected to end by it either (a server answering more
+        also where the fallback (not itself a route, which judges that alone) is not expected to
+        end by it either (a server answering more
         requests at once than its cores keep up with): an answer in time that the client would
         have used anyway, rather than a better one it cannot wait for. Where the fallback is
         another route and second_route is False (this one's route has run), that route's own
@@ -366,7 +398,12 @@ class FaceRoutePredictor(Predictor):
             return self.fallback._fallback(bodies, points, world, step, previous, friction, deadline, slowdown,
                                            second_route=False)
         now = time.perf_counter()
-        if self.fallback is None or not self.fallback_cost.fits(len(points), now, deadline, slowdown) \
+        # A fallback that keeps to the deadline itself (another route) judges its own cost: it
+        # knows how few rounds it can end in (its min_rounds), where its whole cost seen from
+        # here would turn away every step its full rounds would not end.
+        judged = getattr(self.fallback, "takes_deadline", False)
+        if self.fallback is None \
+                or not (judged or self.fallback_cost.fits(len(points), now, deadline, slowdown)) \
                 or not self._fallback_knows(bodies, points, friction, world):
             return Prediction(points["builtin"].astype(np.float32), served_by=BUILTIN)
         extra = {"friction": friction} if "point_friction" in self.fallback.requires else {}

@@ -647,6 +647,48 @@ def test_by_the_stopping_rule_the_routes_side_is_counted_no_further_than_box2ds(
     assert max(spared) > 0  # where Box2D's start stopped before sweep 200, the rest were spared
 
 
+def test_a_route_with_min_rounds_fits_at_its_fewest_rounds_and_ends_its_rounds_before_the_check(
+        tmp_path, thesis_steps):
+    """With min_rounds, a step with a deadline takes the route where the route is expected to end
+    in that many admission rounds (the route's cost is learned so), and its admission runs rounds
+    past them only while the check after it would still end by the deadline: a large step gets
+    fewer rounds rather than Box2D's start. Without a deadline, or with room, every round runs."""
+    import time
+
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = thesis_world(world_msg)
+    bodies, points = steps[0]
+    cold = points.copy()
+    cold["builtin"] = 0.0  # no warm start: the route's answer, admitted or not, beats it
+    mu = np.full(len(points), 0.5, np.float32)
+    settings = dict(rounds=200, rho=1000.0, solver="dual", against_builtin=True, check_sweeps=12)
+    fewest = load_model(face_card(tmp_path, "fewest", classifier, min_rounds=5, **settings))
+    whole = load_model(face_card(tmp_path, "whole", classifier, **settings))
+    assert fewest.settings["min_rounds"] == 5 and whole.settings["min_rounds"] is None
+    unhurried = fewest.predict(bodies, cold, world, 0, friction=mu).impulses
+    np.testing.assert_array_equal(unhurried, whole.predict(bodies, cold, world, 0, friction=mu).impulses)
+    with_room = fewest.predict(bodies, cold, world, 0, friction=mu, deadline=time.perf_counter() + 60.0)
+    assert with_room.served_by is None
+    np.testing.assert_array_equal(with_room.impulses, unhurried)
+    # A check seen to take longer than the budget leaves no time for rounds: the solve's own answer.
+    for _ in range(4):
+        fewest.sweep_cost.observe(len(points), 100.0)  # s a sweep
+        whole.sweep_cost.observe(len(points), 100.0)
+    hurried = fewest.predict(bodies, cold, world, 0, friction=mu, deadline=time.perf_counter() + 60.0)
+    assert hurried.served_by is None and not np.allclose(hurried.impulses, unhurried)
+    # Without min_rounds the rounds run to the deadline itself, as before.
+    np.testing.assert_array_equal(
+        whole.predict(bodies, cold, world, 0, friction=mu, deadline=time.perf_counter() + 60.0).impulses, unhurried)
+    # The route seen to take longer than the budget at its fewest rounds is not taken.
+    for _ in range(4):
+        fewest.cost.observe(len(points), 100.0)
+    assert fewest.predict(bodies, cold, world, 0, friction=mu, deadline=time.perf_counter() + 60.0).served_by \
+        == "builtin"
+
+
 def test_a_route_with_carry_keeps_its_admission_in_the_streams_memory(tmp_path, thesis_steps):
     """With carry, the route's admission goes on along a stream (the memory the server keeps for
     it and its model): each step's state is kept under the route's name, the next step begins
