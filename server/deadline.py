@@ -16,9 +16,15 @@ Steps are grouped by size in buckets of BUCKET_POINTS points. A bucket with TRIA
 seen or more is estimated by the QUANTILE of its last WINDOW steps, so that steps that run
 long on a busy host (the reason for the deadline) count. A bucket with fewer is estimated from
 the nearest smaller one that has them, grown with the square of (size + OFFSET) (the route's
-fixed costs: the classifier, the set-up of the solve); with none such, the route fits, unless
-the server is busy (a slowdown of BUSY or more: another step shares each core), when it is only
-probed. So a
+fixed costs: the classifier, the set-up of the solve). With none such, from the steps seen
+within NEAR of its size, each scaled so to it, by their median (steps of several sizes, and a
+cold first call among them), once there are TRIALS of them: a stream whose steps change by
+more than a bucket from one step to the next fills no bucket for a while, and each new size
+would otherwise be tried and run late in turn (a pyramid of 600 points on a fresh server: its
+first 30 steps). Not from farther: a few small steps' cold costs grown to a large size turned
+every later step of a stream away.
+With fewer, the route fits, unless the server is busy (a slowdown of BUSY or more: another
+step shares each core), when it is only probed. So a
 size a little larger than those known is tried and learned, one far larger is not tried until
 the sizes between are known, and one cold first call (planning, imports) decides nothing. A
 bucket turned away is tried again on every PROBE_EVERY-th step declined where its fastest
@@ -37,6 +43,9 @@ QUANTILE = 0.9
 PROBE_EVERY = 16
 TRIALS = 3
 OFFSET = 50
+#: The share of a step's size within which steps of other sizes speak for it while no bucket at
+#: or below it is known.
+NEAR = 0.2
 #: A slowdown at which the server counts as busy: another step at least shares each core.
 BUSY = 2.0
 
@@ -47,6 +56,12 @@ def _quantile(ordered: list[float], q: float) -> float:
     low = int(at)
     high = min(low + 1, len(ordered) - 1)
     return ordered[low] + (ordered[high] - ordered[low]) * (at - low)
+
+
+def _grow(seen: int, asked: int) -> float:
+    """The factor from a step's cost in bucket `seen` to one in bucket `asked`: the square of
+    (size + OFFSET)."""
+    return 1.0 if seen == asked else ((asked * BUCKET_POINTS + OFFSET) / (seen * BUCKET_POINTS + OFFSET)) ** 2
 
 
 class CostBySize:
@@ -65,7 +80,7 @@ class CostBySize:
 
     def estimate(self, points: int) -> float:
         """Seconds the route is expected to take on a step of `points` points (0: nothing known
-        at this size or below)."""
+        at this size or below, and fewer than TRIALS steps seen at any size)."""
         return self._estimate(points)[0]
 
     def _estimate(self, points: int) -> tuple[float, float]:
@@ -74,10 +89,15 @@ class CostBySize:
         with self._lock:
             known = [b for b, recent in self._seen.items() if len(recent) >= TRIALS and b <= k]
             if not known:
-                return 0.0, 0.0
+                near = max(1.0, NEAR * points / BUCKET_POINTS)  # in buckets; the next ones always
+                pooled = sorted(seconds * _grow(b, k) for b, recent in self._seen.items() if abs(b - k) <= near
+                                for seconds in recent)
+                if len(pooled) < TRIALS:
+                    return 0.0, 0.0
+                return _quantile(pooled, 0.5), pooled[0]
             b = max(known)
             values = sorted(self._seen[b])
-        grow = 1.0 if b == k else ((k * BUCKET_POINTS + OFFSET) / (b * BUCKET_POINTS + OFFSET)) ** 2
+        grow = _grow(b, k)
         return grow * _quantile(values, QUANTILE), grow * values[0]
 
     def fits(self, points: int, now: float, deadline: float | None, slowdown: float = 1.0) -> bool:

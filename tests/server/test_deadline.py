@@ -18,7 +18,9 @@ def test_a_size_is_estimated_from_the_nearest_smaller_one_known_until_it_is_know
     cost = CostBySize()
     for _ in range(TRIALS):
         cost.observe(50, 0.004)
-    assert cost.estimate(40) == 0.0  # nothing known at or below it
+    # Nothing known at or below 45: the steps seen within a fifth of its size, scaled to it.
+    assert abs(cost.estimate(45) - 0.004 * ((40 + OFFSET) / (50 + OFFSET)) ** 2) < 1e-12
+    assert cost.estimate(30) == 0.0  # none within a fifth of 30 points
     assert cost.estimate(50 + BUCKET_POINTS - 1) == 0.004  # the same bucket
     assert abs(cost.estimate(60) - 0.004 * ((60 + OFFSET) / (50 + OFFSET)) ** 2) < 1e-12
     assert cost.fits(60, now=0.0, deadline=0.008)  # a little larger: tried
@@ -47,3 +49,27 @@ def test_a_declined_size_is_tried_again_now_and_then_where_its_fastest_step_woul
     for _ in range(TRIALS):
         never.observe(80, 0.020)  # even its fastest step would miss: never tried
     assert not any(never.fits(80, now=0.0, deadline=0.008) for _ in range(3 * PROBE_EVERY))
+
+
+def test_a_stream_whose_steps_grow_past_every_bucket_is_judged_by_all_its_steps_so_far():
+    # A pile whose steps grow by 10-30 points a step fills no bucket for a while. Each size new to
+    # the server is tried once, but only until three steps of any size have been seen; then
+    # their median, scaled to the size asked, turns the next one away.
+    cost = CostBySize()
+    sizes = [458, 468, 502, 521, 552, 557]
+    tried = []
+    for points in sizes:
+        tried.append(cost.fits(points, now=0.0, deadline=0.008))
+        if tried[-1]:
+            cost.observe(points, 0.015 * ((points + OFFSET) / (500 + OFFSET)) ** 2)  # past the budget
+    assert tried == [True, True, True, False, False, False]
+    # A cold first call among quick steps does not turn the next size away, nor do a few small
+    # steps' costs grown to a far larger size.
+    cold = CostBySize()
+    for points, seconds in ((100, 0.090), (110, 0.002), (120, 0.002)):
+        cold.observe(points, seconds)
+    assert cold.fits(125, now=0.0, deadline=0.008)
+    small = CostBySize()
+    for points in (30, 40, 87):
+        small.observe(points, 0.003)
+    assert small.fits(400, now=0.0, deadline=0.008)
