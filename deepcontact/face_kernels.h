@@ -1,7 +1,7 @@
 /* The face route's solve, compiled: a face's linear system summed over the pairs of points
  * that share a body, as CSR, and its minimum-norm solution through the dual on a sparse
- * Cholesky factor of S S^T, or, where no point slides, in the bodies' space on a factor of
- * order 3 D (face_body_solve; the compiled route's only). Shared by deepcontact/_faces.c (faces.face_system_sparse,
+ * Cholesky factor of S S^T, or in the bodies' space on factors of order 3 D (face_body_solve;
+ * the compiled route's only). Shared by deepcontact/_faces.c (faces.face_system_sparse,
  * faces.minimum_norm_solve) and deepcontact/_route.c (the whole route in one call); faces.py
  * documents the system and the solve. Every function here runs without the GIL and
  * allocates with malloc.
@@ -342,16 +342,18 @@ static void face_body_rows(int32_t rows, const int32_t *jp, const int32_t *ji, c
  * A (rows, m) given by rows (ap, ai, ax) and by columns (cp, ci, cx), whole (CSC, *mp, *mi,
  * *mx out, malloc'd), and P M P^T + ridge * mean diagonal = C C^T in `order` (inverse out), f
  * out. *free_out: whether a pivot of a row A does not leave empty lies below FACE_BODY_FREE of
- * the mean diagonal. Returns 0, -1
+ * the mean diagonal (*scale_out). Returns 0, -1
  * (memory), 1 (a pivot not positive) or 3 (M = 0). */
 static int face_body_factor(int32_t rows, const int32_t *ap, const int32_t *ai, const double *ax, const int32_t *cp,
                             const int32_t *ci, const double *cx, const int32_t *order, double ridge, int32_t *inverse,
-                            int32_t **mp, int32_t **mi, double **mx, spchol_factor_t *f, int *free_out)
+                            int32_t **mp, int32_t **mi, double **mx, spchol_factor_t *f, int *free_out,
+                            double *scale_out)
 {
     double trace;
     if (spchol_gram(rows, ap, ai, ax, cp, ci, cx, mp, mi, mx, &trace) != 0)
         return -1;
     const double scale = rows ? trace / (double)rows : 0.0;
+    *scale_out = scale;
     if (!(scale > 0))
         return 3;
     const int32_t entries = (*mp)[rows];
@@ -473,6 +475,247 @@ static void face_body_ridge_columns(int32_t rows, int32_t *ap, int32_t *ai, doub
     }
 }
 
+/* a . b over n entries, in four running sums (a dependent chain of additions is what bounds
+ * face_body_shared_directions' and face_body_off_shared's dense products, not their arithmetic). */
+static double face_dot(const double *a, const double *b, int32_t n)
+{
+    double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+    int32_t k = 0;
+    for (; k + 4 <= n; k += 4) {
+        s0 += a[k] * b[k];
+        s1 += a[k + 1] * b[k + 1];
+        s2 += a[k + 2] * b[k + 2];
+        s3 += a[k + 3] * b[k + 3];
+    }
+    for (; k < n; k++)
+        s0 += a[k] * b[k];
+    return (s0 + s1) + (s2 + s3);
+}
+
+/* The most candidates for free directions several bodies share that face_body_solve reads off
+ * K's factor: past it the step goes to the dual (each costs one or two solves with K's factor, a
+ * Gram-Schmidt step against the others and a solve with G's). The zoo's pyramids have up to 47;
+ * a pile of discs, whose sticking points leave pairs of discs turning against each other, up to
+ * 90 and more, where the dual is the cheaper (face_body_solve looks for them only where the
+ * face has more unknowns than its bodies have freedoms). */
+#define FACE_BODY_MOST_SHARED 64
+/* A pivot of K's factor below this share of its mean diagonal is a candidate. Not only the
+ * pivots the ridge alone holds (below FACE_BODY_FREE): where free directions overlap, a
+ * Cholesky factor may show one of them at a pivot of 1e-5 to 1e-4 (a pyramid of the zoo:
+ * twenty free directions, nineteen pivots at the ridge and one at 3.4e-5), while the first
+ * direction K resolves lies at 1e-3 of its mean eigenvalue and beyond. */
+#define FACE_BODY_CANDIDATE 1e-3
+/* A candidate, after its inverse iteration, is a free direction where K' takes it to below this
+ * share of its mean diagonal (n^T K' n; rounding leaves 1e-16, a resolved one 1e-3 and more). */
+#define FACE_BODY_NULL 1e-10
+
+/* The directions K leaves free that no one body's pushes account for: a row of boxes sliding
+ * together on their supports, held to one another by sticking points. With f the factor of
+ * P K' P^T + ridge (K' = K with the bodies' own free directions given columns of their own,
+ * face_body_ridge_columns), a free direction shows as a pivot the ridge alone holds: the Schur
+ * complement there is zero to rounding, so L^-T e_k is a null vector of K' to the ridge's
+ * accuracy (L L^T L^-T e_k = L e_k, whose only entry of size is the pivot, sqrt(ridge)). Each
+ * pivot below FACE_BODY_CANDIDATE of K's mean diagonal `scale` on a row L does not leave empty
+ * gives a candidate so, sharpened by inverse iteration with the same factor (once from a pivot
+ * below FACE_BODY_FREE, twice from the others; each step shrinks its part off K's null space by
+ * the ridge over K's least resolved eigenvalue, 1e-7 or less), taken off the bodies' own
+ * directions (free_rows, dirs: n_free of them, K' holds them already) and made ortho-normal
+ * (Gram-Schmidt, twice); one that rounding leaves dependent on those kept, or that K' holds
+ * (FACE_BODY_NULL), is dropped. kp, ki, kx: K' whole (CSC, the rows' order); ap: L^T's rows
+ * (CSR: a row L leaves empty is free in K and G both and answered 0, not counted); order
+ * (position -> row); shared (FACE_BODY_MOST_SHARED rows,) out, one direction after another, in
+ * the rows' own order; work (rows,). Returns how many were kept, or -2 where there are more than
+ * FACE_BODY_MOST_SHARED candidates. */
+static int face_body_shared_directions(int32_t rows, const spchol_factor_t *f, const int32_t *ap, const int32_t *order,
+                                       const int32_t *kp, const int32_t *ki, const double *kx,
+                                       double scale, int32_t n_free, const int32_t *free_rows, const double *dirs,
+                                       double *shared, double *work)
+{
+    const int32_t *Lp = f->Lp, *Li = f->Li;
+    const double *Lx = f->Lx;
+    int32_t count = 0;
+    unsigned char iterations[FACE_BODY_MOST_SHARED]; /* 1 from a pivot the ridge alone holds, else 2 */
+    for (int32_t k = 0; k < rows; k++) /* counted first: past the most, nothing is computed */
+        count += ap[order[k] + 1] > ap[order[k]] && Lx[Lp[k]] * Lx[Lp[k]] < FACE_BODY_CANDIDATE * scale;
+    if (count > FACE_BODY_MOST_SHARED)
+        return -2;
+    count = 0;
+    for (int32_t k = 0; k < rows; k++) {
+        const double pivot = Lx[Lp[k]];
+        if (!(ap[order[k] + 1] > ap[order[k]] && pivot * pivot < FACE_BODY_CANDIDATE * scale))
+            continue;
+        iterations[count] = pivot * pivot < FACE_BODY_FREE * scale ? 1 : 2;
+        double *v = shared + (size_t)count++ * rows; /* in the factor's order until the end */
+        memset(v, 0, (size_t)rows * sizeof(double));
+        v[k] = 1.0;
+        for (int32_t j = k; j >= 0; j--) { /* v = L^-T e_k: rows past k stay 0 */
+            double acc = v[j];
+            for (int32_t p = Lp[j] + 1; p < Lp[j + 1]; p++)
+                acc -= Lx[p] * v[Li[p]];
+            v[j] = acc / Lx[Lp[j]];
+        }
+    }
+    for (int32_t t = 0; t < count; t++) {
+        double *v = shared + (size_t)t * rows;
+        for (int step = 0; step <= iterations[t]; step++) { /* normalized, and (K' + ridge)^-1 */
+            const double norm = sqrt(face_dot(v, v, rows));
+            for (int32_t k = 0; k < rows; k++)
+                v[k] /= norm;
+            if (step < iterations[t])
+                spchol_solve(f, v);
+        }
+        memcpy(work, v, (size_t)rows * sizeof(double)); /* into the rows' own order */
+        for (int32_t k = 0; k < rows; k++)
+            v[order[k]] = work[k];
+        for (int32_t j = 0; j < n_free; j++) { /* off the bodies' own (ortho-normal, a body's three rows) */
+            const int32_t q = free_rows[j];
+            const double *d = dirs + 3 * j;
+            const double along = v[q] * d[0] + v[q + 1] * d[1] + v[q + 2] * d[2];
+            for (int i = 0; i < 3; i++)
+                v[q + i] -= along * d[i];
+        }
+    }
+    int32_t kept = 0;
+    for (int32_t t = 0; t < count; t++) {
+        double *v = shared + (size_t)t * rows;
+        const double before = face_dot(v, v, rows);
+        for (int pass = 0; pass < 2; pass++)
+            for (int32_t u = 0; u < kept; u++) {
+                const double *e = shared + (size_t)u * rows;
+                const double along = face_dot(e, v, rows);
+                for (int32_t k = 0; k < rows; k++)
+                    v[k] -= along * e[k];
+            }
+        double norm = face_dot(v, v, rows);
+        if (!(norm > 1e-8 * before))
+            continue; /* dependent on those kept */
+        norm = sqrt(norm);
+        for (int32_t k = 0; k < rows; k++)
+            v[k] /= norm;
+        double quotient = 0.0; /* v^T K' v: a direction K' holds is not free */
+        for (int32_t c = 0; c < rows; c++) {
+            double kv = 0.0;
+            for (int32_t p = kp[c]; p < kp[c + 1]; p++)
+                kv += kx[p] * v[ki[p]];
+            quotient += kv * v[c];
+        }
+        if (!(quotient < FACE_BODY_NULL * scale))
+            continue;
+        double *into = shared + (size_t)kept++ * rows;
+        memmove(into, v, (size_t)rows * sizeof(double));
+    }
+    return kept;
+}
+
+/* P G' P's answer on the range of P = I - N N^T, N (n_shared, ortho-normal) the free directions
+ * of K that several bodies share (face_body_shared_directions): z with N^T z = 0 and P G' z = y
+ * for y (rows,) on P's range, in the factor's order, in place. G' (R's gram with the bodies' own
+ * free directions set apart) may itself leave some of N's directions free, so its ridged factor
+ * f is used only inside the Schur complement that keeps the answer off N: z = w - H mu, w =
+ * f^-1 y, H = f^-1 N, mu = (N^T H)^-1 N^T w. That is the exact answer for the ridged G' (which
+ * is G' on P's range where G' is of full rank there), and `refinements` rounds against P G' P
+ * itself (gp, gi, gx: G' whole, CSC, the rows' order) take off what the ridge and the cancelling
+ * of H's large parts left. No N's columns join G' (each spans many bodies: its factor would
+ * fill). inverse: row -> the factor's position. Returns 0, 1 (N^T H not positive definite) or
+ * -1 (memory). */
+static int face_body_off_shared(int32_t rows, const spchol_factor_t *f, const int32_t *gp, const int32_t *gi,
+                                const double *gx, const int32_t *inverse, int refinements, int32_t n_shared,
+                                const double *shared, double *z)
+{
+    const size_t n = (size_t)n_shared;
+    double *nf = malloc(n * (size_t)rows * sizeof(double) + sizeof(double)); /* N in the factor's order */
+    double *h = malloc(n * (size_t)rows * sizeof(double) + sizeof(double));
+    double *gram = malloc(n * n * sizeof(double) + sizeof(double));
+    double *mu = malloc((n + 1) * sizeof(double));
+    double *y = malloc(((size_t)rows + 1) * sizeof(double));
+    double *w = malloc(((size_t)rows + 1) * sizeof(double));
+    double *g = malloc(((size_t)rows + 1) * sizeof(double));
+    int status = -1;
+    if (nf == NULL || h == NULL || gram == NULL || mu == NULL || y == NULL || w == NULL || g == NULL)
+        goto done;
+    for (size_t t = 0; t < n; t++) { /* H = f^-1 N */
+        double *ft = nf + t * rows, *ht = h + t * rows;
+        const double *nt = shared + t * rows;
+        for (int32_t q = 0; q < rows; q++)
+            ft[inverse[q]] = nt[q];
+        memcpy(ht, ft, (size_t)rows * sizeof(double));
+        spchol_solve(f, ht);
+    }
+    for (size_t a = 0; a < n; a++) /* N^T H, symmetric, lower */
+        for (size_t t = 0; t <= a; t++)
+            gram[a * n + t] = face_dot(nf + a * rows, h + t * rows, rows);
+    for (size_t j = 0; j < n; j++) { /* its Cholesky factor, in place */
+        double d = gram[j * n + j];
+        for (size_t k = 0; k < j; k++)
+            d -= gram[j * n + k] * gram[j * n + k];
+        if (!(d > 0.0)) {
+            status = 1;
+            goto done;
+        }
+        d = sqrt(d);
+        gram[j * n + j] = d;
+        for (size_t i = j + 1; i < n; i++) {
+            double e = gram[i * n + j];
+            for (size_t k = 0; k < j; k++)
+                e -= gram[i * n + k] * gram[j * n + k];
+            gram[i * n + j] = e / d;
+        }
+    }
+    memcpy(y, z, (size_t)rows * sizeof(double));
+    memset(z, 0, (size_t)rows * sizeof(double));
+    memcpy(w, y, (size_t)rows * sizeof(double)); /* the residual, first y itself */
+    for (int round = 0; round <= refinements; round++) {
+        spchol_solve(f, w); /* w = f^-1 residual, then off N: w - H mu */
+        for (size_t a = 0; a < n; a++)
+            mu[a] = face_dot(nf + a * rows, w, rows);
+        for (size_t i = 0; i < n; i++) {
+            for (size_t k = 0; k < i; k++)
+                mu[i] -= gram[i * n + k] * mu[k];
+            mu[i] /= gram[i * n + i];
+        }
+        for (size_t i = n; i-- > 0;) {
+            for (size_t k = i + 1; k < n; k++)
+                mu[i] -= gram[k * n + i] * mu[k];
+            mu[i] /= gram[i * n + i];
+        }
+        for (size_t t = 0; t < n; t++) {
+            const double *ht = h + t * rows;
+            for (int32_t k = 0; k < rows; k++)
+                w[k] -= mu[t] * ht[k];
+        }
+        for (int32_t k = 0; k < rows; k++)
+            z[k] += w[k];
+        /* z = P z: where G' leaves a direction of N free, H's parts along it are the ridge's
+         * inverse, and what their cancelling leaves would reach x through R */
+        for (size_t a = 0; a < n; a++) {
+            const double *na = nf + a * rows;
+            const double along = face_dot(na, z, rows);
+            for (int32_t k = 0; k < rows; k++)
+                z[k] -= along * na[k];
+        }
+        if (round == refinements)
+            break;
+        memset(g, 0, (size_t)rows * sizeof(double)); /* the residual y - P G' z, z on P's range */
+        for (int32_t c = 0; c < rows; c++) {
+            const double zc = z[inverse[c]];
+            for (int32_t p = gp[c]; p < gp[c + 1]; p++)
+                g[inverse[gi[p]]] += gx[p] * zc;
+        }
+        for (size_t a = 0; a < n; a++) {
+            const double *na = nf + a * rows;
+            const double along = face_dot(na, g, rows);
+            for (int32_t k = 0; k < rows; k++)
+                g[k] -= along * na[k];
+        }
+        for (int32_t k = 0; k < rows; k++)
+            w[k] = y[k] - g[k];
+    }
+    status = 0;
+done:
+    free(nf), free(h), free(gram), free(mu), free(y), free(w), free(g);
+    return status;
+}
+
 /* minimum_norm_solve's answer in the bodies' space. With A (m, 3 D) the face's rows of J (the
  * pressing points' normals, the sticking points' tangents), C its columns (A, but a sliding
  * point's normal plus slide times its tangent) and W the dynamic bodies' inverse masses and
@@ -485,8 +728,13 @@ static void face_body_ridge_columns(int32_t rows, int32_t *ap, int32_t *ai, doub
  *     rows, S^+ = R Q (Q^T G Q)^-1 (Q^T K Q)^-1 Q^T L^T, those directions N taken off R's rows
  *     (L P = L, P = I - N N^T) and given columns of their own in both, so that K + c N N^T and
  *     P G P + c N N^T act as the inverses on P's range, where the solve's vectors lie
- *     (face_body_ridge_columns). Where either leaves another direction free (a pivot below
- *     FACE_BODY_FREE) the product is not the pseudo-inverse: declined (1), for the dual.
+ *     (face_body_ridge_columns). The directions K leaves free besides (rows of boxes that stick
+ *     to one another sliding together: no one body's pushes leave them) are read off K's
+ *     factor (face_body_shared_directions), and R's side is kept off them by a Schur
+ *     complement on G's factor rather than by columns of their own, each over many bodies
+ *     (face_body_off_shared). Where G leaves a direction free that K does not, or more than
+ *     FACE_BODY_MOST_SHARED are shared, the product is not the pseudo-inverse: declined (1)
+ *     or failed the test below (2), for the dual.
  * The same x as the dual's S^T (S S^T)^+ b, from factors of order 3 D rather than m: on a
  * pyramid of boxes (800 points, m = 1,600 unknowns, 630 body rows) a small share of S S^T's,
  * whose graph joins every pair of points two bodies apart. jt: J^T as CSR (jp (rows + 1,), ji,
@@ -497,7 +745,7 @@ static void face_body_ridge_columns(int32_t rows, int32_t *ap, int32_t *ai, doub
  * refinements and optimality as face_dual_solve's; slide_in_bodies: 0 sends a step where points
  * slide to the dual at once (a card's slide_in_bodies: in a pile of discs, whose sliding points
  * leave turnings that only the pile's sticking points hold, K is nearly always left free); x
- * (m,) out. Returns 0 (x written), 1 (declined: a pivot not positive, a free direction where
+ * (m,) out. Returns 0 (x written), 1 (declined: a pivot not positive, a free direction of G where
  * points slide, or points slide and slide_in_bodies is 0), 2 (x is not a
  * least-squares answer: |S^T (S x - b)| > optimality |S^T b|) or -1 (memory). */
 static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, const double *jd, const double *weight,
@@ -515,6 +763,8 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
     int32_t *ap[2] = {NULL, NULL}, *ai[2] = {NULL, NULL}, *cp[2] = {NULL, NULL}, *ci[2] = {NULL, NULL};
     int32_t *mp[2] = {NULL, NULL}, *mi[2] = {NULL, NULL}, *inverse = NULL, *free_rows = NULL;
     double *ax[2] = {NULL, NULL}, *cx[2] = {NULL, NULL}, *mx[2] = {NULL, NULL}, *work = NULL, *dirs = NULL;
+    double *shared = NULL; /* where points slide: free directions of K several bodies share */
+    int32_t n_shared = 0;
     spchol_factor_t f[2] = {{0, NULL, NULL, NULL}, {0, NULL, NULL, NULL}};
     int status = -1;
     int32_t n_free = 0; /* where points slide: the free directions of bodies one or two unknowns push */
@@ -563,8 +813,9 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
         /* by columns (the free directions' after the unknowns): by its rows */
         spchol_transpose(rows, (int32_t)(m + n_free), ap[k], ai[k], ax[k], cp[k], ci[k], cx[k]);
         int free_direction = 0;
+        double mean_diagonal = 0.0;
         int factored = face_body_factor(rows, ap[k], ai[k], ax[k], cp[k], ci[k], cx[k], order, ridge, inverse, &mp[k],
-                                        &mi[k], &mx[k], &f[k], &free_direction);
+                                        &mi[k], &mx[k], &f[k], &free_direction, &mean_diagonal);
         if (factored == 3) { /* no unknown moves a body: S = 0, and 0 the least of its answers */
             memset(x, 0, (size_t)m * sizeof(double));
             status = 0;
@@ -574,7 +825,31 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
             status = factored > 0 ? 1 : -1;
             goto out;
         }
-        if (slides && free_direction) {
+        if (slides && free_direction && k == 0 && m > rows) {
+            /* Free directions no one body's pushes leave (boxes sliding together): read off K's
+             * factor; R's side is kept off them below (face_body_off_shared). K's side needs
+             * nothing: its ridged solve keeps a vector in K's range (face_body_pinv). Only
+             * where the face has more unknowns than its bodies have freedoms (a pile held at
+             * two points a face, whose dual's S S^T joins every two points two bodies apart): a
+             * pile of discs, held at about a point a pair, leaves dozens of such directions, and
+             * its dual costs less than finding them. */
+            shared = malloc((size_t)FACE_BODY_MOST_SHARED * (size_t)rows * sizeof(double) + sizeof(double));
+            double *scratch = malloc(((size_t)rows + 1) * sizeof(double));
+            if (shared == NULL || scratch == NULL) {
+                free(scratch);
+                goto out;
+            }
+            n_shared = face_body_shared_directions(rows, &f[0], ap[0], order, mp[0], mi[0], mx[0], mean_diagonal, n_free,
+                                                   free_rows, dirs, shared, scratch);
+            free(scratch);
+            if (n_shared <= 0) {
+                status = 1;
+                goto out;
+            }
+        } else if (slides && free_direction && n_shared == 0) {
+            /* G leaves a direction free. With shared directions set apart it may be one of
+             * theirs, which face_body_off_shared keeps the answer off (the test at the end
+             * tells); without, the product is not the pseudo-inverse. */
             status = 1;
             goto out;
         }
@@ -596,7 +871,16 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
         y[inverse[q]] = s_;
     }
     face_body_pinv(rows, &f[0], mp[0], mi[0], mx[0], inverse, refinements, y, r, z);
-    face_body_pinv(rows, &f[r_], mp[r_], mi[r_], mx[r_], inverse, refinements, y, r, z);
+    if (n_shared == 0)
+        face_body_pinv(rows, &f[r_], mp[r_], mi[r_], mx[r_], inverse, refinements, y, r, z);
+    else {
+        const int off = face_body_off_shared(rows, &f[1], mp[1], mi[1], mx[1], inverse, refinements, n_shared,
+                                             shared, y);
+        if (off != 0) {
+            status = off < 0 ? -1 : 1;
+            goto out;
+        }
+    }
     for (int64_t c = 0; c < m; c++) { /* x = R y */
         double s_ = 0.0;
         for (int32_t q = cp[r_][c]; q < cp[r_][c + 1]; q++)
@@ -640,7 +924,7 @@ out:
         free(ap[k]), free(ai[k]), free(ax[k]), free(cp[k]), free(ci[k]), free(cx[k]);
         free(mp[k]), free(mi[k]), free(mx[k]);
     }
-    free(inverse), free(work), free(free_rows), free(dirs);
+    free(inverse), free(work), free(free_rows), free(dirs), free(shared);
     return status;
 }
 

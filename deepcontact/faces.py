@@ -468,7 +468,9 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
     minimum-norm answer is taken in the bodies' space where it can be (deepcontact/face_kernels.h,
     face_body_solve): with S = L R^T (L = A W^1/2 the face's rows, R = C W^1/2 its columns),
     K = L^T L and G = R^T R of order 3 D, it is L K^+ K^+ L^T b where no point slides and
-    R G^-1 K^-1 L^T b where points slide and both are of full rank. The dual's answer to
+    R G^-1 K^-1 L^T b where points slide, once the directions K leaves free (a body's own, or
+    several bodies' together: boxes that stick to one another sliding on those below) are set
+    apart, where R is of full rank on the rest. The dual's answer to
     rounding, on factors a small share of S S^T's where a pile is held at many more points than
     its bodies have freedoms (a pyramid of boxes at 800 points: about 0.8 ms against 15 ms);
     elsewhere the dual. slide_in_bodies False sends a step where points slide to the dual at once

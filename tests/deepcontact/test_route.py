@@ -8,7 +8,7 @@ import pytest
 
 from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, route_compiled, solved_on_labels
 from deepcontact.kinematics import Physics
-from tests.deepcontact.piles import pyramid_of_boxes, sliding_pile
+from tests.deepcontact.piles import pyramid_of_boxes, sliding_pile, sliding_pyramid
 
 
 def labels_of(exact, mu, rng, wrong=0.0):
@@ -303,3 +303,27 @@ def test_where_points_slide_the_bodies_space_answers_where_its_factorization_is_
         compiled = route_compiled(bodies, points, labels, mu, slide_in_bodies=in_bodies, **settings)
         assert compiled.in_bodies == in_bodies
         np.testing.assert_allclose(compiled.impulses, piecewise, atol=1e-9 * max(1.0, np.abs(piecewise).max()))
+
+
+def test_free_directions_that_several_bodies_share_are_found_and_set_apart():
+    """Rows of boxes that stick to one another and slide together on the boxes below leave the
+    face's rows free along directions no one body's pushes account for (34 of them on this
+    pyramid's step, and 13 bodies free on their own). The compiled route reads them off K's
+    factor (face_kernels.h, face_body_shared_directions), keeps R's side off them without giving
+    them columns (face_body_off_shared), and answers in the bodies' space what the dual answers."""
+    from deepcontact.faces import SLIDES_MINUS, SLIDES_PLUS, contact_face
+
+    bodies, points, exact, mu, physics = sliding_pyramid()
+    face = contact_face(exact, mu, pressing=1e-6, share=0.99)
+    labels = np.zeros((len(points), 2))
+    labels[face != OPEN, 0] = FACE_IMPULSE
+    labels[face == SLIDES_PLUS, 1] = FACE_IMPULSE
+    labels[face == SLIDES_MINUS, 1] = -FACE_IMPULSE
+    assert ((face == SLIDES_PLUS) | (face == SLIDES_MINUS)).sum() > 100
+    for rounds in (0, 60):
+        settings = dict(physics=physics, pressing=0.5, share=1.0, rounds=rounds)
+        piecewise, residual = solved_on_labels(bodies, points, labels, mu, solver="dual", **settings)
+        compiled = route_compiled(bodies, points, labels, mu, **settings)
+        assert compiled.in_bodies
+        np.testing.assert_allclose(compiled.impulses, piecewise, atol=1e-9 * max(1.0, np.abs(piecewise).max()))
+        assert compiled.residual == pytest.approx(residual, rel=1e-6, abs=1e-12)
