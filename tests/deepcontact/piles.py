@@ -41,23 +41,3 @@ def pyramid_of_boxes(rows: int = 12, steps: int = 20):
     exact = engine.oracle(threshold=1e-9, max_iterations=100000).astype(np.float64)
     return bodies, points, exact, points["friction"].astype(np.float64)
 
-
-def sliding_pyramid(steps: int = 30):
-    """A pyramid of the zoo (simclient.zoo.pyramid, seed 901) after `steps` steps of Builtin:
-    about 570 points, a fifth of them sliding at the step's solution, where rows of boxes that
-    stick to one another slide together on those below (directions of the bodies' space that no
-    one body's pushes leave free). Its bodies, points, the step's solution ((P, 2) N s, the
-    oracle's), friction (P,) and Physics."""
-    from deepcontact.kinematics import Physics
-    from simclient import zoo
-    from simclient.engine import Engine, SolverConfig
-
-    world, dt = zoo.pyramid(901)
-    engine = Engine(world, SolverConfig(dt=dt))
-    for _ in range(steps):
-        engine.step()
-    engine.collide()
-    bodies, points = engine.bodies(), engine.contacts()
-    exact = engine.oracle(threshold=1e-9, max_iterations=100000).astype(np.float64)
-    gravity = world.gravity
-    return bodies, points, exact, points["friction"].astype(np.float64), Physics(dt, (gravity[0], gravity[1]))

@@ -8,7 +8,7 @@ import pytest
 
 from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, route_compiled, solved_on_labels
 from deepcontact.kinematics import Physics
-from tests.deepcontact.piles import pyramid_of_boxes, sliding_pile, sliding_pyramid
+from tests.deepcontact.piles import pyramid_of_boxes, sliding_pile
 
 
 def labels_of(exact, mu, rng, wrong=0.0):
@@ -312,13 +312,11 @@ def test_free_directions_that_several_bodies_share_are_found_and_set_apart():
     factor (face_kernels.h, face_body_shared_directions), keeps R's side off them without giving
     them columns (face_body_off_shared), and answers in the bodies' space what the dual answers."""
     from deepcontact.faces import SLIDES_MINUS, SLIDES_PLUS, contact_face
+    from lab.shared_directions import step_of
 
-    bodies, points, exact, mu, physics = sliding_pyramid()
-    face = contact_face(exact, mu, pressing=1e-6, share=0.99)
-    labels = np.zeros((len(points), 2))
-    labels[face != OPEN, 0] = FACE_IMPULSE
-    labels[face == SLIDES_PLUS, 1] = FACE_IMPULSE
-    labels[face == SLIDES_MINUS, 1] = -FACE_IMPULSE
+    # A zoo pyramid (seed 901) after 30 of Box2D's steps, labelled by the oracle's solution.
+    bodies, points, labels, mu, physics = step_of(901, 30)
+    face = contact_face(labels, mu, pressing=0.5, share=1.0)
     assert ((face == SLIDES_PLUS) | (face == SLIDES_MINUS)).sum() > 100
     for rounds in (0, 60):
         settings = dict(physics=physics, pressing=0.5, share=1.0, rounds=rounds)
