@@ -493,8 +493,8 @@ static double face_dot(const double *a, const double *b, int32_t n)
 }
 
 /* The most candidates for free directions several bodies share that face_body_solve reads off
- * K's factor: past it the step goes to the dual (each costs one or two solves with K's factor, a
- * Gram-Schmidt step against the others and a solve with G's). The zoo's pyramids have up to 47;
+ * K's factor: past it the step goes to the dual (each costs its share of one or two walks of K's
+ * factor, a Gram-Schmidt step against the others and its share of a walk of G's). The zoo's pyramids have up to 47;
  * a pile of discs, whose sticking points leave pairs of discs turning against each other, up to
  * 90 and more, where the dual is the cheaper (face_body_solve looks for them only where the
  * face has more unknowns than its bodies have freedoms). */
@@ -524,8 +524,8 @@ static double face_dot(const double *a, const double *b, int32_t n)
  * (FACE_BODY_NULL), is dropped. kp, ki, kx: K' whole (CSC, the rows' order); ap: L^T's rows
  * (CSR: a row L leaves empty is free in K and G both and answered 0, not counted); order
  * (position -> row); shared (FACE_BODY_MOST_SHARED rows,) out, one direction after another, in
- * the rows' own order; work (rows,). Returns how many were kept, or -2 where there are more than
- * FACE_BODY_MOST_SHARED candidates. */
+ * the rows' own order; work (rows,). Returns how many were kept, -2 where there are more than
+ * FACE_BODY_MOST_SHARED candidates, or -1 where memory ran out. */
 static int face_body_shared_directions(int32_t rows, const spchol_factor_t *f, const int32_t *ap, const int32_t *order,
                                        const int32_t *kp, const int32_t *ki, const double *kx,
                                        double scale, int32_t n_free, const int32_t *free_rows, const double *dirs,
@@ -555,15 +555,41 @@ static int face_body_shared_directions(int32_t rows, const spchol_factor_t *f, c
             v[j] = acc / Lx[Lp[j]];
         }
     }
-    for (int32_t t = 0; t < count; t++) {
-        double *v = shared + (size_t)t * rows;
-        for (int step = 0; step <= iterations[t]; step++) { /* normalized, and (K' + ridge)^-1 */
+    /* The inverse iteration, every candidate still iterating at once (spchol_solve_many). */
+    double *block = malloc((size_t)rows * (size_t)count * sizeof(double) + sizeof(double));
+    if (block == NULL)
+        return -1;
+    for (int step = 0; step < 2; step++) {
+        int32_t going = 0;
+        for (int32_t t = 0; t < count; t++)
+            going += iterations[t] > step;
+        if (going == 0)
+            break;
+        for (int32_t t = 0, j = 0; t < count; t++) {
+            if (iterations[t] <= step)
+                continue;
+            double *v = shared + (size_t)t * rows; /* normalized, then (K' + ridge)^-1 */
             const double norm = sqrt(face_dot(v, v, rows));
             for (int32_t k = 0; k < rows; k++)
-                v[k] /= norm;
-            if (step < iterations[t])
-                spchol_solve(f, v);
+                block[(size_t)k * going + j] = v[k] / norm;
+            j++;
         }
+        spchol_solve_many(f, block, going);
+        for (int32_t t = 0, j = 0; t < count; t++) {
+            if (iterations[t] <= step)
+                continue;
+            double *v = shared + (size_t)t * rows;
+            for (int32_t k = 0; k < rows; k++)
+                v[k] = block[(size_t)k * going + j];
+            j++;
+        }
+    }
+    free(block);
+    for (int32_t t = 0; t < count; t++) {
+        double *v = shared + (size_t)t * rows;
+        const double norm = sqrt(face_dot(v, v, rows));
+        for (int32_t k = 0; k < rows; k++)
+            v[k] /= norm;
         memcpy(work, v, (size_t)rows * sizeof(double)); /* into the rows' own order */
         for (int32_t k = 0; k < rows; k++)
             v[order[k]] = work[k];
@@ -630,17 +656,23 @@ static int face_body_off_shared(int32_t rows, const spchol_factor_t *f, const in
     double *y = malloc(((size_t)rows + 1) * sizeof(double));
     double *w = malloc(((size_t)rows + 1) * sizeof(double));
     double *g = malloc(((size_t)rows + 1) * sizeof(double));
+    double *g_ = malloc(n * (size_t)rows * sizeof(double) + sizeof(double)); /* H's transpose */
     int status = -1;
-    if (nf == NULL || h == NULL || gram == NULL || mu == NULL || y == NULL || w == NULL || g == NULL)
+    if (nf == NULL || h == NULL || gram == NULL || mu == NULL || y == NULL || w == NULL || g == NULL || g_ == NULL)
         goto done;
-    for (size_t t = 0; t < n; t++) { /* H = f^-1 N */
-        double *ft = nf + t * rows, *ht = h + t * rows;
+    for (size_t t = 0; t < n; t++) { /* H = f^-1 N, every column in one walk of f (h as (rows, n) first) */
+        double *ft = nf + t * rows;
         const double *nt = shared + t * rows;
         for (int32_t q = 0; q < rows; q++)
             ft[inverse[q]] = nt[q];
-        memcpy(ht, ft, (size_t)rows * sizeof(double));
-        spchol_solve(f, ht);
+        for (int32_t k = 0; k < rows; k++)
+            h[(size_t)k * n + t] = ft[k];
     }
+    spchol_solve_many(f, h, n_shared);
+    for (int32_t k = 0; k < rows; k++) /* (n, rows), a direction's after another's: gram[] reads */
+        for (size_t t = 0; t < n; t++)
+            g_[t * rows + k] = h[(size_t)k * n + t];
+    memcpy(h, g_, n * (size_t)rows * sizeof(double));
     for (size_t a = 0; a < n; a++) /* N^T H, symmetric, lower */
         for (size_t t = 0; t <= a; t++)
             gram[a * n + t] = face_dot(nf + a * rows, h + t * rows, rows);
@@ -712,7 +744,7 @@ static int face_body_off_shared(int32_t rows, const spchol_factor_t *f, const in
     }
     status = 0;
 done:
-    free(nf), free(h), free(gram), free(mu), free(y), free(w), free(g);
+    free(nf), free(h), free(gram), free(mu), free(y), free(w), free(g), free(g_);
     return status;
 }
 
@@ -843,7 +875,7 @@ static int face_body_solve(int32_t rows, const int32_t *jp, const int32_t *ji, c
                                                    free_rows, dirs, shared, scratch);
             free(scratch);
             if (n_shared <= 0) {
-                status = 1;
+                status = n_shared == -1 ? -1 : 1;
                 goto out;
             }
         } else if (slides && free_direction && n_shared == 0) {

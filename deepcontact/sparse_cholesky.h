@@ -442,4 +442,37 @@ static void spchol_solve(const spchol_factor_t *f, double *y)
     }
 }
 
+/* Y = (L L^T)^-1 Y for k right-hand sides at once, in place, Y (n, k) row-major (a row's k values
+ * together): one walk over L's entries for all k, each entry's update a contiguous run of k,
+ * where k solves one by one walk L k times. */
+static void spchol_solve_many(const spchol_factor_t *f, double *y, int32_t k)
+{
+    const int32_t *Lp = f->Lp, *Li = f->Li;
+    const double *Lx = f->Lx;
+    for (int32_t j = 0; j < f->n; j++) {
+        double *yj = y + (size_t)j * k;
+        const double d = Lx[Lp[j]];
+        for (int32_t t = 0; t < k; t++)
+            yj[t] /= d;
+        for (int32_t p = Lp[j] + 1; p < Lp[j + 1]; p++) {
+            const double l = Lx[p];
+            double *yi = y + (size_t)Li[p] * k;
+            for (int32_t t = 0; t < k; t++)
+                yi[t] -= l * yj[t];
+        }
+    }
+    for (int32_t j = f->n - 1; j >= 0; j--) {
+        double *yj = y + (size_t)j * k;
+        for (int32_t p = Lp[j] + 1; p < Lp[j + 1]; p++) {
+            const double l = Lx[p];
+            const double *yi = y + (size_t)Li[p] * k;
+            for (int32_t t = 0; t < k; t++)
+                yj[t] -= l * yi[t];
+        }
+        const double d = Lx[Lp[j]];
+        for (int32_t t = 0; t < k; t++)
+            yj[t] /= d;
+    }
+}
+
 #endif
