@@ -12,10 +12,11 @@ through the wire once as the server decodes it (its time step and gravity are
 float32 there), the last step's points for temporal channels, each point's
 friction (float32, as the wire carries it) to a model that reads it, and to a model that
 keeps state along a stream (a face card's carried admission, Predictor.takes_memory) the
-state a stream keeps, one per simulation. So on a world without joints the warm start is
-the served one to the bit, and a simulation takes the served trajectory. (A world with
-joints is not declined around them here as the server declines it, server.joints: the
-engine's body indices are not the wire's rows.) What it measures is what a round trip costs beyond the model's own work:
+state a stream keeps, one per simulation. On a world with joints the points that touch a
+jointed body get Box2D's start (extrapolated along the stream for a card that asks), the
+model the rest, as the server answers them (server.joints, on the engine's own body indices).
+So the warm start is the served one to the bit, and a simulation takes the served
+trajectory. What it measures is what a round trip costs beyond the model's own work:
 `bench walltime` times a simulation this way beside the served one.
 
 It lives in bench/, above both simclient and server, because it composes the two;
@@ -30,6 +31,8 @@ import numpy as np
 
 from deepcontact import wire
 from deepcontact.modelcard import unknown_model
+from deepcontact.temporal import ImpulseHistory
+from server.joints import predict_around_joints
 from server.predictors import Predictor, World, load_model
 from simclient import worlds
 from simclient.provider import Provider, as_warm_start, point_friction
@@ -47,6 +50,7 @@ class InProcess(Provider):
         self.name = f"in-process:{predictor.name}"
         self._points: np.ndarray | None = None  # the last step with points: temporal channels' previous
         self._memory: dict = {}  # what a stream keeps for the model between its steps (server.service._StreamSteps)
+        self._history: ImpulseHistory | None = None  # Box2D's starts at jointed points, where extrapolated
         #: per step with points, the predictor's stage times (s), named as in the server's
         #: timings (server.predictors.STAGES)
         self.stages: list[dict[str, float]] = []
@@ -64,6 +68,7 @@ class InProcess(Provider):
     def prepare(self, engine) -> None:
         super().prepare(engine)
         self._points, self.stages, self._memory = None, [], {}
+        self._history = ImpulseHistory() if self.predictor.extrapolates_jointed else None
         self.world = declared_world(self.spec, engine)
         self.predictor.warm_up(self.world.domain)  # as the server does when a stream declares its world
 
@@ -76,7 +81,12 @@ class InProcess(Provider):
             if "point_friction" in self.predictor.requires else {}
         if self.predictor.takes_memory:
             extra["memory"] = self._memory
-        answer = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
+        joints = engine.joints()
+        if len(joints) and self.predictor.kind != "provider":  # as server.service answers a step with joints
+            answer = predict_around_joints(self.predictor, bodies, points, joints, self.world, step, self._points,
+                                           history=self._history, **extra)
+        else:
+            answer = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
         self._points = points
         self.stages.append(answer.stages)
         return as_warm_start(answer.impulses)

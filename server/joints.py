@@ -32,12 +32,13 @@ ALL_JOINTED = "builtin"
 ALL_JOINTED_EXTRAPOLATED = "extrapolated"
 
 
-def jointed_points(points: np.ndarray, joints: np.ndarray, n_bodies: int) -> np.ndarray:
-    """(P,) bool: the point touches a body on a joint. joints: (J, 2) body rows (0: static,
-    which a joint does not bind: it is the world)."""
-    jointed = np.zeros(n_bodies, bool)
+def jointed_points(bodies: np.ndarray, points: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """(P,) bool: the point touches a body on a joint. joints: (J, 2) rows of `bodies`; a static
+    body (type 0: the wire's row 0, or any static body of the engine's own records) is the world,
+    which a joint does not bind."""
+    jointed = np.zeros(len(bodies), bool)
     jointed[joints.reshape(-1)] = True
-    jointed[0] = False
+    jointed[bodies["type"] == 0] = False
     return jointed[points["body_a"]] | jointed[points["body_b"]]
 
 
@@ -45,12 +46,13 @@ def predict_around_joints(predictor, bodies: np.ndarray, points: np.ndarray, joi
                           previous=None, friction: np.ndarray | None = None, history: ImpulseHistory | None = None,
                           **extra) -> Prediction:
     """The step's Prediction as predictor.predict gives it, with Box2D's own warm start at the
-    points that touch a jointed body (joints: (J, 2) body rows, 0 static; friction: (P,) when
+    points that touch a jointed body (joints: (J, 2) rows of `bodies`: the wire's rows, 0 static, or
+    the engine's own body indices beside its own records; friction: (P,) when
     the predictor takes it; history: the stream's ImpulseHistory where that start is
     extrapolated in time, or None): impulses (P, 2) float32 N s at every point, the stages and
     served_by of the predictor's answer about the free ones. served_by is ALL_JOINTED (with a
     history ALL_JOINTED_EXTRAPOLATED) where no point is free of joints (no predictor was asked)."""
-    fixed = jointed_points(points, joints, len(bodies))
+    fixed = jointed_points(bodies, points, joints)
     if history is not None:  # every step recorded, so that a point's last two starts are known when it needs them
         builtin = history.extrapolated(points, step, fixed)
     else:

@@ -1,0 +1,144 @@
+"""`deepcontact lab jointed-points`: on a world with joints, is it the points that touch a jointed
+body that keep the default from Box2D's converged answer, or the rest?
+
+    deepcontact lab jointed-points --world examples/chain.py:build --seeds 850-852
+
+The server answers Box2D's own warm start (extrapolated along the stream) at every point that
+touches a jointed body, and the model the rest (server/joints.py). This prices, by the engine's
+trial solves on Box2D's own trajectory (the same states for every answer):
+
+    builtin          Box2D's warm start
+    served           the default's answer as the server gives it (bench.inprocess.InProcess's
+                     call: around the joints, extrapolated along the stream)
+    oracle           the step solved to convergence from Box2D's start (Engine.oracle, the joints
+                     in it): the best a warm start of the contact points alone can be
+    oracle@jointed   served, with the oracle's impulses at the jointed points: what a perfect
+                     answer there alone would be worth
+    oracle@free      the oracle at the points free of joints, served (Box2D's start) at the
+                     jointed ones: what a perfect model of the rest alone would be worth
+    route            the default asked about every point, the joints left out of its problem
+    route:joints-warm  the same on the bodies' velocities after Box2D's warm start of its joints
+                     (the step before's joint impulses, each joint's reaction at its anchors,
+                     Joint.GetReactionForce and GetReactionTorque): the joints held at their
+                     last impulses, the contact problem left once those are given
+
+A research instrument: the joints' impulses are read one joint at a time through pybox2d (the
+patched engine exports only which bodies a joint binds), a few seconds a simulation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from bench.stats import ratio_interval
+
+ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "route", "route:joints-warm")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--world", required=True, metavar="PATH.py:FUNCTION", help="a world with joints")
+    parser.add_argument("--seeds", default="850-852", help="seeds (default 850-852, choosing seeds)")
+    parser.add_argument("--steps", type=int, default=250, help="steps per simulation (default 250)")
+    parser.add_argument("--models", default="models", help="model folder (default models/)")
+    parser.add_argument("--model", default="default", help="the model priced (default: default)")
+
+
+def after_joint_warm_start(engine, bodies: np.ndarray) -> np.ndarray:
+    """A copy of the engine's body records (B,) with each dynamic body's velocity (m/s) and
+    angular velocity (rad/s) moved by its joints' impulses of the step before (N s, each
+    joint's reaction at its two anchors, equal and opposite), as Box2D's warm start of the
+    joints moves them before its contact sweeps."""
+    out = bodies.copy()
+    row = {int(b.this): i for i, b in enumerate(engine.world.bodies)}  # creation order: the records' rows
+    dv = np.zeros((len(bodies), 3))
+    for joint in engine.world.joints:  # pybox2d's objects, one call each: no export of them
+        force, torque = joint.GetReactionForce(1.0), float(joint.GetReactionTorque(1.0))
+        for body, anchor, sign in ((joint.bodyA, joint.anchorA, -1.0), (joint.bodyB, joint.anchorB, 1.0)):
+            if body.type != 2:  # static and kinematic bodies take no impulse
+                continue
+            r = anchor - body.worldCenter
+            local = body.localCenter
+            inertia = body.inertia - body.mass * (local[0] ** 2 + local[1] ** 2)  # about the centre of mass
+            i = row[int(body.this)]
+            dv[i, 0] += sign * force[0] / body.mass
+            dv[i, 1] += sign * force[1] / body.mass
+            dv[i, 2] += sign * (r[0] * force[1] - r[1] * force[0] + torque) / inertia
+    out["velocity"] += dv[:, :2].astype(out["velocity"].dtype)
+    out["angular_velocity"] += dv[:, 2].astype(out["angular_velocity"].dtype)
+    return out
+
+
+def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarray], float]:
+    """({answer: (steps,) velocity iterations} on Box2D's trajectory of (spec, seed), the share
+    of the contact points that touch a jointed body)."""
+    from pathlib import Path
+
+    from bench.inprocess import InProcess
+    from server.joints import jointed_points
+    from simclient import worlds
+
+    engine = worlds.build(spec, seed)
+    served = InProcess.load(Path(models), model, spec)
+    served.prepare(engine)
+    predictor, world = served.predictor, served.world
+    out = {k: [] for k in ANSWERS}
+    jointed_share = []
+    previous = None
+    for k in range(spec.steps):
+        engine.collide()
+        bodies, points = engine.bodies(), engine.contacts()
+        if len(points) == 0:
+            engine.solve()
+            continue
+        builtin = np.stack(engine.builtin_start(), 1).astype(np.float32)
+        friction = {"friction": points["friction"].astype(np.float32)} \
+            if "point_friction" in predictor.requires else {}
+        answer = np.stack(served.warm_start(engine, bodies, points, k), 1).astype(np.float32)
+        fixed = jointed_points(bodies, points, engine.joints())
+        oracle = engine.oracle(start=(builtin[:, 0].copy(), builtin[:, 1].copy()))
+        oracle = np.where(np.isfinite(oracle), oracle, builtin)  # points no awake island solves
+        # The route's own state along a stream (a carried admission) is the served answer's: these
+        # two are asked without it.
+        route = predictor.predict(bodies, points, world, k, previous, **friction).impulses
+        warm = predictor.predict(after_joint_warm_start(engine, bodies), points, world, k, previous,
+                                 **friction).impulses
+        answers = {"builtin": builtin, "served": answer, "oracle": oracle,
+                   "oracle@jointed": np.where(fixed[:, None], oracle, answer),
+                   "oracle@free": np.where(fixed[:, None], answer, oracle),
+                   "route": route, "route:joints-warm": warm}
+        for name in ANSWERS:
+            z = np.asarray(answers[name], np.float32)
+            out[name].append(engine.trial(np.ascontiguousarray(z[:, 0]), np.ascontiguousarray(z[:, 1])))
+        jointed_share.append(float(fixed.mean()))
+        engine.set_warm_start(builtin[:, 0].copy(), builtin[:, 1].copy())
+        engine.solve()
+        previous = points
+    return {k: np.array(v, float) for k, v in out.items()}, float(np.mean(jointed_share)) if jointed_share else 0.0
+
+
+def run(args: argparse.Namespace) -> int:
+    from lab.joints_price import world_and_seeds
+
+    parsed = world_and_seeds(args, "jointed-points")
+    if parsed is None:
+        return 2
+    spec, seeds = parsed
+    from tqdm import tqdm
+
+    try:
+        runs = [price(spec, s, args.models, args.model) for s in tqdm(seeds, unit="sim", file=sys.stderr)]
+    except FileNotFoundError as exc:
+        print(f"deepcontact lab jointed-points: {exc}", file=sys.stderr)
+        return 2
+    share = float(np.mean([r[1] for r in runs]))
+    print(f"`{args.world}`, seeds {args.seeds}, {args.model} on Box2D's own states: each answer's sweeps "
+          f"over Box2D's; {100 * share:.1f} % of the points touch a jointed body")
+    print("| answer | mean sweeps | / builtin |\n|---|---|---|")
+    for name in ANSWERS:
+        ratio = ratio_interval([r[0][name] for r in runs], [r[0]["builtin"] for r in runs])
+        mean = float(np.mean(np.concatenate([r[0][name] for r in runs])))
+        print(f"| {name} | {mean:.1f} | {ratio.text()} |")
+    return 0
