@@ -21,6 +21,22 @@ trial solves on Box2D's own trajectory (the same states for every answer):
                      (the step before's joint impulses, each joint's reaction at its anchors,
                      Joint.GetReactionForce and GetReactionTorque): the joints held at their
                      last impulses, the contact problem left once those are given
+    route:raw        the zoo route's own solve and admission on its classifier's labels
+                     (deepcontact.faces.route_compiled, the zoo card's settings), with no check
+                     against Box2D's start, the joints left out
+    route:joints-as-points  the same with each joint in the step's problem as two contact points
+                     at its anchor, normals opposed, labelled pressing and sticking with no
+                     friction bound (a rigid revolute joint's two rows), the classifier asked
+                     about them too (friction 1, Box2D's start their last impulse): only on a
+                     world whose joints are all rigid revolute ones (no limit, no motor)
+    labels:oracle    the same route on the oracle's own labels (read at 1e-6 N s and 0.99 of the
+                     cone, 200 admission rounds), the joints left out
+    labels:oracle+joints-as-points  the same with the joints as points: what the route, joints in,
+                     makes of right labels
+    labels:oracle@jointed+joints-as-points  the oracle's labels at the jointed points, the
+                     classifier's (read as the zoo card reads them) at the rest, the joints as points
+    labels:builtin@jointed+joints-as-points  the same with Box2D's start read as labels at the
+                     jointed points (the step before's impulses, read as the oracle's are)
 
 A research instrument: the joints' impulses are read one joint at a time through pybox2d (the
 patched engine exports only which bodies a joint binds), a few seconds a simulation.
@@ -34,8 +50,18 @@ import sys
 import numpy as np
 
 from bench.stats import ratio_interval
+from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face
 
-ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "route", "route:joints-warm")
+ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "route", "route:joints-warm", "route:raw",
+           "route:joints-as-points", "labels:oracle", "labels:oracle+joints-as-points",
+           "labels:oracle@jointed+joints-as-points", "labels:builtin@jointed+joints-as-points")
+#: How the oracle's impulses are read as labels (deepcontact.faces.contact_face: pressing above this
+#: many N s, sliding at this share of the cone) and admitted, as lab.joint_route reads them.
+ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS = 1e-6, 0.99, 200
+#: A joint's two points: labelled pressing (N s, far past any card's `pressing`) and sticking, and
+#: held in a cone this wide, so that its impulse is bounded in no direction.
+JOINT_LABEL = 1e3
+JOINT_FRICTION = 1e3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,6 +97,56 @@ def after_joint_warm_start(engine, bodies: np.ndarray) -> np.ndarray:
     return out
 
 
+def rigid_joint_points(engine, template: np.ndarray) -> np.ndarray | None:
+    """Each joint as two contact records (template's dtype) at its anchor between its two bodies
+    (engine body indices), normals +x and -x, Box2D's start the joint's last impulse on them
+    (N s), friction 1 as the classifier reads it; None where a joint is not a rigid revolute one."""
+    import Box2D
+
+    row = {int(b.this): i for i, b in enumerate(engine.world.bodies)}
+    joints = list(engine.world.joints)
+    if any(not isinstance(j, Box2D.b2RevoluteJoint) or j.limitEnabled or j.motorEnabled for j in joints):
+        return None
+    out = np.zeros(2 * len(joints), template.dtype)
+    for i, joint in enumerate(joints):  # pybox2d's objects, one call each: no export of them
+        impulse = joint.GetReactionForce(1.0)
+        for k, sign in ((2 * i, 1.0), (2 * i + 1, -1.0)):
+            along, across = sign * impulse[0], -sign * impulse[1]  # on the normal (sign, 0) and its tangent (0, -sign)
+            out[k]["key"] = np.uint64(2**63 + k)
+            out[k]["body_a"], out[k]["body_b"] = row[int(joint.bodyA.this)], row[int(joint.bodyB.this)]
+            out[k]["point"] = tuple(joint.anchorB)
+            out[k]["normal"] = (sign, 0.0)
+            out[k]["builtin"] = (max(along, 0.0), across / 2)
+            out[k]["friction"] = 1.0
+    out["warm_start"] = np.nan
+    out["impulse"] = np.nan
+    return out
+
+
+def _as_impulses(face: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """(P, 2) impulses (N s) that contact_face reads as `face` (P,) at any pressing below 1 N s
+    and any share up to 1: 1 N s along the normal where a point presses, mu of it along the
+    tangent where it slides, its sign the way it slides."""
+    out = np.zeros((len(face), 2))
+    out[face != OPEN, 0] = 1.0
+    out[face == SLIDES_PLUS, 1] = mu[face == SLIDES_PLUS]
+    out[face == SLIDES_MINUS, 1] = -mu[face == SLIDES_MINUS]
+    return out
+
+
+def _raw_route(zoo, bodies, points, labels, mu, world, read=None) -> np.ndarray | None:
+    """The zoo route's compiled solve and admission on `labels` (P, 2) N s, read at the card's
+    settings or, with read = (pressing, share, rounds), at those; None where it declines."""
+    from deepcontact.faces import route_compiled
+
+    face = zoo.settings
+    pressing, share, rounds = read or (face["pressing"], face["share"], face["rounds"])
+    answer = route_compiled(bodies, points, np.asarray(labels, np.float64), np.asarray(mu, np.float64), world.physics,
+                            pressing, share, None if read else face["label_friction"], rounds, None, None,
+                            face["relax"], face["rho"], None)
+    return None if answer is None else answer.impulses
+
+
 def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarray], float]:
     """({answer: (steps,) velocity iterations} on Box2D's trajectory of (spec, seed), the share
     of the contact points that touch a jointed body)."""
@@ -80,7 +156,10 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
     from server.joints import jointed_points
     from simclient import worlds
 
+    from server.predictors import load_model
+
     engine = worlds.build(spec, seed)
+    zoo = load_model(Path(models) / "zoo.json")
     served = InProcess.load(Path(models), model, spec)
     served.prepare(engine)
     predictor, world = served.predictor, served.world
@@ -105,11 +184,41 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
         route = predictor.predict(bodies, points, world, k, previous, **friction).impulses
         warm = predictor.predict(after_joint_warm_start(engine, bodies), points, world, k, previous,
                                  **friction).impulses
+        mu = points["friction"].astype(np.float32)
+        labels = zoo.classifier.predict(bodies, points, world, k, previous, friction=mu).impulses
+        raw = _raw_route(zoo, bodies, points, labels, mu, world)
         answers = {"builtin": builtin, "served": answer, "oracle": oracle,
                    "oracle@jointed": np.where(fixed[:, None], oracle, answer),
                    "oracle@free": np.where(fixed[:, None], answer, oracle),
-                   "route": route, "route:joints-warm": warm}
+                   "route": route, "route:joints-warm": warm, "route:raw": builtin if raw is None else raw}
+        oracle_read = (ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS)
+        exact = _raw_route(zoo, bodies, points, oracle, mu, world, oracle_read)
+        answers["labels:oracle"] = builtin if exact is None else exact
+        joint_points = rigid_joint_points(engine, points)
+        if joint_points is not None:
+            P = len(points)
+            both = np.concatenate([points, joint_points])
+            learned = zoo.classifier.predict(bodies, both, world, k, None,
+                                             friction=np.asarray(both["friction"], np.float32)).impulses.copy()
+            learned[P:] = (JOINT_LABEL, 0.0)
+            mu_both = np.concatenate([mu, np.full(len(joint_points), JOINT_FRICTION, np.float32)])
+            joined = _raw_route(zoo, bodies, both, learned, mu_both, world)
+            answers["route:joints-as-points"] = builtin if joined is None else joined[:P]
+            right = np.concatenate([oracle, learned[P:]])
+            joined = _raw_route(zoo, bodies, both, right, mu_both, world, oracle_read)
+            answers["labels:oracle+joints-as-points"] = builtin if joined is None else joined[:P]
+            # The two read alike: the classifier's labels at the free points read at the card's
+            # settings, then written as impulses that the oracle's reading takes for the same face.
+            mixed = np.where(fixed[:, None], oracle, _as_impulses(contact_face(
+                np.asarray(learned[:P], np.float64), mu, zoo.settings["pressing"], zoo.settings["share"]), mu))
+            joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
+            answers["labels:oracle@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
+            mixed[fixed] = builtin[fixed]
+            joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
+            answers["labels:builtin@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
         for name in ANSWERS:
+            if name not in answers:
+                continue
             z = np.asarray(answers[name], np.float32)
             out[name].append(engine.trial(np.ascontiguousarray(z[:, 0]), np.ascontiguousarray(z[:, 1])))
         jointed_share.append(float(fixed.mean()))
@@ -138,6 +247,9 @@ def run(args: argparse.Namespace) -> int:
           f"over Box2D's; {100 * share:.1f} % of the points touch a jointed body")
     print("| answer | mean sweeps | / builtin |\n|---|---|---|")
     for name in ANSWERS:
+        if any(len(r[0][name]) != len(r[0]["builtin"]) for r in runs):
+            print(f"| {name} | – | – (a joint other than a rigid revolute one) |")
+            continue
         ratio = ratio_interval([r[0][name] for r in runs], [r[0]["builtin"] for r in runs])
         mean = float(np.mean(np.concatenate([r[0][name] for r in runs])))
         print(f"| {name} | {mean:.1f} | {ratio.text()} |")
