@@ -51,6 +51,7 @@ import numpy as np
 
 from bench.stats import ratio_interval
 from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face
+from lab.joint_points import joint_point_pairs
 
 ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "route", "route:joints-warm", "route:raw",
            "route:joints-as-points", "labels:oracle", "labels:oracle+joints-as-points",
@@ -58,8 +59,8 @@ ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "rout
 #: How the oracle's impulses are read as labels (deepcontact.faces.contact_face: pressing above this
 #: many N s, sliding at this share of the cone) and admitted, as lab.joint_route reads them.
 ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS = 1e-6, 0.99, 200
-#: A joint's two points: labelled pressing (N s, far past any card's `pressing`) and sticking, and
-#: held in a cone this wide, so that its impulse is bounded in no direction.
+#: A joint's two points (lab.joint_points): labelled pressing (N s, far past any card's `pressing`)
+#: and sticking, and held in a cone this wide, so that its impulse is bounded in no direction.
 JOINT_LABEL = 1e3
 JOINT_FRICTION = 1e3
 
@@ -94,32 +95,6 @@ def after_joint_warm_start(engine, bodies: np.ndarray) -> np.ndarray:
             dv[i, 2] += sign * (r[0] * force[1] - r[1] * force[0] + torque) / inertia
     out["velocity"] += dv[:, :2].astype(out["velocity"].dtype)
     out["angular_velocity"] += dv[:, 2].astype(out["angular_velocity"].dtype)
-    return out
-
-
-def rigid_joint_points(engine, template: np.ndarray) -> np.ndarray | None:
-    """Each joint as two contact records (template's dtype) at its anchor between its two bodies
-    (engine body indices), normals +x and -x, Box2D's start the joint's last impulse on them
-    (N s), friction 1 as the classifier reads it; None where a joint is not a rigid revolute one."""
-    import Box2D
-
-    row = {int(b.this): i for i, b in enumerate(engine.world.bodies)}
-    joints = list(engine.world.joints)
-    if any(not isinstance(j, Box2D.b2RevoluteJoint) or j.limitEnabled or j.motorEnabled for j in joints):
-        return None
-    out = np.zeros(2 * len(joints), template.dtype)
-    for i, joint in enumerate(joints):  # pybox2d's objects, one call each: no export of them
-        impulse = joint.GetReactionForce(1.0)
-        for k, sign in ((2 * i, 1.0), (2 * i + 1, -1.0)):
-            along, across = sign * impulse[0], -sign * impulse[1]  # on the normal (sign, 0) and its tangent (0, -sign)
-            out[k]["key"] = np.uint64(2**63 + k)
-            out[k]["body_a"], out[k]["body_b"] = row[int(joint.bodyA.this)], row[int(joint.bodyB.this)]
-            out[k]["point"] = tuple(joint.anchorB)
-            out[k]["normal"] = (sign, 0.0)
-            out[k]["builtin"] = (max(along, 0.0), across / 2)
-            out[k]["friction"] = 1.0
-    out["warm_start"] = np.nan
-    out["impulse"] = np.nan
     return out
 
 
@@ -194,7 +169,7 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
         oracle_read = (ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS)
         exact = _raw_route(zoo, bodies, points, oracle, mu, world, oracle_read)
         answers["labels:oracle"] = builtin if exact is None else exact
-        joint_points = rigid_joint_points(engine, points)
+        joint_points = joint_point_pairs(engine, points.dtype, only_rigid=False)
         if joint_points is not None:
             P = len(points)
             both = np.concatenate([points, joint_points])

@@ -32,7 +32,8 @@ from simclient.scene import SceneSpec
 from training.dataset import COMPRESSIONS, STEP_DTYPE, Writer
 
 
-def record_simulation(spec, seed: int, record: bool = True, oracle: bool = False) -> dict[str, np.ndarray]:
+def record_simulation(spec, seed: int, record: bool = True, oracle: bool = False,
+                      extra_points=None) -> dict[str, np.ndarray]:
     """Run one simulation of a scene (SceneSpec) or a user's world (simclient.worlds.WorldSpec,
     e.g. a zoo class) with Box2D's builtin warm start.
 
@@ -45,7 +46,10 @@ def record_simulation(spec, seed: int, record: bool = True, oracle: bool = False
     body (a user's world may let bodies sleep) is not solved: Box2D keeps its
     impulse, so its warm start and final impulse are recorded as that impulse
     (Box2D's own warm start), not as NaN. With record=False it
-    only runs the steps (the baseline of `deepcontact lab generate`).
+    only runs the steps (the baseline of `deepcontact lab generate`). extra_points: None, or a
+    function of the engine, called after each collide, whose (Q,) CONTACT_DTYPE records (their
+    final impulse already set) are recorded after the step's own points (lab.joint_points: each
+    rigid joint as two points the solver does not see).
     """
     engine = worlds.build(spec, seed)
     if not record:
@@ -58,6 +62,7 @@ def record_simulation(spec, seed: int, record: bool = True, oracle: bool = False
     for k in range(spec.steps):
         engine.collide()
         b = engine.bodies()
+        extra = extra_points(engine) if extra_points is not None else None
         solved = engine.oracle() if oracle else None
         stats = engine.solve()
         p = engine.contacts()
@@ -66,6 +71,10 @@ def record_simulation(spec, seed: int, record: bool = True, oracle: bool = False
             p["impulse"][asleep] = p["warm_start"][asleep] = p["builtin"][asleep]
         if oracle:
             exact.append(np.where(np.isfinite(solved), solved, p["impulse"]).astype(np.float32))
+            if extra is not None:
+                exact.append(extra["impulse"].astype(np.float32))
+        if extra is not None:
+            p = np.concatenate([p, extra])
         row = steps[k]
         row["seed"], row["step"] = seed, k
         row["body_offset"], row["body_count"] = n_bodies, len(b)
