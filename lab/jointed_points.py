@@ -140,7 +140,7 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
     predictor, world = served.predictor, served.world
     out = {k: [] for k in ANSWERS}
     jointed_share = []
-    previous = None
+    previous = previous_both = None  # the step before's points, for the channels that read it (new_point)
     for k in range(spec.steps):
         engine.collide()
         bodies, points = engine.bodies(), engine.contacts()
@@ -173,7 +173,7 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
         if joint_points is not None:
             P = len(points)
             both = np.concatenate([points, joint_points])
-            learned = zoo.classifier.predict(bodies, both, world, k, None,
+            learned = zoo.classifier.predict(bodies, both, world, k, previous_both,
                                              friction=np.asarray(both["friction"], np.float32)).impulses.copy()
             learned[P:] = (JOINT_LABEL, 0.0)
             mu_both = np.concatenate([mu, np.full(len(joint_points), JOINT_FRICTION, np.float32)])
@@ -200,6 +200,7 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
         engine.set_warm_start(builtin[:, 0].copy(), builtin[:, 1].copy())
         engine.solve()
         previous = points
+        previous_both = both if joint_points is not None else None
     return {k: np.array(v, float) for k, v in out.items()}, float(np.mean(jointed_share)) if jointed_share else 0.0
 
 
