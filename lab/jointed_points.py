@@ -37,6 +37,16 @@ trial solves on Box2D's own trajectory (the same states for every answer):
                      classifier's (read as the zoo card reads them) at the rest, the joints as points
     labels:builtin@jointed+joints-as-points  the same with Box2D's start read as labels at the
                      jointed points (the step before's impulses, read as the oracle's are)
+    labels:repaired-K@jointed+joints-as-points  the classifier's labels everywhere, then K steps of
+                     a primal-dual active-set method at the jointed points alone
+                     (deepcontact.faces.repair_face on the route's admitted answer, the joints as
+                     points; the free points keep the classifier's labels), K = 1, 2, 4: whether the
+                     route's own solves find the jointed points' labels where the classifier does not
+
+and a second table: at the jointed and at the free points, how many of the solution's labels
+(the oracle's, read as above) the classifier gets right, and after each K repairs, and how many
+of them a point keeps from the step before (the same contact, by its key): how far a label
+there can be read off the step before.
 
 A research instrument: the joints' impulses are read one joint at a time through pybox2d (the
 patched engine exports only which bodies a joint binds), a few seconds a simulation.
@@ -50,12 +60,18 @@ import sys
 import numpy as np
 
 from bench.stats import ratio_interval
-from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face
+from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face, repair_face
 from lab.joint_points import joint_point_pairs
 
+#: The repairs priced (labels:repaired-K@jointed+joints-as-points).
+REPAIRS = (1, 2, 4)
 ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "route", "route:joints-warm", "route:raw",
            "route:joints-as-points", "labels:oracle", "labels:oracle+joints-as-points",
-           "labels:oracle@jointed+joints-as-points", "labels:builtin@jointed+joints-as-points")
+           "labels:oracle@jointed+joints-as-points", "labels:builtin@jointed+joints-as-points",
+           *(f"labels:repaired-{k}@jointed+joints-as-points" for k in REPAIRS))
+#: The second table's rows: labels right against the oracle's, at the jointed and the free points.
+LABEL_ROWS = ("the classifier's", *(f"after {k} repair{'s' if k > 1 else ''}" for k in REPAIRS),
+              "the step before's solution")
 #: How the oracle's impulses are read as labels (deepcontact.faces.contact_face: pressing above this
 #: many N s, sliding at this share of the cone) and admitted, as lab.joint_route reads them.
 ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS = 1e-6, 0.99, 200
@@ -122,9 +138,30 @@ def _raw_route(zoo, bodies, points, labels, mu, world, read=None) -> np.ndarray 
     return None if answer is None else answer.impulses
 
 
-def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarray], float]:
+def _count(counts: dict, row: str, face: np.ndarray, reference: np.ndarray, fixed: np.ndarray,
+           among: np.ndarray | None = None) -> None:
+    """Add to counts[row] the (right, all) labels of `face` (P,) against `reference` (P,) at the
+    jointed points (`fixed`, (P,) bool) and at the free ones, among the points `among` (all if None)."""
+    among = np.ones(len(face), bool) if among is None else among
+    right = face == reference
+    for where, name in ((fixed & among, "jointed"), (~fixed & among, "free")):
+        counts[row][name] += np.array([int(right[where].sum()), int(where.sum())])
+
+
+def _kept(keys: np.ndarray, before: tuple[np.ndarray, np.ndarray] | None):
+    """((P,) bool: the point, by its key (P,) uint64, was in the step before; (P,) int8 its label
+    there, or -1); before: (sorted keys, their labels) of the step before, or None."""
+    if before is None or len(before[0]) == 0:
+        return np.zeros(len(keys), bool), np.full(len(keys), -1, np.int8)
+    at = np.minimum(np.searchsorted(before[0], keys), len(before[0]) - 1)
+    there = before[0][at] == keys
+    return there, np.where(there, before[1][at], -1).astype(np.int8)
+
+
+def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarray], float, dict]:
     """({answer: (steps,) velocity iterations} on Box2D's trajectory of (spec, seed), the share
-    of the contact points that touch a jointed body)."""
+    of the contact points that touch a jointed body, {LABEL_ROWS row: {"jointed" | "free":
+    (right, all) labels}})."""
     from pathlib import Path
 
     from bench.inprocess import InProcess
@@ -140,6 +177,8 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
     predictor, world = served.predictor, served.world
     out = {k: [] for k in ANSWERS}
     jointed_share = []
+    counts = {row: {"jointed": np.zeros(2, int), "free": np.zeros(2, int)} for row in LABEL_ROWS}
+    before = None  # (sorted keys, the solution's labels) of the step before
     previous = previous_both = None  # the step before's points, for the channels that read it (new_point)
     for k in range(spec.steps):
         engine.collide()
@@ -167,6 +206,11 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
                    "oracle@free": np.where(fixed[:, None], answer, oracle),
                    "route": route, "route:joints-warm": warm, "route:raw": builtin if raw is None else raw}
         oracle_read = (ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS)
+        reference = contact_face(np.asarray(oracle, np.float64), mu, ORACLE_PRESSING, ORACLE_SHARE)
+        there, label_before = _kept(points["key"], before)
+        _count(counts, "the step before's solution", label_before, reference, fixed, there)
+        order = np.argsort(points["key"])
+        before = (points["key"][order], reference[order])
         exact = _raw_route(zoo, bodies, points, oracle, mu, world, oracle_read)
         answers["labels:oracle"] = builtin if exact is None else exact
         joint_points = joint_point_pairs(engine, points.dtype, only_rigid=False)
@@ -191,6 +235,22 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
             mixed[fixed] = builtin[fixed]
             joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
             answers["labels:builtin@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
+            # Repairs at the jointed points alone, from the classifier's labels: each reads the
+            # labels off the route's answer on the last ones (the joints as points) and solves again.
+            face = contact_face(np.asarray(learned[:P], np.float64), mu, zoo.settings["pressing"],
+                                zoo.settings["share"])
+            _count(counts, "the classifier's", face, reference, fixed)
+            joined = _raw_route(zoo, bodies, both, np.concatenate([_as_impulses(face, mu), learned[P:]]), mu_both,
+                                world, oracle_read)
+            for repairs in range(1, max(REPAIRS) + 1):
+                if joined is not None:  # where the route declines the labels, they stay as they are
+                    face[fixed] = repair_face(bodies, both, joined, mu_both, world.physics)[:P][fixed]
+                    joined = _raw_route(zoo, bodies, both, np.concatenate([_as_impulses(face, mu), learned[P:]]),
+                                        mu_both, world, oracle_read)
+                if repairs in REPAIRS:
+                    answers[f"labels:repaired-{repairs}@jointed+joints-as-points"] = \
+                        builtin if joined is None else joined[:P]
+                    _count(counts, LABEL_ROWS[1 + REPAIRS.index(repairs)], face, reference, fixed)
         for name in ANSWERS:
             if name not in answers:
                 continue
@@ -201,7 +261,8 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
         engine.solve()
         previous = points
         previous_both = both if joint_points is not None else None
-    return {k: np.array(v, float) for k, v in out.items()}, float(np.mean(jointed_share)) if jointed_share else 0.0
+    return ({k: np.array(v, float) for k, v in out.items()},
+            float(np.mean(jointed_share)) if jointed_share else 0.0, counts)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -229,4 +290,12 @@ def run(args: argparse.Namespace) -> int:
         ratio = ratio_interval([r[0][name] for r in runs], [r[0]["builtin"] for r in runs])
         mean = float(np.mean(np.concatenate([r[0][name] for r in runs])))
         print(f"| {name} | {mean:.1f} | {ratio.text()} |")
+    print("\nThe solution's labels (read at 1e-6 N s and 0.99 of the cone): how many each reading gets right")
+    print("| labels | at the jointed points | at the free points |\n|---|---|---|")
+    for row in LABEL_ROWS:
+        cells = []
+        for where in ("jointed", "free"):
+            right, total = sum(r[2][row][where] for r in runs)
+            cells.append(f"{100 * right / total:.1f} % of {total:,}" if total else "–")
+        print(f"| {row} | {cells[0]} | {cells[1]} |")
     return 0

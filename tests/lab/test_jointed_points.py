@@ -9,7 +9,7 @@ from pathlib import Path
 import Box2D
 import numpy as np
 
-from lab.jointed_points import ANSWERS, add_arguments, after_joint_warm_start, run
+from lab.jointed_points import ANSWERS, LABEL_ROWS, add_arguments, after_joint_warm_start, run
 from simclient.engine import Engine, SolverConfig
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -46,12 +46,19 @@ def test_the_chain_is_priced_on_box2ds_states_for_every_answer(capsys):
     add_arguments(parser)
     args = parser.parse_args(["--world", f"{EXAMPLES / 'chain.py'}:build", "--seeds", "850", "--steps", "40"])
     assert run(args) == 0
-    table = capsys.readouterr().out
-    assert "% of the points touch a jointed body" in table
-    rows = {line.split("|")[1].strip(): float(line.split("|")[2]) for line in table.splitlines()
+    out = capsys.readouterr().out
+    assert "% of the points touch a jointed body" in out
+    sweeps, labels = out.split("\n\n")
+    rows = {line.split("|")[1].strip(): float(line.split("|")[2]) for line in sweeps.splitlines()
             if line.startswith("| ") and not line.startswith("| answer")}
     assert set(rows) == set(ANSWERS)
     assert rows["oracle"] < rows["builtin"]  # the converged answer needs fewer sweeps than Box2D's start
+    # The second table: each reading of the labels, right at the jointed and at the free points.
+    right = {line.split("|")[1].strip(): line.split("|")[2:4] for line in labels.splitlines()
+             if line.startswith("| ") and not line.startswith("| labels")}
+    assert set(right) == set(LABEL_ROWS)
+    for cells in right.values():
+        assert all(0.0 <= float(cell.split("%")[0]) <= 100.0 for cell in cells)
 
 
 def test_a_world_that_does_not_load_is_one_line_of_error(capsys):
