@@ -44,6 +44,12 @@ name another:
                     zoo-ungated-rN-check200-stop the same in N rounds for N in STOP_ROUNDS,
                     zoo-resR-rN-check200-stop those gated at R / 10 for R in STOP_GATES
                     (docs/research/2026-12-06-the-zoo-checks-sweeps.md)
+    zoo-s7e6        the zoo route as shipped (models/zoo.json's face, not ZOO_FACE) on the shipped
+                    zoo classifier trained six more epochs (s7e6-modes:
+                    graph-labels-scaled-zoo-r12-e4-s7-e6); default-s7e6 the shipped default
+                    falling back to it; zoo-s7e6-s9e6 and default-s7e6-s9e6 the same on that network
+                    trained six epochs more (s7e6-s9e6-modes: graph-labels-scaled-zoo-r12-e4-s7-e6-s9-e6)
+                    (docs/research/2026-12-07-the-zoo-classifier-trained-on.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -61,6 +67,9 @@ from lab.variants import main as variants_main
 STORE = ROOT / "lab" / "models"
 FIRST = "graph-labels-scaled-zoo-first-r12-e4"
 WIDER = "graph-labels-scaled-zoo500-r12-e4"
+#: The shipped zoo classifier trained on (six more epochs on another draw of each file's steps), and
+#: that network six epochs more on a third draw: (store name, its tag in the variants' names).
+TRAINED_ON = (("graph-labels-scaled-zoo-r12-e4-s7-e6", "s7e6"), ("graph-labels-scaled-zoo-r12-e4-s7-e6-s9-e6", "s7e6-s9e6"))
 #: The zoo route's face as shipped until its check counted the sweeps to the client's stopping rule
 #: (2026-12-06): every zoo variant here changes this one, so that each keeps its meaning whatever
 #: ships later; `zoo-before` serves it as it is.
@@ -83,7 +92,8 @@ def _fill(tmp: Path) -> None:
     # The default's variants fall back to the zoo route as it was (zoo-before) unless they name another.
     face = {**json.loads((tmp / "default.json").read_text())["face"], "fallback": "zoo-before"}
     zoo_face = dict(ZOO_FACE)
-    for store_name, name in ((FIRST, "zoo-first-modes"), (WIDER, "zoo500-modes")):
+    for store_name, name in ((FIRST, "zoo-first-modes"), (WIDER, "zoo500-modes"),
+                             *((store, f"{tag}-modes") for store, tag in TRAINED_ON)):
         network = json.loads((STORE / f"{store_name}.json").read_text())
         network.update(name=name, onnx_file=f"{name}.onnx", measured=None)
         shutil.copy(STORE / f"{store_name}.onnx", tmp / f"{name}.onnx")
@@ -92,6 +102,12 @@ def _fill(tmp: Path) -> None:
     card(tmp, "default-bf", alias_of="contact-modes", face=no_fallback)
     card(tmp, "default-graph", alias_of="contact-modes", face={**face, "fallback": "contact-graph"})
     card(tmp, "zoo-first", alias_of="zoo-first-modes", face=zoo_face)
+    # The network trained on, behind the zoo route and the default exactly as shipped.
+    shipped_zoo, shipped_default = (json.loads((tmp / f"{n}.json").read_text()) for n in ("zoo", "default"))
+    for _, tag in TRAINED_ON:
+        card(tmp, f"zoo-{tag}", alias_of=f"{tag}-modes", face=shipped_zoo["face"])
+        card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
     card(tmp, "zoo-bf", alias_of="contact-modes-zoo", face={k: v for k, v in zoo_face.items() if k != "fallback"})
     card(tmp, "zoo-always", alias_of="contact-modes-zoo",
          face={**{k: v for k, v in zoo_face.items() if k != "fallback"}, "max_points": 5000, "max_residual": None})

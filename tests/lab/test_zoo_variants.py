@@ -37,3 +37,19 @@ def test_the_variants_folder_serves_the_shipped_models_and_each_variant(tmp_path
     assert served["default-stop"].settings == {**served["default"].settings, "check_stop": True, "fallback": "zoo-before"}
     assert served["zoo-ungated-r100-check200-stop"].settings == \
         {**zoo, "max_residual": None, "rounds": 100, "check_sweeps": 200, "check_stop": True}
+
+
+def test_the_zoo_classifier_trained_on_is_served_behind_the_routes_exactly_as_shipped(tmp_path):
+    out = tmp_path / "variants"
+    assert main([str(out)]) == 0
+    served = {p.name: p for p in load_models(out)}
+    zoo, candidate = served["zoo"], served["zoo-s7e6"]
+    assert candidate.settings == zoo.settings  # the shipped zoo route's face, another network under it
+    assert candidate.classifier.card.onnx_file == "s7e6-modes.onnx"
+    assert zoo.classifier.card.onnx_file == "contact-modes-zoo.onnx"
+    default = served["default-s7e6"]
+    assert default.settings == {**served["default"].settings, "fallback": "zoo-s7e6"}
+    assert default.fallback is candidate or default.fallback.name == "zoo-s7e6"
+    assert served["zoo-s7e6-s9e6"].settings == zoo.settings  # its next six epochs, the same way
+    assert served["zoo-s7e6-s9e6"].classifier.card.onnx_file == "s7e6-s9e6-modes.onnx"
+    assert served["default-s7e6-s9e6"].settings == {**served["default"].settings, "fallback": "zoo-s7e6-s9e6"}
