@@ -132,7 +132,8 @@ def _network_arguments(parser) -> None:
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="features per point (default %(default)s)")
     parser.add_argument("--rounds", type=int, default=DEFAULTS["rounds"],
                         help="message-passing rounds (default %(default)s); with --init from a network with "
-                             "fewer, the new rounds follow its last and start as pass-throughs")
+                             "fewer, the new rounds follow its last and start as pass-throughs; from one with more, "
+                             "its first rounds are kept and the rest dropped")
     parser.add_argument("--extra-inputs", default="", metavar="NAMES",
                         help="contact-point channels read after the standard ones, comma-separated (e.g. "
                              "last_correction_normal,last_correction_tangent; deepcontact/channels.py defines them); "
@@ -860,6 +861,12 @@ def initial_weights(path: Path, config) -> dict[str, np.ndarray]:
         for r in range(rounds, config.rounds):
             for k in (k for k in fresh if k.startswith(f"round{r}_")):
                 weights[k] = np.zeros_like(fresh[k]) if k.startswith(f"round{r}_update1/") else fresh[k]
+    if not config.tied and rounds > config.rounds > 0 and all(k in weights for k in expected):
+        # A network with more rounds: its first ones kept, the rest dropped. Each round adds its
+        # update to the points' state (the residual), so the kept rounds compute what they did and
+        # the decoder, trained on from here, reads the state after fewer of them.
+        weights = {k: v for k, v in weights.items()
+                   if not (k.startswith("round") and int(k[len("round"):k.index("_")]) >= config.rounds)}
     k = "encode0/kernel"
     if k in weights and weights[k].shape[0] < config.in_channels and weights[k].shape[1:] == expected[k][1:]:
         # A network that read fewer inputs (--extra-inputs): the new ones get zero rows in the

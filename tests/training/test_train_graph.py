@@ -430,7 +430,7 @@ def test_a_pooled_network_starts_as_the_plain_one_and_pools_each_step_alone(grap
     assert not np.allclose(together[:n3], ContactGraphNet(plain_config, plain)(x, e, d).numpy()[:n3], atol=1e-3)
 
 
-def test_a_network_grown_by_rounds_starts_as_the_one_it_grew_from(graphs, tmp_path):
+def test_a_network_grown_by_rounds_starts_as_the_one_it_grew_from_and_cut_back_is_it_again(graphs, tmp_path):
     from training.graph_model import ContactGraphNet, GraphConfig, init_weights
     from training.train_graph import initial_weights
 
@@ -445,10 +445,13 @@ def test_a_network_grown_by_rounds_starts_as_the_one_it_grew_from(graphs, tmp_pa
     x, _, e, d = graphs.batch([3, 5])
     np.testing.assert_allclose(ContactGraphNet(deep_config, grown)(x, e, d).numpy(),
                                ContactGraphNet(small_config, small)(x, e, d).numpy(), rtol=1e-6, atol=1e-6)
-    # Fewer rounds than the weights hold is another network.
+    # Fewer rounds than the weights hold keeps their first ones: here exactly the network it grew from.
     np.savez(tmp_path / "deep.weights.npz", **grown)
+    cut = initial_weights(tmp_path / "deep.weights.npz", small_config)
+    assert set(cut) == set(small) and all(np.array_equal(cut[k], small[k]) for k in small)
+    # Another width is another network.
     with pytest.raises(ValueError, match="another network"):
-        initial_weights(tmp_path / "deep.weights.npz", small_config)
+        initial_weights(tmp_path / "deep.weights.npz", GraphConfig(in_channels=len(GRAPH_INPUTS), width=16, rounds=2))
 
 
 def test_train_graph_pooled_from_a_plain_run_exports_a_model_onnx_runtime_runs_like_tensorflow(data, tmp_path):
