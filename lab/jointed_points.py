@@ -42,6 +42,12 @@ trial solves on Box2D's own trajectory (the same states for every answer):
                      (deepcontact.faces.repair_face on the route's admitted answer, the joints as
                      points; the free points keep the classifier's labels), K = 1, 2, 4: whether the
                      route's own solves find the jointed points' labels where the classifier does not
+    sweeps-K         Box2D's start after K of the solver's own sweeps (Engine.oracle capped at K,
+                     the joints in it), K = 12, 24: what those sweeps alone are worth
+    labels:sweeps-K@jointed+joints-as-points  Box2D's start after K sweeps read as labels at the
+                     jointed points (as the oracle's are), the classifier's at the rest, the joints
+                     as points: whether the solver's first sweeps, which carry a joint's impulse
+                     a link a sweep, find the labels there
 
 and a second table: at the jointed and at the free points, how many of the solution's labels
 (the oracle's, read as above) the classifier gets right, and after each K repairs, and how many
@@ -65,13 +71,16 @@ from lab.joint_points import joint_point_pairs
 
 #: The repairs priced (labels:repaired-K@jointed+joints-as-points).
 REPAIRS = (1, 2, 4)
+#: Box2D's sweeps before its start is read as labels (sweeps-K, labels:sweeps-K@jointed+joints-as-points).
+SWEEP_READS = (12, 24)
 ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "route", "route:joints-warm", "route:raw",
            "route:joints-as-points", "labels:oracle", "labels:oracle+joints-as-points",
            "labels:oracle@jointed+joints-as-points", "labels:builtin@jointed+joints-as-points",
-           *(f"labels:repaired-{k}@jointed+joints-as-points" for k in REPAIRS))
+           *(f"labels:repaired-{k}@jointed+joints-as-points" for k in REPAIRS),
+           *(f"sweeps-{k}" for k in SWEEP_READS), *(f"labels:sweeps-{k}@jointed+joints-as-points" for k in SWEEP_READS))
 #: The second table's rows: labels right against the oracle's, at the jointed and the free points.
 LABEL_ROWS = ("the classifier's", *(f"after {k} repair{'s' if k > 1 else ''}" for k in REPAIRS),
-              "the step before's solution")
+              "the step before's solution", *(f"Box2D's start after {k} sweeps" for k in SWEEP_READS))
 #: How the oracle's impulses are read as labels (deepcontact.faces.contact_face: pressing above this
 #: many N s, sliding at this share of the cone) and admitted, as lab.joint_route reads them.
 ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS = 1e-6, 0.99, 200
@@ -235,6 +244,16 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
             mixed[fixed] = builtin[fixed]
             joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
             answers["labels:builtin@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
+            for sweeps in SWEEP_READS:
+                swept = engine.oracle(max_iterations=sweeps, start=(builtin[:, 0].copy(), builtin[:, 1].copy()))
+                swept = np.where(np.isfinite(swept), swept, builtin)
+                answers[f"sweeps-{sweeps}"] = swept
+                _count(counts, f"Box2D's start after {sweeps} sweeps",
+                       contact_face(np.asarray(swept, np.float64), mu, ORACLE_PRESSING, ORACLE_SHARE), reference, fixed)
+                mixed[fixed] = swept[fixed]
+                joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world,
+                                    oracle_read)
+                answers[f"labels:sweeps-{sweeps}@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
             # Repairs at the jointed points alone, from the classifier's labels: each reads the
             # labels off the route's answer on the last ones (the joints as points) and solves again.
             face = contact_face(np.asarray(learned[:P], np.float64), mu, zoo.settings["pressing"],
