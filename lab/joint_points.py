@@ -74,6 +74,20 @@ def joint_point_pairs(engine, template_dtype: np.dtype, only_rigid: bool = True)
     return out
 
 
+def joint_impulses(engine, answer: np.ndarray) -> np.ndarray:
+    """The joints' impulses an answer at their points (joint_point_pairs, every joint a rigid
+    revolute one) holds: answer (2 J, 2) N s (normal, tangent) of the joints' points, in their
+    order; returns (J, 2) float32, N s, world frame, on each joint's body B, in the engine's
+    joint order (Engine.joints, what Engine.set_revolute_impulses takes). A point's impulse
+    pushes body B along its normal (sign, 0) and its tangent (0, -sign)."""
+    a = np.asarray(answer, np.float64).reshape(-1, 2, 2)  # (J, the two points, normal and tangent)
+    sign = np.array([1.0, -1.0])
+    on_b = np.stack([(sign * a[:, :, 0]).sum(1), (-sign * a[:, :, 1]).sum(1)], 1)
+    row = {int(b.this): i for i, b in enumerate(engine.world.bodies)}
+    where = {(row[int(j.bodyA.this)], row[int(j.bodyB.this)]): i for i, j in enumerate(engine.world.joints)}
+    return on_b[[where[tuple(pair)] for pair in engine.joints()]].astype(np.float32)
+
+
 def chains(seed: int):
     """A heap of 20-60 mixed bodies in a bin 8-16 m wide and over it 1-3 chains or bridges of
     10-40 thin links on free revolute joints (no limit, no motor), hung from a static anchor at one

@@ -42,6 +42,15 @@ trial solves on Box2D's own trajectory (the same states for every answer):
                      (deepcontact.faces.repair_face on the route's admitted answer, the joints as
                      points; the free points keep the classifier's labels), K = 1, 2, 4: whether the
                      route's own solves find the jointed points' labels where the classifier does not
+    ...+joints       an answer above with the joints started where it leaves them, in place of
+                     their own last impulses (Engine.set_revolute_impulses; Box2D's solver applies
+                     a joint's start before its sweeps as it applies the contacts'): oracle+joints
+                     the oracle's converged joints; route:joints-as-points+joints,
+                     labels:oracle+joints-as-points+joints the impulses of the joints' points in
+                     the route's answer; served+joints:route and builtin+joints:route the served
+                     answer and Box2D's start with the joints started at those of
+                     route:joints-as-points: what the reply would buy if it carried the joints'
+                     impulses too
     sweeps-K         Box2D's start after K of the solver's own sweeps (Engine.oracle capped at K,
                      the joints in it), K = 12, 24: what those sweeps alone are worth
     labels:sweeps-K@jointed+joints-as-points  Box2D's start after K sweeps read as labels at the
@@ -67,7 +76,7 @@ import numpy as np
 
 from bench.stats import ratio_interval
 from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face, repair_face
-from lab.joint_points import joint_point_pairs
+from lab.joint_points import joint_impulses, joint_point_pairs
 
 #: The repairs priced (labels:repaired-K@jointed+joints-as-points).
 REPAIRS = (1, 2, 4)
@@ -77,7 +86,9 @@ ANSWERS = ("builtin", "served", "oracle", "oracle@jointed", "oracle@free", "rout
            "route:joints-as-points", "labels:oracle", "labels:oracle+joints-as-points",
            "labels:oracle@jointed+joints-as-points", "labels:builtin@jointed+joints-as-points",
            *(f"labels:repaired-{k}@jointed+joints-as-points" for k in REPAIRS),
-           *(f"sweeps-{k}" for k in SWEEP_READS), *(f"labels:sweeps-{k}@jointed+joints-as-points" for k in SWEEP_READS))
+           *(f"sweeps-{k}" for k in SWEEP_READS), *(f"labels:sweeps-{k}@jointed+joints-as-points" for k in SWEEP_READS),
+           "oracle+joints", "route:joints-as-points+joints", "labels:oracle+joints-as-points+joints",
+           "served+joints:route", "builtin+joints:route")
 #: The second table's rows: labels right against the oracle's, at the jointed and the free points.
 LABEL_ROWS = ("the classifier's", *(f"after {k} repair{'s' if k > 1 else ''}" for k in REPAIRS),
               "the step before's solution", *(f"Box2D's start after {k} sweeps" for k in SWEEP_READS))
@@ -134,7 +145,7 @@ def _as_impulses(face: np.ndarray, mu: np.ndarray) -> np.ndarray:
     return out
 
 
-def _raw_route(zoo, bodies, points, labels, mu, world, read=None) -> np.ndarray | None:
+def raw_route(zoo, bodies, points, labels, mu, world, read=None) -> np.ndarray | None:
     """The zoo route's compiled solve and admission on `labels` (P, 2) N s, read at the card's
     settings or, with read = (pressing, share, rounds), at those; None where it declines."""
     from deepcontact.faces import route_compiled
@@ -200,8 +211,12 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
             if "point_friction" in predictor.requires else {}
         answer = np.stack(served.warm_start(engine, bodies, points, k), 1).astype(np.float32)
         fixed = jointed_points(bodies, points, engine.joints())
-        oracle = engine.oracle(start=(builtin[:, 0].copy(), builtin[:, 1].copy()))
+        as_box2d = engine.joint_state()  # the joints' own start, put back after every other one
+        oracle = engine.oracle(start=(builtin[:, 0].copy(), builtin[:, 1].copy()), keep_joints=True)
+        joint_starts = {"oracle+joints": engine.joint_state()}  # {answer: the joints' start, state or (J, 2) N s}
+        engine.set_joint_state(as_box2d)
         oracle = np.where(np.isfinite(oracle), oracle, builtin)  # points no awake island solves
+        answers_joints = {"oracle+joints": oracle}
         # The route's own state along a stream (a carried admission) is the served answer's: these
         # two are asked without it.
         route = predictor.predict(bodies, points, world, k, previous, **friction).impulses
@@ -209,7 +224,7 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
                                  **friction).impulses
         mu = points["friction"].astype(np.float32)
         labels = zoo.classifier.predict(bodies, points, world, k, previous, friction=mu).impulses
-        raw = _raw_route(zoo, bodies, points, labels, mu, world)
+        raw = raw_route(zoo, bodies, points, labels, mu, world)
         answers = {"builtin": builtin, "served": answer, "oracle": oracle,
                    "oracle@jointed": np.where(fixed[:, None], oracle, answer),
                    "oracle@free": np.where(fixed[:, None], answer, oracle),
@@ -220,7 +235,7 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
         _count(counts, "the step before's solution", label_before, reference, fixed, there)
         order = np.argsort(points["key"])
         before = (points["key"][order], reference[order])
-        exact = _raw_route(zoo, bodies, points, oracle, mu, world, oracle_read)
+        exact = raw_route(zoo, bodies, points, oracle, mu, world, oracle_read)
         answers["labels:oracle"] = builtin if exact is None else exact
         joint_points = joint_point_pairs(engine, points.dtype, only_rigid=False)
         if joint_points is not None:
@@ -230,19 +245,28 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
                                              friction=np.asarray(both["friction"], np.float32)).impulses.copy()
             learned[P:] = (JOINT_LABEL, 0.0)
             mu_both = np.concatenate([mu, np.full(len(joint_points), JOINT_FRICTION, np.float32)])
-            joined = _raw_route(zoo, bodies, both, learned, mu_both, world)
+            joined = raw_route(zoo, bodies, both, learned, mu_both, world)
             answers["route:joints-as-points"] = builtin if joined is None else joined[:P]
+            if joined is not None:
+                held = joint_impulses(engine, joined[P:])
+                answers_joints.update({"route:joints-as-points+joints": joined[:P], "served+joints:route": answer,
+                                       "builtin+joints:route": builtin})
+                joint_starts.update(dict.fromkeys(("route:joints-as-points+joints", "served+joints:route",
+                                                   "builtin+joints:route"), held))
             right = np.concatenate([oracle, learned[P:]])
-            joined = _raw_route(zoo, bodies, both, right, mu_both, world, oracle_read)
+            joined = raw_route(zoo, bodies, both, right, mu_both, world, oracle_read)
             answers["labels:oracle+joints-as-points"] = builtin if joined is None else joined[:P]
+            if joined is not None:
+                answers_joints["labels:oracle+joints-as-points+joints"] = joined[:P]
+                joint_starts["labels:oracle+joints-as-points+joints"] = joint_impulses(engine, joined[P:])
             # The two read alike: the classifier's labels at the free points read at the card's
             # settings, then written as impulses that the oracle's reading takes for the same face.
             mixed = np.where(fixed[:, None], oracle, _as_impulses(contact_face(
                 np.asarray(learned[:P], np.float64), mu, zoo.settings["pressing"], zoo.settings["share"]), mu))
-            joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
+            joined = raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
             answers["labels:oracle@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
             mixed[fixed] = builtin[fixed]
-            joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
+            joined = raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world, oracle_read)
             answers["labels:builtin@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
             for sweeps in SWEEP_READS:
                 swept = engine.oracle(max_iterations=sweeps, start=(builtin[:, 0].copy(), builtin[:, 1].copy()))
@@ -251,7 +275,7 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
                 _count(counts, f"Box2D's start after {sweeps} sweeps",
                        contact_face(np.asarray(swept, np.float64), mu, ORACLE_PRESSING, ORACLE_SHARE), reference, fixed)
                 mixed[fixed] = swept[fixed]
-                joined = _raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world,
+                joined = raw_route(zoo, bodies, both, np.concatenate([mixed, learned[P:]]), mu_both, world,
                                     oracle_read)
                 answers[f"labels:sweeps-{sweeps}@jointed+joints-as-points"] = builtin if joined is None else joined[:P]
             # Repairs at the jointed points alone, from the classifier's labels: each reads the
@@ -259,19 +283,34 @@ def price(spec, seed: int, models: str, model: str) -> tuple[dict[str, np.ndarra
             face = contact_face(np.asarray(learned[:P], np.float64), mu, zoo.settings["pressing"],
                                 zoo.settings["share"])
             _count(counts, "the classifier's", face, reference, fixed)
-            joined = _raw_route(zoo, bodies, both, np.concatenate([_as_impulses(face, mu), learned[P:]]), mu_both,
+            joined = raw_route(zoo, bodies, both, np.concatenate([_as_impulses(face, mu), learned[P:]]), mu_both,
                                 world, oracle_read)
             for repairs in range(1, max(REPAIRS) + 1):
                 if joined is not None:  # where the route declines the labels, they stay as they are
                     face[fixed] = repair_face(bodies, both, joined, mu_both, world.physics)[:P][fixed]
-                    joined = _raw_route(zoo, bodies, both, np.concatenate([_as_impulses(face, mu), learned[P:]]),
+                    joined = raw_route(zoo, bodies, both, np.concatenate([_as_impulses(face, mu), learned[P:]]),
                                         mu_both, world, oracle_read)
                 if repairs in REPAIRS:
                     answers[f"labels:repaired-{repairs}@jointed+joints-as-points"] = \
                         builtin if joined is None else joined[:P]
                     _count(counts, LABEL_ROWS[1 + REPAIRS.index(repairs)], face, reference, fixed)
         for name in ANSWERS:
+            if name in joint_starts:  # started with other joints, then the joints put back
+                start = joint_starts[name]
+                if isinstance(start, bytes):
+                    engine.set_joint_state(start)
+                else:
+                    engine.set_revolute_impulses(start)
+                z = np.asarray(answers_joints[name], np.float32)
+                out[name].append(engine.trial(np.ascontiguousarray(z[:, 0]), np.ascontiguousarray(z[:, 1])))
+                engine.set_joint_state(as_box2d)
+                continue
             if name not in answers:
+                # A route that declined: its answer is Box2D's start, with the joints' own.
+                if name in ("route:joints-as-points+joints", "served+joints:route", "builtin+joints:route",
+                            "labels:oracle+joints-as-points+joints") and joint_points is not None:
+                    name_as = {"served+joints:route": "served"}.get(name, "builtin")
+                    out[name].append(out[name_as][-1])
                 continue
             z = np.asarray(answers[name], np.float32)
             out[name].append(engine.trial(np.ascontiguousarray(z[:, 0]), np.ascontiguousarray(z[:, 1])))

@@ -172,6 +172,23 @@ class Engine:
             self.world.ExportJoints(out)
         return out
 
+    def joint_state(self) -> bytes:
+        """Every joint object as it is now (their impulses, the joints' warm start for the next
+        solve or trial, among their other fields), for `set_joint_state` on this same world."""
+        return self.world.GetJointState()
+
+    def set_joint_state(self, state: bytes) -> None:
+        """The joints as `joint_state` gave them: a trial started with other joints is put back."""
+        self.world.SetJointState(state)
+
+    def set_revolute_impulses(self, xy: np.ndarray) -> None:
+        """Start the revolute joints from these point impulses: (J, 2) float32, N s, world frame,
+        on each joint's body B, the world's joint order (`joints()`); other kinds of joint keep
+        their own. Their limit and motor impulses start at 0. Box2D's solver applies a joint's
+        start before its sweeps as it applies the contacts' (the next `solve()` or trial)."""
+        xy = np.ascontiguousarray(xy, np.float32).reshape(-1)
+        self.world.SetRevoluteImpulses(xy)
+
     def body_friction(self) -> np.ndarray:
         """(B,) each body's friction coefficient (its first fixture's; 0 without one), creation
         order, the records' body index. Read from pybox2d once while the body count holds: a
@@ -211,7 +228,8 @@ class Engine:
         """
         self.world.SetWarmStart(normal, tangent)
 
-    def oracle(self, max_iterations: int = 20000, threshold: float = 1e-6, start=None) -> np.ndarray:
+    def oracle(self, max_iterations: int = 20000, threshold: float = 1e-6, start=None,
+               keep_joints: bool = False) -> np.ndarray:
         """This step's velocity problem solved to convergence; the world is unchanged.
 
         start: None solves from zero (the thesis's Copy); a (normal, tangent)
@@ -219,13 +237,20 @@ class Engine:
         instead and sets it as the step's warm start, as `trial` does. A pile
         held at more points than its bodies have freedoms has many solutions:
         each start converges to its own.
+        keep_joints: leave the joints as the solve left them (their impulses its converged
+        ones, the next solve's or trial's joint start; `joint_state` first to put them back),
+        where they are otherwise put back as they were.
         Returns (n, 2) float32: (normal, tangent) impulse per contact point
         (N s), NaN for points outside every awake island.
         """
         out = np.empty((self.world.contactPointCount, 2), dtype=np.float32)
         if start is not None:
             self.world.SetWarmStart(*start)
-        self.world.SolveOracle(out, self.config.dt, int(max_iterations), float(threshold), start is not None)
+        self.world.SetKeepJoints(bool(keep_joints))
+        try:
+            self.world.SolveOracle(out, self.config.dt, int(max_iterations), float(threshold), start is not None)
+        finally:
+            self.world.SetKeepJoints(False)
         return out
 
     def trial(self, normal: np.ndarray, tangent: np.ndarray, cap: int | None = None) -> int:

@@ -328,6 +328,38 @@ def test_a_trial_in_a_world_with_joints_costs_what_the_solve_does_and_puts_the_j
     assert tried.bodies().tobytes() == plain.bodies().tobytes()  # Box2D's own start, given back, bit for bit
 
 
+def test_the_joints_start_where_the_oracle_left_them_and_are_put_back():
+    engine = _jointed_world()
+    for _ in range(80):  # the chain falls onto the discs
+        engine.step()
+    engine.collide()
+    assert engine.world.contactPointCount > 0
+    normal, tangent = engine.builtin_start()
+    as_box2d = engine.joint_state()
+    builtin = engine.trial(normal, tangent)
+    # Solved to convergence with its joints kept, the step starts from both answers at once:
+    # the contacts' and the joints' converged impulses leave next to nothing to sweep.
+    converged = engine.oracle(start=(normal, tangent), keep_joints=True)
+    converged = np.where(np.isfinite(converged), converged, np.stack([normal, tangent], 1))
+    both = engine.trial(np.ascontiguousarray(converged[:, 0]), np.ascontiguousarray(converged[:, 1]))
+    engine.set_joint_state(as_box2d)
+    contacts_alone = engine.trial(np.ascontiguousarray(converged[:, 0]), np.ascontiguousarray(converged[:, 1]))
+    assert both <= 2 < contacts_alone < builtin  # the chain's links wait on their joints' impulses
+    # The same joints' start given as impulses: each revolute joint's point impulse is all of it.
+    engine.oracle(start=(normal, tangent), keep_joints=True)
+    row = {int(b.this): i for i, b in enumerate(engine.world.bodies)}
+    reaction = {(row[int(j.bodyA.this)], row[int(j.bodyB.this)]): tuple(j.GetReactionForce(1.0))
+                for j in engine.world.joints}  # inv_dt 1: the joint's impulse, N s
+    engine.set_joint_state(as_box2d)
+    engine.set_revolute_impulses(np.array([reaction[tuple(pair)] for pair in engine.joints()], np.float32))
+    assert engine.trial(np.ascontiguousarray(converged[:, 0]), np.ascontiguousarray(converged[:, 1])) == both
+    # Put back, the step solves as Box2D's own did.
+    engine.set_joint_state(as_box2d)
+    assert engine.joint_state() == as_box2d and engine.trial(normal, tangent) == builtin
+    with pytest.raises(ValueError, match="joints need"):
+        engine.set_revolute_impulses(np.zeros((1, 2), np.float32))
+
+
 def test_joints_bodies_awake_and_each_points_friction_are_exported():
     engine = _jointed_world()
     joints = engine.joints()
