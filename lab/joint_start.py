@@ -8,7 +8,7 @@ answer; its sweeps then carry a joint's correction one link a sweep, so a chain'
 on their joints (docs/research/2026-12-07-where-jointed-worlds-lose.md: the converged contacts
 with the joints' own start need 0.42x of Builtin's sweeps, with the converged joints too 0.01x).
 The zoo route with each rigid revolute joint as two contact points at its anchor
-(lab.joint_points) answers the joints' impulses too. This runs each seed five times, the model
+(lab.joint_points) answers the joints' impulses too. This runs each seed six times, the model
 called in this process as the server would answer (bench.inprocess.InProcess):
 
     builtin          Box2D's own warm start
@@ -22,6 +22,8 @@ called in this process as the server would answer (bench.inprocess.InProcess):
                      (CHECK_SWEEPS of the solver's sweeps on a replica, server.face_route) with
                      the joints as points there says the route's answer and its joints stop
                      sooner than the served answer with the joints' own last impulses
+    served+joints:halfway  the same answer, each revolute joint started halfway between its own
+                     last impulse and the route's: a smaller step from Box2D's start
     served+joints:picked  the same, but where the engine's own trial solves from this state (the
                      world unchanged) say the route's joint impulses take fewer sweeps than the
                      joints' own start: a perfect check, which no server has, to bound any check
@@ -43,7 +45,7 @@ import numpy as np
 
 from bench.stats import ratio_interval
 
-RUNS = ("builtin", "served", "served+joints", "served+joints:checked", "served+joints:picked")
+RUNS = ("builtin", "served", "served+joints", "served+joints:checked", "served+joints:picked", "served+joints:halfway")
 #: Sweeps of the check served+joints:checked plays from each start (the routes' check_sweeps).
 CHECK_SWEEPS = 12
 
@@ -109,6 +111,9 @@ def simulate(spec, seed: int, models: str, model: str, run: str) -> np.ndarray:
                         engine.set_revolute_impulses(joint_impulses(engine, answer[len(points):]))
                         if engine.trial(normal, tangent) >= theirs:
                             engine.set_joint_state(own)
+                    elif answer is not None and run == "served+joints:halfway":
+                        own = joint_impulses(engine, pairs["builtin"])  # the joints' last impulses, as their points hold them
+                        engine.set_revolute_impulses(0.5 * (own + joint_impulses(engine, answer[len(points):])))
                     elif answer is not None and (run != "served+joints:checked" or _beats_box2d(
                             bodies, both, answer, np.concatenate([np.stack([normal, tangent], 1), pairs["builtin"]]),
                             mu, served.world)):
