@@ -33,6 +33,7 @@ from deepcontact import wire
 from deepcontact.modelcard import unknown_model
 from deepcontact.temporal import ImpulseHistory
 from server.joints import predict_around_joints
+from server.revolute import all_rigid, joint_route, start_with_joints
 from server.predictors import Predictor, World, load_model
 from simclient import worlds
 from simclient.provider import Provider, as_warm_start, point_friction
@@ -42,8 +43,11 @@ from simclient.scene import SceneSpec
 class InProcess(Provider):
     """The predictor of one model card, asked in process at every step with points."""
 
-    def __init__(self, predictor: Predictor, spec):
+    def __init__(self, predictor: Predictor, spec, revolute_joints: bool = True):
         self.predictor, self.spec = predictor, spec
+        # As the server answers a world of rigid revolute joints (server.revolute): the joints'
+        # start too, set on the engine as the client sets a reply's. False: the contact points alone.
+        self.revolute_joints = revolute_joints
         # As the simulation's stream would declare it: a project scene's now, a user's world's
         # when prepare reads it off the engine.
         self.world: World | None = declared_world(spec, None) if isinstance(spec, SceneSpec) else None
@@ -56,14 +60,15 @@ class InProcess(Provider):
         self.stages: list[dict[str, float]] = []
 
     @classmethod
-    def load(cls, models: Path, model: str, spec) -> "InProcess":
+    def load(cls, models: Path, model: str, spec, revolute_joints: bool = True) -> "InProcess":
         """The card `models/MODEL.json` (an alias card serves its target) for the worlds of `spec`
         (a simclient.scene.SceneSpec or a user's simclient.worlds.WorldSpec). FileNotFoundError
-        names the models there when there is no such card."""
+        names the models there when there is no such card. revolute_joints False: on a world of
+        rigid revolute joints, the answer at the contact points alone (the joints' own start)."""
         path = Path(models) / f"{model}.json"
         if not path.exists():
             raise FileNotFoundError(f"{models}: {unknown_model(model, [p.stem for p in Path(models).glob('*.json')])}")
-        return cls(load_model(path), spec)
+        return cls(load_model(path), spec, revolute_joints)
 
     def prepare(self, engine) -> None:
         super().prepare(engine)
@@ -85,6 +90,12 @@ class InProcess(Provider):
         if len(joints) and self.predictor.kind != "provider":  # as server.service answers a step with joints
             answer = predict_around_joints(self.predictor, bodies, points, joints, self.world, step, self._points,
                                            history=self._history, **extra)
+            revolute = engine.revolute() if self.revolute_joints else None
+            if all_rigid(revolute) and "friction" in extra:
+                answer = start_with_joints(joint_route(self.predictor), bodies, points, joints, revolute, self.world,
+                                           step, self._points, extra["friction"], answer)
+                if answer.joint_impulses is not None:  # as the client sets a reply's joint_impulses
+                    engine.set_revolute_impulses(answer.joint_impulses)
         else:
             answer = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
         self._points = points

@@ -268,6 +268,8 @@ def served_by_note(summaries: dict[str, dict]) -> str:
     docs/server.md, Deadlines), or "" when none did."""
     lines = [f"- {name}: {sum(by.values()):,} of {s['steps_with_contacts']:,} steps with contacts answered by "
              + ", ".join(f"{card} ({n:,})" for card, n in sorted(by.items()))
+             + (f"; the revolute joints started by the answer on {s['joints_started_steps']:,}"
+                if s.get("joints_started_steps") else "")
              for name, s in summaries.items() if (by := s.get("served_by"))]
     return "\nAnswered by another card than the model's route:\n" + "\n".join(lines) + "\n" if lines else ""
 

@@ -586,24 +586,67 @@ static double solve_sweep(const struct geometry *g, const double *mu, const doub
 
 /* The largest change the solver's sweep number `sweeps` would make, from each of several starts:
  * Box2D's velocity constraints (solve_sweep) after each start is applied as its warm start (a
- * dropped point's not), on the server's copy of the step, without joints or restitution: what
- * the server knows of it. The solver stops after the first sweep that changes no impulse by more
+ * dropped point's not), on the server's copy of the step, without restitution, and with the rigid
+ * revolute joints of jr (NULL: none) started and swept as Box2D does: what the server knows of it. The solver stops after the first sweep that changes no impulse by more
  * than its threshold, so of two starts the one whose sweep `sweeps` changes less is the nearer
  * to its end; one projected Jacobi step (sweeps 1, kinematics.jacobi_change, every point from
  * the same velocities) is the crude version of this. g: the step's geometry (velocities with
  * gravity added); mu (P,); starts (n_starts, P, 2) N s; changes (n_starts,) out, N s. Returns
  * 0, or -1 (memory). */
+/* Rigid revolute joints on the server's copy of the step (no limit, no motor), as Box2D's
+ * b2RevoluteJoint holds them: a point-to-point row pair between body A and body B at the joint's
+ * anchor. ab (J, 2) the bodies' rows; arms (J, 4) m, rA then rB, each from its body's centre of
+ * mass to the joint's anchor on it, world frame; starts (n_starts, J, 2) N s, each start's joint
+ * impulses on body B, world frame (Box2D's m_impulse.x, .y, the joints' warm start). */
+struct joint_rows {
+    int64_t J;
+    const int64_t *ab;
+    const double *arms, *starts;
+};
+
+/* Box2D's b2RevoluteJoint::SolveVelocityConstraints without limit or motor, each joint in turn:
+ * the relative velocity of the anchor's two points set to zero through K's 2 x 2 inverse
+ * (kinv (J, 3): its 11, 12 and 22 entries). The solver's stopping rule reads the contacts'
+ * changes alone (the patch), so none is returned. lam (J, 2) N s the joints' impulses. */
+static void solve_joints(const struct geometry *g, const struct joint_rows *jr, const double *kinv, double *vx,
+                         double *vy, double *w, double *lam)
+{
+    for (int64_t j = 0; j < jr->J; j++) {
+        const int64_t a = jr->ab[2 * j], b = jr->ab[2 * j + 1];
+        const double *r = jr->arms + 4 * j, *k = kinv + 3 * j;
+        const double c0 = vx[b] - w[b] * r[3] - vx[a] + w[a] * r[1];
+        const double c1 = vy[b] + w[b] * r[2] - vy[a] - w[a] * r[0];
+        const double p0 = -(k[0] * c0 + k[1] * c1), p1 = -(k[1] * c0 + k[2] * c1);
+        lam[2 * j] += p0, lam[2 * j + 1] += p1;
+        vx[a] -= p0 * g->inv_mass[a], vy[a] -= p1 * g->inv_mass[a], w[a] -= (r[0] * p1 - r[1] * p0) * g->inv_inertia[a];
+        vx[b] += p0 * g->inv_mass[b], vy[b] += p1 * g->inv_mass[b], w[b] += (r[2] * p1 - r[3] * p0) * g->inv_inertia[b];
+    }
+}
+
 static int sweep_changes(const struct geometry *g, const double *mu, const double *starts, int n_starts, long sweeps,
-                         double tolerance, double *changes, long *counts)
+                         double tolerance, const struct joint_rows *jr, double *changes, long *counts)
 {
     const int64_t P = g->P, B = g->B;
     double *vx = malloc(((size_t)3 * B + 1) * sizeof(double)), *vy = vx + B, *w = vy + B;
     double *mass = malloc(((size_t)2 * P + 1) * sizeof(double)), *lam = malloc(((size_t)2 * P + 1) * sizeof(double));
     double *block = malloc(((size_t)6 * P + 1) * sizeof(double));
     unsigned char *role = calloc((size_t)P + 1, 1);
-    if (vx == NULL || mass == NULL || lam == NULL || block == NULL || role == NULL) {
-        free(vx), free(mass), free(lam), free(block), free(role);
+    const int64_t J = jr == NULL ? 0 : jr->J;
+    double *jlam = malloc(((size_t)2 * J + 1) * sizeof(double)), *kinv = malloc(((size_t)3 * J + 1) * sizeof(double));
+    if (vx == NULL || mass == NULL || lam == NULL || block == NULL || role == NULL || jlam == NULL || kinv == NULL) {
+        free(vx), free(mass), free(lam), free(block), free(role), free(jlam), free(kinv);
         return -1;
+    }
+    for (int64_t j = 0; j < J; j++) { /* each joint's K (b2RevoluteJoint::InitVelocityConstraints) and its inverse */
+        const int64_t a = jr->ab[2 * j], b = jr->ab[2 * j + 1];
+        const double *r = jr->arms + 4 * j, ma = g->inv_mass[a], mb = g->inv_mass[b];
+        const double ia = g->inv_inertia[a], ib = g->inv_inertia[b];
+        const double k11 = ma + mb + r[1] * r[1] * ia + r[3] * r[3] * ib;
+        const double k12 = -r[1] * r[0] * ia - r[3] * r[2] * ib;
+        const double k22 = ma + mb + r[0] * r[0] * ia + r[2] * r[2] * ib;
+        double det = k11 * k22 - k12 * k12;
+        det = det != 0.0 ? 1.0 / det : 0.0; /* b2Mat33::Solve22's */
+        kinv[3 * j] = det * k22, kinv[3 * j + 1] = -det * k12, kinv[3 * j + 2] = det * k11;
     }
     for (int64_t i = 0; i < P; i++) { /* effective masses along the normal and the tangent */
         const int64_t a = g->pa[i], b = g->pb[i];
@@ -653,12 +696,25 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
             vx[b] += i0 * g->inv_mass[b], vy[b] += i1 * g->inv_mass[b];
             w[b] += (rb[0] * i1 - rb[1] * i0) * g->inv_inertia[b];
         }
+        if (J > 0) { /* the joints' start, as their InitVelocityConstraints applies it */
+            memcpy(jlam, jr->starts + (size_t)2 * J * k, (size_t)2 * J * sizeof(double));
+            for (int64_t j = 0; j < J; j++) {
+                const int64_t a = jr->ab[2 * j], b = jr->ab[2 * j + 1];
+                const double *r = jr->arms + 4 * j, p0 = jlam[2 * j], p1 = jlam[2 * j + 1];
+                vx[a] -= p0 * g->inv_mass[a], vy[a] -= p1 * g->inv_mass[a];
+                w[a] -= (r[0] * p1 - r[1] * p0) * g->inv_inertia[a];
+                vx[b] += p0 * g->inv_mass[b], vy[b] += p1 * g->inv_mass[b];
+                w[b] += (r[2] * p1 - r[3] * p0) * g->inv_inertia[b];
+            }
+        }
         /* With a tolerance, the start's run ends at the first sweep that changes nothing by more
          * than it, where the client's solver would stop: counts[k] is that sweep's number, or
          * sweeps + 1 where none of the first `sweeps` does. */
         double change = 0.0;
         counts[k] = sweeps + 1;
         for (long sweep = 0; sweep < sweeps; sweep++) {
+            if (J > 0) /* Box2D's island solves its joints first in each sweep, then its contacts */
+                solve_joints(g, jr, kinv, vx, vy, w, jlam);
             change = solve_sweep(g, mu, mass, role, block, vx, vy, w, lam);
             if (tolerance > 0.0 && change <= tolerance) {
                 counts[k] = sweep + 1;
@@ -667,28 +723,31 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
         }
         changes[k] = change;
     }
-    free(vx), free(mass), free(lam), free(block), free(role);
+    free(vx), free(mass), free(lam), free(block), free(role), free(jlam), free(kinv);
     return 0;
 }
 
-/* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry, tolerance)
+/* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry, tolerance
+ *                [, joint_bodies, joint_arms, joint_starts])
  *     -> ([change, ...], [sweeps run, ...])
  *
  * sweep_changes of each start: starts float64 (n_starts, P, 2) N s (n_starts from its size);
  * mu float64 (P,); geometry: prepare's for these bodies, points and physics, or None;
  * tolerance (N s): 0 runs every start `sweeps` sweeps and each change is its last sweep's;
  * above 0 a start stops at its first sweep that changes nothing by more, and its count is that
- * sweep's number (sweeps + 1 where it does not stop). */
+ * sweep's number (sweeps + 1 where it does not stop). With the joints (struct joint_rows):
+ * joint_bodies int64 (J, 2), joint_arms float64 (J, 4) m, joint_starts float64 (n_starts, J, 2)
+ * N s, each start's joint impulses beside its contact impulses. */
 static PyObject *compare_starts(PyObject *self, PyObject *args)
 {
-    Py_buffer b[4];
+    Py_buffer b[7];
     Py_ssize_t n_bodies, n_points;
     double dt, gx, gy, tolerance;
     long sweeps;
     PyObject *prepared;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx, &gy, &b[3],
-                          &sweeps, &prepared, &tolerance))
+    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd|y*y*y*", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx, &gy,
+                          &b[3], &sweeps, &prepared, &tolerance, &b[4], &b[5], &b[6]))
         return NULL;
     PyObject *result = NULL;
     const Py_ssize_t per_start = 2 * n_points * (Py_ssize_t)sizeof(double);
@@ -702,17 +761,34 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         PyErr_Format(PyExc_ValueError, "contact points name bodies outside 0..%zd", n_bodies - 1);
         goto done;
     }
+    const int n_starts = (int)(b[3].len / per_start);
+    struct joint_rows joints = {0, NULL, NULL, NULL}, *jr = NULL;
+    if (b[4].obj != NULL) {
+        const Py_ssize_t J = b[4].len / (Py_ssize_t)(2 * sizeof(int64_t));
+        if (b[5].obj == NULL || b[6].obj == NULL || b[4].len != J * 2 * (Py_ssize_t)sizeof(int64_t)
+            || b[5].len != J * 4 * (Py_ssize_t)sizeof(double) || b[6].len != n_starts * J * 2 * (Py_ssize_t)sizeof(double)) {
+            PyErr_SetString(PyExc_ValueError, "_route.compare_starts: joint arrays of the wrong size");
+            goto done;
+        }
+        const int64_t *ab = b[4].buf;
+        for (Py_ssize_t j = 0; j < 2 * J; j++)
+            if (ab[j] < 0 || ab[j] >= n_bodies) {
+                PyErr_Format(PyExc_ValueError, "joints name bodies outside 0..%zd", n_bodies - 1);
+                goto done;
+            }
+        joints = (struct joint_rows){J, ab, b[5].buf, b[6].buf};
+        jr = &joints;
+    }
     struct geometry own, *g = prepared_or_own(prepared, n_points, n_bodies, &own, "compare_starts");
     if (g == NULL)
         goto done;
-    const int n_starts = (int)(b[3].len / per_start);
     double changes[64];
     long counts[64];
     int status;
     Py_BEGIN_ALLOW_THREADS
     status = g == &own ? geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy) : 0;
     if (status == 0)
-        status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, tolerance, changes, counts);
+        status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, tolerance, jr, changes, counts);
     geometry_free(&own);
     Py_END_ALLOW_THREADS
     if (status != 0) {
@@ -734,7 +810,7 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         result = PyTuple_Pack(2, last, run);
     Py_XDECREF(last), Py_XDECREF(run);
 done:
-    for (int k = 0; k < 4; k++)
+    for (int k = 0; k < 7; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);
     return result;

@@ -424,22 +424,41 @@ def sweep_changes(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu
     return _compare_starts(bodies, points, starts, mu, physics, sweeps, prepared, 0.0)[0]
 
 
+class RevoluteRows(NamedTuple):
+    """Rigid revolute joints (no limit, no motor) for the server's copy of the step, which sweeps
+    them as Box2D's b2RevoluteJoint does, before the contacts in each sweep.
+
+    bodies: (J, 2) int, each joint's body A and body B (the records' rows);
+    arms: (J, 4) m, world frame, rA then rB: from each body's centre of mass to its anchor;
+    starts: (S, J, 2) N s, world frame, each start's joint impulses on body B (Box2D's
+    m_impulse.x, .y), one per start of the contact points' starts."""
+
+    bodies: np.ndarray
+    arms: np.ndarray
+    starts: np.ndarray
+
+
 def sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
-                   physics: Physics, tolerance: float, most: int, prepared=None) -> tuple[np.ndarray, np.ndarray]:
+                   physics: Physics, tolerance: float, most: int, prepared=None,
+                   joints: RevoluteRows | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((S,) int, (S,) N s): for each start of starts (S, P, 2) N s, the sweeps the server's copy
     of the step (as sweep_changes) takes to the client's stopping rule, the first sweep that
     changes nothing by more than `tolerance` N s (> 0), or most + 1 where none of the first
     `most` does; and the change of the last sweep run. Of two starts the one that stops sooner
     is the nearer to where the solver stops; where neither stops within `most` sweeps, the one
     whose last sweep changes less. Comparing the changes at a fixed sweep instead reads noise
-    where both starts stop before it (both changes then near zero). At most 64 starts."""
+    where both starts stop before it (both changes then near zero). At most 64 starts. joints:
+    the step's rigid revolute joints and each start's joint impulses, swept as Box2D does (the
+    stopping rule, as the client's, reads the contacts' changes alone), or None: the joints left
+    out, as the server's routes see a step."""
     if not tolerance > 0:
         raise ValueError(f"tolerance must be > 0 N s, got {tolerance}")
-    changes, counts = _compare_starts(bodies, points, starts, mu, physics, most, prepared, float(tolerance))
+    changes, counts = _compare_starts(bodies, points, starts, mu, physics, most, prepared, float(tolerance), joints)
     return counts, changes
 
 
-def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, prepared, tolerance: float):
+def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, prepared, tolerance: float,
+                    joints: RevoluteRows | None = None):
     """(changes (S,) N s, sweeps run (S,) int) of compare_starts in deepcontact/_route.c."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
     points = _records(np.asarray(points), CONTACT_DTYPE, "points")
@@ -449,10 +468,18 @@ def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, p
     if len(points) == 0:
         return np.zeros(len(starts)), np.ones(len(starts), np.int64)
     gx, gy = physics.gravity
+    extra = ()
+    if joints is not None:
+        extra = (np.ascontiguousarray(joints.bodies, np.int64), np.ascontiguousarray(joints.arms, np.float64),
+                 np.ascontiguousarray(joints.starts, np.float64))
+        if extra[0].shape != (len(extra[0]), 2) or extra[1].shape != (len(extra[0]), 4) \
+                or extra[2].shape != (len(starts), len(extra[0]), 2):
+            raise ValueError(f"joints: bodies (J, 2), arms (J, 4), starts ({len(starts)}, J, 2), got "
+                             f"{extra[0].shape}, {extra[1].shape}, {extra[2].shape}")
     changes, counts = _compiled_route.compare_starts(bodies, len(bodies), points, len(points),
                                                      np.ascontiguousarray(mu, np.float64), float(physics.dt),
                                                      float(gx), float(gy), starts, int(sweeps), prepared,
-                                                     float(tolerance))
+                                                     float(tolerance), *extra)
     return np.array(changes), np.array(counts, np.int64)
 
 

@@ -114,7 +114,12 @@ free and the bodies' space declines nearly every such step after its first facto
 (default null: with a deadline the route is taken where it is expected to end in all its `rounds`;
 a whole number 1 to `rounds`: where it is expected to end in min_rounds of them, its admission then
 running rounds up to `rounds` while the check after them would still end by the deadline, so a
-large step gets fewer rounds rather than no route).
+large step gets fewer rounds rather than no route), revolute_joints (default false; true: where
+every joint of a request is a rigid revolute one and it sends them (StepRequest.joint_revolute)
+with its stopping rule, the route asks its classifier about the step with each joint as two points
+and serves, of five starts, the one that stops soonest on the server's copy of the step with the
+joints swept as Box2D sweeps them, the joints' start on the reply where it is the route's,
+server.revolute; read from the last face route along a card's fallbacks).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -173,7 +178,7 @@ FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction"
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                  "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
-                 "slide_in_bodies": True, "min_rounds": None}
+                 "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False}
 
 
 class ModelCardError(ValueError):
@@ -348,7 +353,7 @@ def _face_settings(face: Any, kind: str) -> dict:
     sweeps, fewest = out["check_sweeps"], out["min_rounds"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
-                                           "extrapolate_jointed", "check_stop", "slide_in_bodies")
+                                           "extrapolate_jointed", "check_stop", "slide_in_bodies", "revolute_joints")
                   and not (k in optional + ("max_points", "check_sweeps", "min_rounds") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -362,7 +367,7 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not isinstance(out["against_builtin"], bool) \
             or not isinstance(out["rescale"], bool) or not isinstance(out["carry"], bool) \
             or not isinstance(out["extrapolate_jointed"], bool) or not isinstance(out["check_stop"], bool) \
-            or not isinstance(out["slide_in_bodies"], bool) \
+            or not isinstance(out["slide_in_bodies"], bool) or not isinstance(out["revolute_joints"], bool) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
             or (out["check_stop"] and sweeps is None) \
             or not (fewest is None or isinstance(fewest, int) and 1 <= fewest <= out["rounds"]):
@@ -371,7 +376,7 @@ def _face_settings(face: Any, kind: str) -> dict:
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
-                             f"rescale, carry, extrapolate_jointed and slide_in_bodies true or false, check_sweeps null or a "
+                             f"rescale, carry, extrapolate_jointed, slide_in_bodies and revolute_joints true or false, check_sweeps null or a "
                              f"whole number 1-1000, "
                              f"check_stop true or false and only with check_sweeps, min_rounds null or a whole "
                              f"number 1 to rounds, got {face!r}")
@@ -381,7 +386,7 @@ def _face_settings(face: Any, kind: str) -> dict:
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
             "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
-            "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest}
+            "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest, "revolute_joints": out["revolute_joints"]}
 
 
 def _measured(m: Any) -> dict:

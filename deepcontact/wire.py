@@ -53,7 +53,7 @@ def encode_world(lower: tuple[float, float], upper: tuple[float, float],
 def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *,
                 world: pb.World | None = None, builtin: np.ndarray | None = None,
                 impulses: np.ndarray | None = None, friction: np.ndarray | None = None,
-                joints: np.ndarray | None = None) -> pb.StepRequest:
+                joints: np.ndarray | None = None, revolute: np.ndarray | None = None) -> pb.StepRequest:
     """A step from engine records.
 
     bodies: (B,) BODY_DTYPE in creation order, as the engine exports them
@@ -65,6 +65,8 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
         two fixtures'; the engine exports it as points["friction"]).
     joints: optional (J, 2) int each joint's body A and body B (engine body indices,
         Engine.joints); they travel as rows of the moving bodies (-1 for static).
+    revolute: optional (J, 7) float32, with joints: each joint as a rigid revolute one holds it
+        (Engine.revolute: 1 where it is one, its anchors on A and B (m), its impulse on B (N s)).
     """
     moving = bodies["type"] != 0
     dyn = bodies[moving]
@@ -99,7 +101,20 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
     if joints is not None and len(joints):
         msg.joint_count = len(joints)
         msg.joint_bodies = np.ascontiguousarray(row_of[np.asarray(joints)], I32).tobytes()
+        if revolute is not None:
+            msg.joint_revolute = np.ascontiguousarray(revolute, F32).tobytes()
     return msg
+
+
+def decode_joint_impulses(reply: pb.Impulses, joint_count: int) -> np.ndarray | None:
+    """The joints' start the reply carries, (joint_count, 2) float32 N s on each joint's body B
+    (Engine.set_revolute_impulses takes it), or None: the joints keep their own."""
+    if not reply.joint_impulses:
+        return None
+    xy = np.frombuffer(reply.joint_impulses, F32)
+    if len(xy) != 2 * joint_count or not _all(np.isfinite(xy)):
+        raise WireError("joint_impulses", f"reply carries {len(xy)} values for {joint_count} joints, or not finite")
+    return xy.reshape(joint_count, 2)
 
 
 def decode_impulses(reply: pb.Impulses) -> tuple[np.ndarray, np.ndarray]:
@@ -291,6 +306,19 @@ def decode_joints(msg: pb.StepRequest) -> np.ndarray | None:
     if len(rows) and (rows.min() < -1 or rows.max() >= msg.body_count):
         raise WireError("joint_bodies", f"names rows outside -1..{msg.body_count - 1}")
     return rows + 1
+
+
+def decode_revolute(msg: pb.StepRequest) -> np.ndarray | None:
+    """Each joint as a rigid revolute one holds it (joint_revolute), (J, 7) float32: 1 where it
+    is one, else 0; its anchors on body A and body B (world, m); its point impulse on body B
+    (world, N s). None when the request sends none. WireError when it does not fit joint_count,
+    is not finite, or flags other than 0 and 1."""
+    if not msg.joint_revolute:
+        return None
+    rows = _array(msg, "joint_revolute", msg.joint_count, 7)
+    if len(rows) and not _all((rows[:, 0] == 0) | (rows[:, 0] == 1)):
+        raise WireError("joint_revolute", "flags a joint with other than 0 or 1")
+    return rows
 
 
 def encode_impulses(step: int, model: str, impulses: np.ndarray, timings: pb.Timings | None = None) -> pb.Impulses:

@@ -29,12 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-#: A joint's two points' keys: far above any contact's (the engine's are 32-bit feature keys).
-KEY_BASE = 2**63
+from server.revolute import JOINT_POINT_FRICTION, KEY_BASE, joints_on_b
+
 #: The face a joint's points are served on, written as their final impulse (N s; faces.FACE_IMPULSE
 #: along the normal: pressing; none along the tangent: sticking at friction JOINT_POINT_FRICTION).
 SERVED_FACE = (1.0, 0.0)
-JOINT_POINT_FRICTION = 1.0
 
 
 def rigid_revolute(joint) -> bool:
@@ -80,9 +79,7 @@ def joint_impulses(engine, answer: np.ndarray) -> np.ndarray:
     order; returns (J, 2) float32, N s, world frame, on each joint's body B, in the engine's
     joint order (Engine.joints, what Engine.set_revolute_impulses takes). A point's impulse
     pushes body B along its normal (sign, 0) and its tangent (0, -sign)."""
-    a = np.asarray(answer, np.float64).reshape(-1, 2, 2)  # (J, the two points, normal and tangent)
-    sign = np.array([1.0, -1.0])
-    on_b = np.stack([(sign * a[:, :, 0]).sum(1), (-sign * a[:, :, 1]).sum(1)], 1)
+    on_b = joints_on_b(answer)
     row = {int(b.this): i for i, b in enumerate(engine.world.bodies)}
     where = {(row[int(j.bodyA.this)], row[int(j.bodyB.this)]): i for i, j in enumerate(engine.world.joints)}
     return on_b[[where[tuple(pair)] for pair in engine.joints()]].astype(np.float32)

@@ -12,7 +12,11 @@ The zoo route with each rigid revolute joint as two contact points at its anchor
 called in this process as the server would answer (bench.inprocess.InProcess):
 
     builtin          Box2D's own warm start
-    served           the model's answer at the contact points, the joints' own start
+    served           the model's answer at the contact points alone, the joints' own start (as
+                     served before the joints' start was, and what every run below builds on)
+    served+revolute  as the server answers now (server.revolute): of five starts, the one its
+                     copy of the step with the joints swept as Box2D sweeps them stops soonest
+                     from, the joints' start too where it is the route's
     served+joints    the same answer, and each revolute joint started at the impulses of its two
                      points in the zoo route's answer on its classifier's labels (the joints as
                      points, lab.jointed_points.raw_route; Engine.set_revolute_impulses); where the
@@ -22,6 +26,14 @@ called in this process as the server would answer (bench.inprocess.InProcess):
                      (CHECK_SWEEPS of the solver's sweeps on a replica, server.face_route) with
                      the joints as points there says the route's answer and its joints stop
                      sooner than the served answer with the joints' own last impulses
+    served+joints:replica  the same, but the joints started so only where the server's copy of the
+                     step with Box2D's own joint rows (deepcontact.faces.sweeps_to_stop with
+                     RevoluteRows: each joint swept as b2RevoluteJoint does, before the contacts)
+                     stops sooner, up to REPLICA_SWEEPS, from the served answer with the route's
+                     joint impulses than with the joints' own last impulses: a check a server could
+                     make, were the joints' anchors and last impulses on the request
+    best:picked      the same five starts, the one the engine's own trials from this state say
+                     stops soonest: the bound on any check among them
     served+joints:halfway  the same answer, each revolute joint started halfway between its own
                      last impulse and the route's: a smaller step from Box2D's start
     served+joints:picked  the same, but where the engine's own trial solves from this state (the
@@ -45,9 +57,12 @@ import numpy as np
 
 from bench.stats import ratio_interval
 
-RUNS = ("builtin", "served", "served+joints", "served+joints:checked", "served+joints:picked", "served+joints:halfway")
+RUNS = ("builtin", "served", "served+revolute", "served+joints", "served+joints:checked", "served+joints:replica",
+        "served+joints:picked", "served+joints:halfway", "best:picked")
 #: Sweeps of the check served+joints:checked plays from each start (the routes' check_sweeps).
 CHECK_SWEEPS = 12
+#: The most sweeps served+joints:replica plays from each start (the zoo route's check_sweeps).
+REPLICA_SWEEPS = 200
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,6 +72,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", default="models", help="model folder (default models/); its zoo card's "
                         "classifier labels the joints' route")
     parser.add_argument("--model", default="default", help="the model served at the contact points (default: default)")
+    parser.add_argument("--runs", default=",".join(RUNS), help=f"which runs, comma-separated (default all: {','.join(RUNS)}); "
+                        "builtin and served are always run")
 
 
 def _beats_box2d(bodies, both, answer, box2d, mu, world) -> bool:
@@ -73,6 +90,57 @@ def _beats_box2d(bodies, both, answer, box2d, mu, world) -> bool:
     return route[0] < theirs[0] or (route[0] == theirs[0] and route[1] < theirs[1])
 
 
+def _replica_prefers(bodies, points, served, own, route, world) -> bool:
+    """Whether the server's copy of the step with the joints as Box2D sweeps them stops sooner
+    from the served answer (P, 2) N s with the route's joint impulses `route` than with the
+    joints' own last impulses: own (bodies (J, 2), arms (J, 4), impulses (J, 2)) of
+    server.revolute.rows, route (J, 2) N s, both on body B in the engine's joint order (Engine.joints);
+    in as many sweeps, whether its last sweep changes the contacts' impulses less."""
+    from deepcontact.faces import RevoluteRows, sweeps_to_stop
+
+    ab, arms, start = own
+    starts = np.repeat(np.asarray(served, np.float64)[None], 2, 0)
+    counts, changes = sweeps_to_stop(bodies, points, starts, np.asarray(points["friction"], np.float64), world.physics,
+                                     world.tolerance, REPLICA_SWEEPS, None,
+                                     RevoluteRows(ab, arms, np.stack([start, route])))
+    return counts[1] < counts[0] or (counts[1] == counts[0] and changes[1] < changes[0])
+
+
+def _best_of(engine, bodies, points, served, zoo, world, step, previous):
+    """(normal, tangent) (P,) float32 N s of the start best:picked takes, the engine's revolute
+    joints set to its joints' start: of server.revolute's five starts (the route here on the
+    lab's joints' points, lab.joint_points), the one the engine's own trials say stops soonest."""
+    from lab.joint_points import joint_impulses, joint_point_pairs
+    from lab.jointed_points import JOINT_FRICTION, JOINT_LABEL, raw_route
+
+    P = len(points)
+    candidates = [(np.asarray(points["builtin"], np.float64), None), (np.asarray(served, np.float64), None)]
+    pairs = joint_point_pairs(engine, points.dtype, only_rigid=False)
+    if pairs is not None and len(pairs):
+        both = np.concatenate([points, pairs])
+        mu = np.asarray(both["friction"], np.float32)
+        labels = zoo.classifier.predict(bodies, both, world, step, previous, friction=mu).impulses.copy()
+        labels[P:] = (JOINT_LABEL, 0.0)
+        mu[P:] = JOINT_FRICTION
+        answer = raw_route(zoo, bodies, both, labels, mu, world)
+        if answer is not None:
+            joints = joint_impulses(engine, answer[P:])
+            route = np.asarray(answer[:P], np.float64)
+            candidates += [(route, None), (candidates[1][0], joints), (route, joints)]
+    own = engine.joint_state()
+    counts = []
+    for contacts, joints in candidates:
+        engine.set_joint_state(own)
+        if joints is not None:
+            engine.set_revolute_impulses(joints)
+        counts.append(engine.trial(contacts[:, 0].astype(np.float32), contacts[:, 1].astype(np.float32)))
+    engine.set_joint_state(own)
+    contacts, joints = candidates[int(np.argmin(counts))]
+    if joints is not None:
+        engine.set_revolute_impulses(joints)
+    return contacts[:, 0].astype(np.float32), contacts[:, 1].astype(np.float32)
+
+
 def simulate(spec, seed: int, models: str, model: str, run: str) -> np.ndarray:
     """(steps with contacts,) velocity iterations of one closed loop of (spec, seed) served as
     `run` (RUNS)."""
@@ -80,12 +148,13 @@ def simulate(spec, seed: int, models: str, model: str, run: str) -> np.ndarray:
     from lab.joint_points import joint_impulses, joint_point_pairs
     from lab.jointed_points import JOINT_FRICTION, JOINT_LABEL, raw_route
     from server.predictors import load_model
+    from server.revolute import rows
     from simclient import worlds
 
     engine = worlds.build(spec, seed)
     served = zoo = None
     if run != "builtin":
-        served = InProcess.load(Path(models), model, spec)
+        served = InProcess.load(Path(models), model, spec, revolute_joints=run == "served+revolute")
         served.prepare(engine)
         zoo = load_model(Path(models) / "zoo.json")
     iterations = []
@@ -95,7 +164,10 @@ def simulate(spec, seed: int, models: str, model: str, run: str) -> np.ndarray:
         bodies, points = engine.bodies(), engine.contacts()
         if served is not None and len(points):
             normal, tangent = served.warm_start(engine, bodies, points, k)
-            if run.startswith("served+joints"):
+            if run == "best:picked":
+                normal, tangent = _best_of(engine, bodies, points, np.stack([normal, tangent], 1), zoo, served.world,
+                                           k, previous)
+            elif run.startswith("served+joints"):
                 pairs = joint_point_pairs(engine, points.dtype, only_rigid=False)
                 if pairs is not None and len(pairs):
                     both = np.concatenate([points, pairs])
@@ -111,6 +183,11 @@ def simulate(spec, seed: int, models: str, model: str, run: str) -> np.ndarray:
                         engine.set_revolute_impulses(joint_impulses(engine, answer[len(points):]))
                         if engine.trial(normal, tangent) >= theirs:
                             engine.set_joint_state(own)
+                    elif answer is not None and run == "served+joints:replica":
+                        own = rows(bodies, engine.joints(), engine.revolute())
+                        theirs = joint_impulses(engine, answer[len(points):])
+                        if _replica_prefers(bodies, points, np.stack([normal, tangent], 1), own, theirs, served.world):
+                            engine.set_revolute_impulses(theirs)
                     elif answer is not None and run == "served+joints:halfway":
                         own = joint_impulses(engine, pairs["builtin"])  # the joints' last impulses, as their points hold them
                         engine.set_revolute_impulses(0.5 * (own + joint_impulses(engine, answer[len(points):])))
@@ -135,17 +212,23 @@ def run(args: argparse.Namespace) -> int:
     spec, seeds = parsed
     from tqdm import tqdm
 
+    chosen = [name.strip() for name in args.runs.split(",") if name.strip()]
+    unknown = [name for name in chosen if name not in RUNS]
+    if unknown:
+        print(f"deepcontact lab joint-start: unknown run {unknown[0]!r}; runs are {', '.join(RUNS)}", file=sys.stderr)
+        return 2
+    chosen = [name for name in RUNS if name in ("builtin", "served") or name in chosen]
     try:
         runs = {name: [simulate(spec, s, args.models, args.model, name) for s in tqdm(seeds, unit="sim", desc=name,
                                                                                        file=sys.stderr)]
-                for name in RUNS}
+                for name in chosen}
     except FileNotFoundError as exc:
         print(f"deepcontact lab joint-start: {exc}", file=sys.stderr)
         return 2
     print(f"`{args.world}`, seeds {args.seeds}, {args.model} in process, closed loop: velocity iterations a step "
           "with contacts over Builtin's")
     print("| run | mean iterations | / builtin | / served |\n|---|---|---|---|")
-    for name in RUNS:
+    for name in chosen:
         mean = float(np.mean(np.concatenate(runs[name]))) if any(len(r) for r in runs[name]) else float("nan")
         over = ratio_interval(runs[name], runs["builtin"]).text()
         served = ratio_interval(runs[name], runs["served"]).text() if name != "builtin" else "–"

@@ -74,6 +74,10 @@ import sys
 
 import numpy as np
 
+# A joint's two points (lab.joint_points): labelled pressing (N s, far past any card's `pressing`)
+# and sticking, and held in a cone so wide that its impulse is bounded in no direction.
+from server.revolute import JOINT_FRICTION, JOINT_LABEL
+
 from bench.stats import ratio_interval
 from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face, repair_face
 from lab.joint_points import joint_impulses, joint_point_pairs
@@ -95,10 +99,6 @@ LABEL_ROWS = ("the classifier's", *(f"after {k} repair{'s' if k > 1 else ''}" fo
 #: How the oracle's impulses are read as labels (deepcontact.faces.contact_face: pressing above this
 #: many N s, sliding at this share of the cone) and admitted, as lab.joint_route reads them.
 ORACLE_PRESSING, ORACLE_SHARE, ORACLE_ROUNDS = 1e-6, 0.99, 200
-#: A joint's two points (lab.joint_points): labelled pressing (N s, far past any card's `pressing`)
-#: and sticking, and held in a cone this wide, so that its impulse is bounded in no direction.
-JOINT_LABEL = 1e3
-JOINT_FRICTION = 1e3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

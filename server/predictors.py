@@ -94,6 +94,8 @@ class Prediction:
     served_by: None where the predictor's own answer is served; else what answered in its place,
         a fallback card's name or "builtin" (Box2D's warm start, the request's builtin impulses),
         which the service puts on the reply (Impulses.served_by).
+    joint_impulses: where the answer starts the request's revolute joints too (server.revolute),
+        (J, 2) float32 N s on each joint's body B, request order; None: they keep their own.
     unfamiliar: where the predictor judged the step against its own envelope (joints not
         judged), Envelope.unfamiliar's verdict: None inside, else why; NOT_JUDGED elsewhere. The
         service's reply says the same (Impulses.familiar) without judging the step again.
@@ -103,6 +105,7 @@ class Prediction:
     stages: dict[str, float] = dataclasses.field(default_factory=dict)
     served_by: str | None = None
     unfamiliar: object = NOT_JUDGED
+    joint_impulses: np.ndarray | None = None  # (J, 2) float32 N s, the revolute joints' start, or None (their own)
 
 
 class Predictor:

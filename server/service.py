@@ -29,6 +29,7 @@ from server import metrics
 from server.batching import QueueFull
 from server.idle import IdleStreams
 from server.joints import predict_around_joints
+from server.revolute import all_rigid, joint_route, start_with_joints
 from deepcontact.channels import NEEDS
 from server.predictors import MAX_GRID_NODES, NOT_JUDGED, GridMismatch, Prediction, Predictor, World
 from server.rejects import reject
@@ -255,6 +256,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             bodies, points = wire.decode_step(request, max_bodies=self.limits.max_bodies,
                                               max_points=self.limits.max_points)
             friction, joints = wire.decode_friction(request), wire.decode_joints(request)
+            revolute = wire.decode_revolute(request)
             # Only a predictor that asks for the friction gets it: the others' predict() takes none.
             extra = {"friction": friction} if "point_friction" in predictor.requires else {}
             deadline = None
@@ -296,6 +298,9 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                     history = histories.setdefault(request.model, ImpulseHistory())
                 answer = predict_around_joints(predictor, bodies, points, joints, world, request.step, previous,
                                                history=history, **extra)
+                if all_rigid(revolute) and friction is not None:
+                    answer = start_with_joints(joint_route(predictor), bodies, points, joints, revolute, world,
+                                               request.step, previous, friction, answer, deadline)
             else:
                 answer = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:
@@ -318,6 +323,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             reply.unfamiliar = unfamiliar or ""
         if answer.served_by:
             reply.served_by = answer.served_by
+        if answer.joint_impulses is not None:
+            reply.joint_impulses = np.ascontiguousarray(answer.joint_impulses, np.float32).tobytes()
             metrics.SERVED_BY.labels(model=predictor.name, served_by=answer.served_by).inc()
         # Filled in place: building a Timings and copying it in costs more. Each stage a
         # predictor did not run stays 0 (a grid model has no solve, the face route no p2g).

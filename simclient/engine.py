@@ -172,6 +172,16 @@ class Engine:
             self.world.ExportJoints(out)
         return out
 
+    def revolute(self) -> np.ndarray:
+        """Each joint as a rigid revolute one (no limit, no motor) holds it: (J, 7) float32, the
+        world's joint order (`joints()`): 1 where it is one (else 0 and the row's rest 0), its
+        anchor on body A and on body B (world, m), and its point impulse on body B (world, N s:
+        the joint's warm start for the next solve). What a request's joint_revolute carries."""
+        out = np.empty((self.world.jointCount, 7), np.float32)
+        if len(out):
+            self.world.ExportRevolute(out)
+        return out
+
     def joint_state(self) -> bytes:
         """Every joint object as it is now (their impulses, the joints' warm start for the next
         solve or trial, among their other fields), for `set_joint_state` on this same world."""

@@ -41,7 +41,8 @@ class StepResult:
     Box2D's own start ran instead of the server's answer (a gRPC status name, NO_SERVER,
     BAD_REPLY or REFUSED), None otherwise; start: the start the guard chose ("learned"
     or "builtin"; None without a guard or without contacts); probe: the guard priced
-    both starts on this step."""
+    both starts on this step; joints_started: the server's answer started the world's revolute
+    joints too (a world of rigid revolute joints, server.revolute)."""
 
     velocity_iterations: int
     position_iterations: int
@@ -51,11 +52,13 @@ class StepResult:
     fallback: str | None
     start: str | None
     probe: bool
+    joints_started: bool = False
 
     @classmethod
     def of(cls, record: StepRecord) -> "StepResult":
         return cls(record.velocity_iterations, record.position_iterations, record.contact_points,
-                   record.served_by, record.latency_ms, record.fallback_reason, record.guard, record.probe)
+                   record.served_by, record.latency_ms, record.fallback_reason, record.guard, record.probe,
+                   record.joints_started)
 
 
 class WarmStartSession:

@@ -58,6 +58,7 @@ class StepRecord:
     learned: bool = False  # the server's model's own answer (not a fallback's, nor Box2D's) started the solve
     familiar: bool | None = None  # the server's word: the step lies inside what its model was trained on (None: not asked)
     unfamiliar: str | None = None  # where not, why (the reply's unfamiliar)
+    joints_started: bool = False  # the reply's joint_impulses started the revolute joints too
 
 
 @dataclasses.dataclass
@@ -74,6 +75,7 @@ class _Served:
     detail: str = ""  # a failure's message
     familiar: bool | None = None  # the reply's familiar (None: no reply)
     unfamiliar: str | None = None  # the reply's unfamiliar, where not familiar
+    joints: np.ndarray | None = None  # (J, 2) N s, the revolute joints' start with `warm`; None: their own
 
 
 class _Laps:
@@ -133,10 +135,13 @@ class Stepper:
         inject_s = 0.0
         if served.warm is not None:
             engine.set_warm_start(*served.warm)
+            if served.joints is not None:
+                engine.set_revolute_impulses(served.joints)
             inject_s = laps.lap()
         stats = engine.solve()
         record = self._record(stats, served, collide_s=collide_s, export_s=export_s, provider_s=provider_s,
                               inject_s=inject_s)
+        record.joints_started = served.warm is not None and served.joints is not None
         record.learned = provider.uses_server and not provider.picks and served.warm is not None and not served.served_by
         return record
 
@@ -156,6 +161,8 @@ class Stepper:
             if mode == LEARNED:  # Box2D's start priced beside the learned one, which is served
                 trial = engine.trial_trace(*builtin)
                 engine.set_warm_start(*learned)
+                if served.joints is not None:
+                    engine.set_revolute_impulses(served.joints)
             else:  # the learned start priced, Box2D's served; past the cap it has lost (with a tolerance)
                 cap = guard.trial_cap() if engine.config.velocity_threshold >= 0 else None
                 trial = engine.trial_trace(*learned, cap=cap)
@@ -165,11 +172,14 @@ class Stepper:
             laps.lap()
         elif mode == LEARNED and learned is not None:
             engine.set_warm_start(*learned)
+            if served.joints is not None:
+                engine.set_revolute_impulses(served.joints)
             inject_s = laps.lap()
         stats = engine.solve()
         served_start = LEARNED if (mode == LEARNED and learned is not None) else BUILTIN
         record = self._record(stats, served, collide_s=collide_s, export_s=export_s, provider_s=provider_s,
                               inject_s=inject_s)
+        record.joints_started = served_start == LEARNED and served.joints is not None
         record.learned = served_start == LEARNED and not served.served_by
         if stats.contact_points == 0:  # every point slept after all: nothing for the guard to learn
             return record
@@ -212,8 +222,10 @@ class Stepper:
         engine, provider, client = self.engine, self.provider, self.client
         oracle = engine.oracle() if provider.sends_oracle else None
         t0 = time.perf_counter()
+        joints = engine.joints()
         request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"], impulses=oracle,
-                                   friction=points["friction"], joints=engine.joints())
+                                   friction=points["friction"], joints=joints,
+                                   revolute=engine.revolute() if len(joints) else None)
         t1 = time.perf_counter()
         streams = client.reconnects
         try:
@@ -226,8 +238,9 @@ class Stepper:
         t2 = time.perf_counter()
         try:
             warm = wire.decode_impulses(reply)
+            started = wire.decode_joint_impulses(reply, len(joints))
         except wire.WireError as exc:
-            warm = None
+            warm = started = None
             detail = str(exc)
         else:
             detail = "" if _usable(warm, len(points)) else f"{reply.point_count} values for {len(points)} points, or not finite"
@@ -242,7 +255,7 @@ class Stepper:
                                   "inference": tm.inference_us, "g2p": tm.g2p_us, "solve": tm.solve_us,
                                   "admit": tm.admit_us, "total": tm.total_us},
                        reconnect=client.reconnects > streams, served_by=reply.served_by or None,
-                       familiar=reply.familiar, unfamiliar=reply.unfamiliar or None)
+                       familiar=reply.familiar, unfamiliar=reply.unfamiliar or None, joints=started)
 
     def _refused(self, n_points: int, reason: str) -> None:
         """The server refused a step of n_points: log it the first time, and send no step that large again."""
@@ -335,6 +348,8 @@ def summarize(records: list[StepRecord]) -> dict:
         "guard_trial_ms": float(sum(r.trial_ms for r in guarded)),
         # Steps with contacts the server's model's own answer started (no fallback, no other card, not the guard's Box2D).
         "learned_route_steps": sum(r.learned for r in solved),
+        # Steps whose revolute joints the server's answer started too (server.revolute).
+        "joints_started_steps": sum(r.joints_started for r in records),
         # The server's word on the world (deepcontact.envelope): steps it called familiar, and why it did not.
         "familiar_steps": sum(r.familiar is True for r in records),
         "unfamiliar_steps": sum(r.familiar is False for r in records),

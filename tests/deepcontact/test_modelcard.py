@@ -84,7 +84,7 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                          "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [],
                          "close": None, "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                          "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
-                         "slide_in_bodies": True, "min_rounds": None}
+                         "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False}
     assert ModelCard.load(tmp_path / "classifier.json").face is None  # the classifier itself is served plain
     for bad, match in (({"pressing": -1}, "pressing >= 0"), ({"rounds": 0}, "rounds a whole number"),
                        ({"rounds": 2.5}, "rounds a whole number"), ({"labels": 1}, "keys among"),
@@ -94,11 +94,12 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                        ({"max_points": 0}, "max_points null or a whole number"),
                        ({"max_points": 150.5}, "max_points null or a whole number"),
                        ({"relax": 2.0}, "relax between 0 and 2"), ({"relax": 0}, "relax between 0 and 2"), ({"rho": 0}, "rho > 0"),
-                       ({"against_builtin": 1}, "against_builtin, rescale, carry, extrapolate_jointed and slide_in_bodies true or false"),
-                       ({"rescale": "yes"}, "against_builtin, rescale, carry, extrapolate_jointed and slide_in_bodies true or false"),
-                       ({"carry": 1}, "rescale, carry, extrapolate_jointed and slide_in_bodies true or false"),
-                       ({"extrapolate_jointed": "on"}, "carry, extrapolate_jointed and slide_in_bodies true or false"),
-                       ({"slide_in_bodies": 0}, "extrapolate_jointed and slide_in_bodies true or false"),
+                       ({"against_builtin": 1}, "against_builtin, rescale, carry, extrapolate_jointed, slide_in_bodies and revolute_joints true or false"),
+                       ({"rescale": "yes"}, "against_builtin, rescale, carry, extrapolate_jointed, slide_in_bodies and revolute_joints true or false"),
+                       ({"carry": 1}, "rescale, carry, extrapolate_jointed, slide_in_bodies and revolute_joints true or false"),
+                       ({"extrapolate_jointed": "on"}, "carry, extrapolate_jointed, slide_in_bodies and revolute_joints true or false"),
+                       ({"slide_in_bodies": 0}, "extrapolate_jointed, slide_in_bodies and revolute_joints true or false"),
+                       ({"revolute_joints": "yes"}, "slide_in_bodies and revolute_joints true or false"),
                        ({"check_sweeps": 0}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_sweeps": 12.5}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_stop": True}, "check_stop true or false and only with check_sweeps"),

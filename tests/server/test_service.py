@@ -143,6 +143,12 @@ def test_the_grid_bound_is_the_operators_to_set(model_dir, thesis_steps):
      grpc.StatusCode.INVALID_ARGUMENT, "joint_bodies"),
     (lambda r: (setattr(r, "joint_count", 1), setattr(r, "joint_bodies", np.array([0, 10**6], np.int32).tobytes())),
      grpc.StatusCode.INVALID_ARGUMENT, "rows outside"),
+    (lambda r: (setattr(r, "joint_count", 1), setattr(r, "joint_bodies", np.array([0, 1], np.int32).tobytes()),
+                setattr(r, "joint_revolute", np.ones(6, np.float32).tobytes())),
+     grpc.StatusCode.INVALID_ARGUMENT, "joint_revolute"),
+    (lambda r: (setattr(r, "joint_count", 1), setattr(r, "joint_bodies", np.array([0, 1], np.int32).tobytes()),
+                setattr(r, "joint_revolute", np.full(7, 2.0, np.float32).tobytes())),
+     grpc.StatusCode.INVALID_ARGUMENT, "flags"),
 ])
 def test_bad_requests_get_a_status_that_names_the_problem(stub, thesis_steps, mutate, code, words):
     world, steps = thesis_steps
