@@ -29,7 +29,7 @@ from server import metrics
 from server.batching import QueueFull
 from server.idle import IdleStreams
 from server.joints import predict_around_joints
-from server.revolute import all_rigid, joint_route, start_with_joints
+from server.revolute import PricingTime, all_rigid, joint_route, start_with_joints
 from deepcontact.channels import NEEDS
 from server.predictors import MAX_GRID_NODES, NOT_JUDGED, GridMismatch, Prediction, Predictor, World
 from server.rejects import reject
@@ -130,6 +130,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         self.limits = limits
         self.fault = fault
         self.idle = idle  # None: streams may stay open without sending for as long as they like
+        # What pricing a world of rigid revolute joints has taken (server.revolute), kept across steps.
+        self._pricing = PricingTime()
 
     # -- RPCs -----------------------------------------------------------------
     def ListModels(self, request, context):
@@ -300,7 +302,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                                                history=history, **extra)
                 if all_rigid(revolute) and friction is not None:
                     answer = start_with_joints(joint_route(predictor), bodies, points, joints, revolute, world,
-                                               request.step, previous, friction, answer, deadline)
+                                               request.step, previous, friction, answer, deadline, self._pricing)
             else:
                 answer = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:

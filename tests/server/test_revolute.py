@@ -119,3 +119,29 @@ def test_a_reply_that_starts_the_joints_carries_one_impulse_a_joint():
     assert wire.decode_joint_impulses(wire.pb.Impulses(), 3) is None  # the joints keep their own
     with pytest.raises(wire.WireError, match="joint_impulses"):
         wire.decode_joint_impulses(reply, 2)
+
+
+def test_a_step_the_pricing_would_not_finish_by_its_deadline_keeps_the_served_answer():
+    import time
+
+    from bench.inprocess import declared_world
+    from server.predictors import Prediction, load_model
+    from server.revolute import PricingTime, joint_route, start_with_joints
+
+    spec, engine = chain_engine()
+    for _ in range(40):
+        engine.collide()
+        engine.solve()
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    route = joint_route(load_model(Path(__file__).resolve().parents[2] / "models" / "default.json"))
+    assert route is not None and route.name == "zoo"
+    world = declared_world(spec, engine)
+    served = Prediction(np.asarray(points["builtin"], np.float32))
+    args = (route, bodies, points, engine.joints(), engine.revolute(), world, 40, None, points["friction"], served)
+    timing = PricingTime()
+    priced = start_with_joints(*args, timing=timing)
+    assert timing.seconds > 0 and priced.stages["admit"] > 0  # priced: it took time, and says where
+    late = PricingTime()
+    late.observe(1.0)  # a second a step: no 10 ms deadline fits it
+    assert start_with_joints(*args, deadline=time.perf_counter() + 0.01, timing=late) is served
