@@ -165,7 +165,13 @@ class Stepper:
                     engine.set_revolute_impulses(served.joints)
             else:  # the learned start priced, Box2D's served; past the cap it has lost (with a tolerance)
                 cap = guard.trial_cap() if engine.config.velocity_threshold >= 0 else None
+                own = None
+                if served.joints is not None:  # priced with the joints' start it comes with, then put back
+                    own = engine.joint_state()
+                    engine.set_revolute_impulses(served.joints)
                 trial = engine.trial_trace(*learned, cap=cap)
+                if own is not None:
+                    engine.set_joint_state(own)
                 capped = cap is not None and len(trial) >= cap
                 engine.set_warm_start(*builtin)
             trial_s = time.perf_counter() - t0

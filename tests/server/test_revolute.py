@@ -17,19 +17,21 @@ from server.revolute import KEY_BASE, all_rigid, joint_points, joints_on_b, rows
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 
-def chain_engine(seed: int = 850):
+def chain_engine(seed: int = 850, settled: int = 0):
+    """(spec, engine) of the chain of examples/, stepped `settled` steps by Box2D's own start."""
     from simclient.worlds import WorldSpec, build
 
     spec = WorldSpec(f"{EXAMPLES / 'chain.py'}:build", steps=120)
     spec.validate()
-    return spec, build(spec, seed)
+    engine = build(spec, seed)
+    for _ in range(settled):
+        engine.collide()
+        engine.solve()
+    return spec, engine
 
 
 def test_every_joint_of_the_chain_is_exported_as_a_rigid_revolute_one_with_its_last_impulse():
-    _, engine = chain_engine()
-    for _ in range(40):
-        engine.collide()
-        engine.solve()
+    _, engine = chain_engine(settled=40)
     revolute = engine.revolute()
     assert revolute.shape == (30, 7) and all_rigid(revolute)
     # The joint list is pybox2d's in reverse; each row is the same joint as Engine.joints names.
@@ -43,10 +45,7 @@ def test_every_joint_of_the_chain_is_exported_as_a_rigid_revolute_one_with_its_l
 
 
 def test_a_joint_is_two_points_at_its_anchor_that_hold_its_last_impulse():
-    _, engine = chain_engine()
-    for _ in range(40):
-        engine.collide()
-        engine.solve()
+    _, engine = chain_engine(settled=40)
     engine.collide()
     points, joints, revolute = engine.contacts(), engine.joints(), engine.revolute()
     pairs = joint_points(points, joints, revolute)
@@ -97,12 +96,13 @@ def test_the_joints_rows_must_fit_the_starts():
                        10, None, RevoluteRows(ab, arms, own[None]))  # one joint start for two starts
 
 
-def test_the_default_starts_a_chains_joints_over_the_wire(default_server):
+@pytest.mark.parametrize("guard", [False, True])
+def test_the_default_starts_a_chains_joints_over_the_wire(default_server, guard):
     from simclient.session import WarmStartSession
 
     _, engine = chain_engine()
     with WarmStartSession(engine.world, default_server.address, model="default", deadline_ms=2000,
-                          guard=False) as session:
+                          guard=guard) as session:
         results = [session.step(0.01, 1000, 10) for _ in range(120)]
         summary = session.summary()
     assert summary["fallback_steps"] == 0, summary["fallbacks_by_reason"]
@@ -128,10 +128,7 @@ def test_a_step_the_pricing_would_not_finish_by_its_deadline_keeps_the_served_an
     from server.predictors import Prediction, load_model
     from server.revolute import PricingTime, joint_route, start_with_joints
 
-    spec, engine = chain_engine()
-    for _ in range(40):
-        engine.collide()
-        engine.solve()
+    spec, engine = chain_engine(settled=40)
     engine.collide()
     bodies, points = engine.bodies(), engine.contacts()
     route = joint_route(load_model(Path(__file__).resolve().parents[2] / "models" / "default.json"))
