@@ -30,6 +30,8 @@ COMMANDS = [
             "would the route pay on jointed worlds with the joints in its problem? priced on Box2D's states"),
     Command(("jointed-points",), "lab.jointed_points",
             "on a world with joints, do the points at jointed bodies or the rest keep the default from the solution?"),
+    Command(("joint-copy",), "lab.joint_copy",
+            "does the server's copy of a step count Box2D's sweeps, with the rigid revolute joints in it and without?"),
     Command(("joint-start",), "lab.joint_start",
             "closed loop on rigid revolute joints: would a reply that carried the joints' impulses too buy iterations?"),
     Command(("joints-price",), "lab.joints_price",

@@ -44,6 +44,10 @@ JOINT_FRICTION = 1e3
 JOINT_POINT_FRICTION = 1.0
 #: served_by of a step whose best start is Box2D's own.
 BUILTIN = "builtin"
+#: The admission's rounds of the route with the joints as points: on the chain's choosing seeds
+#: 850-899 closed loop 0.697x of Builtin's iterations at 30, 0.709x at the zoo card's 100, and
+#: about 0.3 ms less a step (`deepcontact lab joint-start --runs served+revolute`).
+ROUNDS = 30
 
 
 def all_rigid(revolute: np.ndarray | None) -> bool:
@@ -141,7 +145,7 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     mu[P:] = JOINT_FRICTION
     s = route.settings
     solved = route_compiled(bodies, both, face, np.asarray(mu, np.float64), world.physics, s["pressing"], s["share"],
-                            s["label_friction"], s["rounds"], None, None, s["relax"], s["rho"], None)
+                            s["label_friction"], min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None)
     ab, arms, own = rows(bodies, joints, revolute)
     starts = [np.asarray(points["builtin"], np.float64), np.asarray(served.impulses, np.float64)]
     joint_starts = [own, own]
