@@ -121,24 +121,38 @@ class PricingTime:
         self.seconds = seconds if self.seconds == 0.0 else self.seconds + self.weight * (seconds - self.seconds)
 
 
+def joint_labels(route, bodies: np.ndarray, points: np.ndarray, joints: np.ndarray, revolute: np.ndarray, world,
+                 step: int, previous, friction: np.ndarray) -> tuple[np.ndarray, np.ndarray, Prediction, float]:
+    """(both, mu, labels, seconds): the step's points and the joints' (joint_points), the friction
+    the route's classifier reads at them ((P + 2 J,) float32), its answer there and what it took.
+    It depends on nothing served, so a server with a core to spare asks it while the served
+    answer is made (start_with_joints's `labelled`)."""
+    t0 = time.perf_counter()
+    both = np.concatenate([points, joint_points(points, joints, revolute)])
+    mu = np.concatenate([np.asarray(friction, np.float32), np.full(2 * len(joints), JOINT_POINT_FRICTION, np.float32)])
+    labels = route.classifier.predict(bodies, both, world, step, previous, friction=mu)
+    return both, mu, labels, time.perf_counter() - t0
+
+
 def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.ndarray, revolute: np.ndarray, world,
                       step: int, previous, friction: np.ndarray, served: Prediction,
-                      deadline: float | None = None, timing: PricingTime | None = None) -> Prediction:
+                      deadline: float | None = None, timing: PricingTime | None = None,
+                      labelled=None) -> Prediction:
     """The served answer, or the start of five that the step's copy with its joints says stops
     soonest (module docstring). route: joint_route's; joints (J, 2) rows of bodies, every one a
     rigid revolute joint (revolute (J, 7), all_rigid); friction (P,); served: the step's answer
     as served without the joints; deadline: perf_counter() s, by which the answer must be ready
     (timing: what the pricing has taken, kept across steps; where it would end past the deadline
-    the served answer is returned as it is). Its stages add the route's and the pricing's seconds
-    (inference, admit)."""
+    the served answer is returned as it is); labelled: a future of joint_labels's for the same
+    step, asked on another core while the served answer was made, or None (asked here). Its
+    stages add the classifier's, the route's and the pricing's seconds (inference, admit)."""
     t0 = time.perf_counter()
     if route is None or world.tolerance <= 0 or len(points) == 0 or (deadline is not None and t0 >= deadline) or (
             timing is not None and not timing.fits(t0, deadline)):
         return served
     P = len(points)
-    both = np.concatenate([points, joint_points(points, joints, revolute)])
-    mu = np.concatenate([np.asarray(friction, np.float32), np.full(2 * len(joints), JOINT_POINT_FRICTION, np.float32)])
-    labels = route.classifier.predict(bodies, both, world, step, previous, friction=mu)
+    both, mu, labels, asked = (labelled.result() if labelled is not None else
+                               joint_labels(route, bodies, points, joints, revolute, world, step, previous, friction))
     t1 = time.perf_counter()
     face = np.asarray(labels.impulses, np.float64).copy()
     face[P:] = (JOINT_LABEL, 0.0)
@@ -166,7 +180,7 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     if timing is not None:
         timing.observe(time.perf_counter() - t0)
     stages = dict(served.stages)
-    stages["inference"] = stages.get("inference", 0.0) + (t1 - t0)
+    stages["inference"] = stages.get("inference", 0.0) + asked
     stages["admit"] = stages.get("admit", 0.0) + (time.perf_counter() - t1)
     if best == 1:
         return Prediction(served.impulses, stages, served.served_by, served.unfamiliar)

@@ -12,6 +12,7 @@ refused by server.malformed.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import logging
 import os
@@ -29,7 +30,7 @@ from server import metrics
 from server.batching import QueueFull
 from server.idle import IdleStreams
 from server.joints import predict_around_joints
-from server.revolute import PricingTime, all_rigid, joint_route, start_with_joints
+from server.revolute import PricingTime, all_rigid, joint_labels, joint_route, start_with_joints
 from deepcontact.channels import NEEDS
 from server.predictors import MAX_GRID_NODES, NOT_JUDGED, GridMismatch, Prediction, Predictor, World
 from server.rejects import reject
@@ -130,8 +131,12 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         self.limits = limits
         self.fault = fault
         self.idle = idle  # None: streams may stay open without sending for as long as they like
-        # What pricing a world of rigid revolute joints has taken (server.revolute), kept across steps.
+        # What pricing a world of rigid revolute joints has taken (server.revolute), kept across steps,
+        # and a thread that asks its classifier about the step with the joints' points while the
+        # served answer is made, where a core is spare.
         self._pricing = PricingTime()
+        self._joint_labels = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="joint-labels") \
+            if self.cores > 1 else None
 
     # -- RPCs -----------------------------------------------------------------
     def ListModels(self, request, context):
@@ -298,11 +303,16 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                 history = None
                 if predictor.extrapolates_jointed and histories is not None and request.point_keys:
                     history = histories.setdefault(request.model, ImpulseHistory())
+                route = joint_route(predictor) if all_rigid(revolute) and friction is not None else None
+                labelled = None
+                if route is not None and self._joint_labels is not None and self._pricing.fits(t1, deadline):
+                    labelled = self._joint_labels.submit(joint_labels, route, bodies, points, joints, revolute, world,
+                                                         request.step, previous, friction)
                 answer = predict_around_joints(predictor, bodies, points, joints, world, request.step, previous,
                                                history=history, **extra)
-                if all_rigid(revolute) and friction is not None:
-                    answer = start_with_joints(joint_route(predictor), bodies, points, joints, revolute, world,
-                                               request.step, previous, friction, answer, deadline, self._pricing)
+                if route is not None:
+                    answer = start_with_joints(route, bodies, points, joints, revolute, world, request.step, previous,
+                                               friction, answer, deadline, self._pricing, labelled)
             else:
                 answer = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:
