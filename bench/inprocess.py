@@ -33,7 +33,7 @@ from deepcontact import wire
 from deepcontact.modelcard import unknown_model
 from deepcontact.temporal import ImpulseHistory
 from server.joints import predict_around_joints
-from server.revolute import all_rigid, joint_route, start_with_joints
+from server.revolute import all_held, joint_route, start_with_joints
 from server.predictors import Predictor, World, load_model
 from simclient import worlds
 from simclient.provider import Provider, as_warm_start, point_friction
@@ -45,7 +45,7 @@ class InProcess(Provider):
 
     def __init__(self, predictor: Predictor, spec, revolute_joints: bool = True):
         self.predictor, self.spec = predictor, spec
-        # As the server answers a world of rigid revolute joints (server.revolute): the joints'
+        # As the server answers a world of revolute joints (server.revolute): the joints'
         # start too, set on the engine as the client sets a reply's. False: the contact points alone.
         self.revolute_joints = revolute_joints
         # As the simulation's stream would declare it: a project scene's now, a user's world's
@@ -64,7 +64,7 @@ class InProcess(Provider):
         """The card `models/MODEL.json` (an alias card serves its target) for the worlds of `spec`
         (a simclient.scene.SceneSpec or a user's simclient.worlds.WorldSpec). FileNotFoundError
         names the models there when there is no such card. revolute_joints False: on a world of
-        rigid revolute joints, the answer at the contact points alone (the joints' own start)."""
+        revolute joints, the answer at the contact points alone (the joints' own start)."""
         path = Path(models) / f"{model}.json"
         if not path.exists():
             raise FileNotFoundError(f"{models}: {unknown_model(model, [p.stem for p in Path(models).glob('*.json')])}")
@@ -91,7 +91,7 @@ class InProcess(Provider):
             answer = predict_around_joints(self.predictor, bodies, points, joints, self.world, step, self._points,
                                            history=self._history, **extra)
             revolute = engine.revolute() if self.revolute_joints else None
-            if all_rigid(revolute) and "friction" in extra:
+            if all_held(revolute) and "friction" in extra:
                 answer = start_with_joints(joint_route(self.predictor), bodies, points, joints, revolute, self.world,
                                            step, self._points, extra["friction"], answer)
                 if answer.joint_impulses is not None:  # as the client sets a reply's joint_impulses

@@ -329,7 +329,7 @@ done:
  * the dual did or nothing was solved. */
 static PyObject *solve_and_admit(PyObject *self, PyObject *args)
 {
-    Py_buffer b[7];
+    Py_buffer b[8];
     Py_ssize_t n_bodies, n_points;
     double dt, gx, gy, pressing, share, relax, rho, until, ridge, optimality;
     long rounds;
@@ -493,7 +493,7 @@ out:
         result = Py_BuildValue("(iddd li)", outcome, residual, (outcome == ROUTE_SERVED ? t1 : t2) - t0,
                                outcome == ROUTE_SERVED ? t2 - t1 : 0.0, used, in_bodies);
 done:
-    for (int k = 0; k < 7; k++)
+    for (int k = 0; k < 8; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);
     for (int k = 0; k < 2; k++)
@@ -593,33 +593,151 @@ static double solve_sweep(const struct geometry *g, const double *mu, const doub
  * the same velocities) is the crude version of this. g: the step's geometry (velocities with
  * gravity added); mu (P,); starts (n_starts, P, 2) N s; changes (n_starts,) out, N s. Returns
  * 0, or -1 (memory). */
-/* Rigid revolute joints on the server's copy of the step (no limit, no motor), as Box2D's
- * b2RevoluteJoint holds them: a point-to-point row pair between body A and body B at the joint's
- * anchor. ab (J, 2) the bodies' rows; arms (J, 4) m, rA then rB, each from its body's centre of
- * mass to the joint's anchor on it, world frame; starts (n_starts, J, 2) N s, each start's joint
- * impulses on body B, world frame (Box2D's m_impulse.x, .y, the joints' warm start). */
+/* Joints on the server's copy of the step, as Box2D's solver holds them. Each is a revolute
+ * joint (a point-to-point row pair between body A and body B at the joint's anchor, and where
+ * limits is given its angle limit and motor; a rigid weld is one at equal limits, as
+ * b2WeldJoint solves it) or a prismatic one (a row across its axis and an angular row, and its
+ * translation's limit and motor). ab (J, 2) the bodies' rows; arms (J, 4) m, rA then rB, each
+ * from its body's centre of mass to the joint's anchor on it, world frame; starts (n_starts, J,
+ * 2), each start's joint impulses: a revolute joint's point impulse on body B, world frame, N s
+ * (Box2D's m_impulse.x, .y, the joints' warm start), a prismatic joint's across its axis (N s)
+ * and its angular one (N m s); limits (J, JOINT_COLUMNS) or NULL (every joint a revolute one with
+ * no limit and no motor): JOINT_KIND, the limit's state (LIMIT_*), its impulse, the motor on (1)
+ * or off (0), its impulse, its largest impulse (the largest torque or force times dt) and its
+ * speed, then a prismatic joint's axis (world) and its arms' cross products with the axis and
+ * with the normal across it (Box2D's a1, a2, s1, s2, m); the limits' and the motors' impulses
+ * the same in every start (the client keeps its own). */
+enum { LIMIT_INACTIVE = 0, LIMIT_LOWER = 1, LIMIT_UPPER = 2, LIMIT_EQUAL = 3 };
+enum { JOINT_REVOLUTE = 0, JOINT_PRISMATIC = 1, JOINT_COLUMNS = 13 };
+
 struct joint_rows {
     int64_t J;
     const int64_t *ab;
-    const double *arms, *starts;
+    const double *arms, *starts, *limits;
 };
 
-/* Box2D's b2RevoluteJoint::SolveVelocityConstraints without limit or motor, each joint in turn:
- * the relative velocity of the anchor's two points set to zero through K's 2 x 2 inverse
- * (kinv (J, 3): its 11, 12 and 22 entries). The solver's stopping rule reads the contacts'
- * changes alone (the patch), so none is returned. lam (J, 2) N s the joints' impulses. */
-static void solve_joints(const struct geometry *g, const struct joint_rows *jr, const double *kinv, double *vx,
-                         double *vy, double *w, double *lam)
+/* b2Mat33::Solve33 of rhs for the symmetric m (its 11, 12, 13, 22, 23, 33 entries): out (3,). */
+static void solve33(const double *m, const double *rhs, double *out)
+{
+    const double ex[3] = {m[0], m[1], m[2]}, ey[3] = {m[1], m[3], m[4]}, ez[3] = {m[2], m[4], m[5]};
+    const double cyz[3] = {ey[1] * ez[2] - ey[2] * ez[1], ey[2] * ez[0] - ey[0] * ez[2], ey[0] * ez[1] - ey[1] * ez[0]};
+    double det = ex[0] * cyz[0] + ex[1] * cyz[1] + ex[2] * cyz[2];
+    det = det != 0.0 ? 1.0 / det : 0.0;
+    const double cbz[3] = {rhs[1] * ez[2] - rhs[2] * ez[1], rhs[2] * ez[0] - rhs[0] * ez[2], rhs[0] * ez[1] - rhs[1] * ez[0]};
+    const double cyb[3] = {ey[1] * rhs[2] - ey[2] * rhs[1], ey[2] * rhs[0] - ey[0] * rhs[2], ey[0] * rhs[1] - ey[1] * rhs[0]};
+    out[0] = det * (rhs[0] * cyz[0] + rhs[1] * cyz[1] + rhs[2] * cyz[2]);
+    out[1] = det * (ex[0] * cbz[0] + ex[1] * cbz[1] + ex[2] * cbz[2]);
+    out[2] = det * (ex[0] * cyb[0] + ex[1] * cyb[1] + ex[2] * cyb[2]);
+}
+
+/* b2Mat33::Solve22 of (q0, q1) on m's upper 2 x 2 block: out (2,). */
+static void solve22(const double *m, double q0, double q1, double *out)
+{
+    double det = m[0] * m[3] - m[1] * m[1];
+    det = det != 0.0 ? 1.0 / det : 0.0;
+    out[0] = det * (m[3] * q0 - m[1] * q1), out[1] = det * (m[0] * q1 - m[1] * q0);
+}
+
+/* Box2D's b2PrismaticJoint::SolveVelocityConstraints of joint j: its motor along the axis, then
+ * the row across the axis and the angular row together, with the translation's limit where it is
+ * active (the limit's impulse kept on its side of zero and the other two re-solved for it). m:
+ * its K (k3's 6 entries). */
+static void solve_prismatic(const struct geometry *g, const struct joint_rows *jr, const double *m, int64_t j,
+                            double *vx, double *vy, double *w, double *lam, double *lz, double *lm)
+{
+    const int64_t a = jr->ab[2 * j], b = jr->ab[2 * j + 1];
+    const double *lim = jr->limits + JOINT_COLUMNS * j;
+    const int state = (int)lim[1];
+    const double ma = g->inv_mass[a], mb = g->inv_mass[b], ia = g->inv_inertia[a], ib = g->inv_inertia[b];
+    const double ax = lim[7], ay = lim[8], px = -ay, py = ax, a1 = lim[9], a2 = lim[10], s1 = lim[11], s2 = lim[12];
+    if (lim[3] != 0.0 && state != LIMIT_EQUAL) {
+        const double k = ma + mb + ia * a1 * a1 + ib * a2 * a2, mass = k > 0.0 ? 1.0 / k : 0.0;
+        const double cdot = ax * (vx[b] - vx[a]) + ay * (vy[b] - vy[a]) + a2 * w[b] - a1 * w[a];
+        const double old = lm[j], most = lim[5];
+        double next = old + mass * (lim[6] - cdot);
+        next = next < -most ? -most : next > most ? most : next;
+        lm[j] = next;
+        const double p = next - old;
+        vx[a] -= ma * p * ax, vy[a] -= ma * p * ay, w[a] -= ia * p * a1;
+        vx[b] += mb * p * ax, vy[b] += mb * p * ay, w[b] += ib * p * a2;
+    }
+    const double c0 = px * (vx[b] - vx[a]) + py * (vy[b] - vy[a]) + s2 * w[b] - s1 * w[a], c1 = w[b] - w[a];
+    double d0, d1, dz = 0.0;
+    if (state != LIMIT_INACTIVE) {
+        const double c2 = ax * (vx[b] - vx[a]) + ay * (vy[b] - vy[a]) + a2 * w[b] - a1 * w[a];
+        const double rhs[3] = {-c0, -c1, -c2};
+        double df[3], f2[2];
+        solve33(m, rhs, df);
+        double z = lz[j] + df[2];
+        if (state == LIMIT_LOWER)
+            z = z > 0.0 ? z : 0.0;
+        else if (state == LIMIT_UPPER)
+            z = z < 0.0 ? z : 0.0;
+        dz = z - lz[j];
+        solve22(m, -c0 - dz * m[2], -c1 - dz * m[4], f2);
+        d0 = f2[0], d1 = f2[1];
+        lz[j] = z;
+    } else {
+        double f2[2];
+        solve22(m, -c0, -c1, f2);
+        d0 = f2[0], d1 = f2[1];
+    }
+    lam[2 * j] += d0, lam[2 * j + 1] += d1;
+    const double P0 = d0 * px + dz * ax, P1 = d0 * py + dz * ay;
+    vx[a] -= ma * P0, vy[a] -= ma * P1, w[a] -= ia * (d0 * s1 + d1 + dz * a1);
+    vx[b] += mb * P0, vy[b] += mb * P1, w[b] += ib * (d0 * s2 + d1 + dz * a2);
+}
+
+/* Box2D's b2RevoluteJoint::SolveVelocityConstraints (or b2PrismaticJoint's), each joint in turn:
+ * its motor (the relative angular velocity driven to the motor's speed within its largest
+ * impulse), then, where its limit is active, the point and the angle together through K's 3 x 3
+ * inverse (the angle's impulse kept on its side of zero at a lower or an upper limit, the point
+ * alone re-solved where it would cross), else the relative velocity of the anchor's two points set
+ * to zero through K's 2 x 2 inverse (kinv (J, 3): its 11, 12 and 22 entries; k3 (J, 6): K's 3 x 3
+ * entries 11, 12, 13, 22, 23, 33). The solver's stopping rule reads the contacts' changes alone
+ * (the patch), so none is returned. lam (J, 2) the joints' impulses (starts' units), lz and lm
+ * (J,) their limits' and motors'. */
+static void solve_joints(const struct geometry *g, const struct joint_rows *jr, const double *kinv, const double *k3,
+                         double *vx, double *vy, double *w, double *lam, double *lz, double *lm)
 {
     for (int64_t j = 0; j < jr->J; j++) {
+        const double *lim = jr->limits == NULL ? NULL : jr->limits + JOINT_COLUMNS * j;
+        if (lim != NULL && lim[0] == JOINT_PRISMATIC) {
+            solve_prismatic(g, jr, k3 + 6 * j, j, vx, vy, w, lam, lz, lm);
+            continue;
+        }
         const int64_t a = jr->ab[2 * j], b = jr->ab[2 * j + 1];
         const double *r = jr->arms + 4 * j, *k = kinv + 3 * j;
+        const double ia = g->inv_inertia[a], ib = g->inv_inertia[b];
+        const int state = lim == NULL ? LIMIT_INACTIVE : (int)lim[1];
+        if (lim != NULL && lim[3] != 0.0 && state != LIMIT_EQUAL && ia + ib > 0.0) {
+            const double old = lm[j], most = lim[5];
+            double next = old - (w[b] - w[a] - lim[6]) / (ia + ib);
+            next = next < -most ? -most : next > most ? most : next;
+            lm[j] = next;
+            w[a] -= ia * (next - old), w[b] += ib * (next - old);
+        }
         const double c0 = vx[b] - w[b] * r[3] - vx[a] + w[a] * r[1];
         const double c1 = vy[b] + w[b] * r[2] - vy[a] - w[a] * r[0];
-        const double p0 = -(k[0] * c0 + k[1] * c1), p1 = -(k[1] * c0 + k[2] * c1);
+        double p0, p1, pz = 0.0;
+        if (state != LIMIT_INACTIVE && ia + ib > 0.0) {
+            const double *m = k3 + 6 * j, rhs[3] = {-c0, -c1, -(w[b] - w[a])};
+            double out[3];
+            solve33(m, rhs, out);
+            p0 = out[0], p1 = out[1], pz = out[2];
+            const double total = lz[j] + pz;
+            if ((state == LIMIT_LOWER && total < 0.0) || (state == LIMIT_UPPER && total > 0.0)) {
+                /* the angle's impulse would cross zero: it goes to zero and the point alone is solved */
+                solve22(m, -c0 + lz[j] * m[2], -c1 + lz[j] * m[4], out);
+                p0 = out[0], p1 = out[1], pz = -lz[j];
+            }
+            lz[j] += pz;
+        } else {
+            p0 = -(k[0] * c0 + k[1] * c1), p1 = -(k[1] * c0 + k[2] * c1);
+        }
         lam[2 * j] += p0, lam[2 * j + 1] += p1;
-        vx[a] -= p0 * g->inv_mass[a], vy[a] -= p1 * g->inv_mass[a], w[a] -= (r[0] * p1 - r[1] * p0) * g->inv_inertia[a];
-        vx[b] += p0 * g->inv_mass[b], vy[b] += p1 * g->inv_mass[b], w[b] += (r[2] * p1 - r[3] * p0) * g->inv_inertia[b];
+        vx[a] -= p0 * g->inv_mass[a], vy[a] -= p1 * g->inv_mass[a], w[a] -= (r[0] * p1 - r[1] * p0 + pz) * ia;
+        vx[b] += p0 * g->inv_mass[b], vy[b] += p1 * g->inv_mass[b], w[b] += (r[2] * p1 - r[3] * p0 + pz) * ib;
     }
 }
 
@@ -632,9 +750,11 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
     double *block = malloc(((size_t)6 * P + 1) * sizeof(double));
     unsigned char *role = calloc((size_t)P + 1, 1);
     const int64_t J = jr == NULL ? 0 : jr->J;
-    double *jlam = malloc(((size_t)2 * J + 1) * sizeof(double)), *kinv = malloc(((size_t)3 * J + 1) * sizeof(double));
-    if (vx == NULL || mass == NULL || lam == NULL || block == NULL || role == NULL || jlam == NULL || kinv == NULL) {
-        free(vx), free(mass), free(lam), free(block), free(role), free(jlam), free(kinv);
+    /* per joint: its point impulses (2), its limit's and motor's (2), K's 2 x 2 inverse (3), K (6) */
+    double *jlam = malloc(((size_t)13 * J + 1) * sizeof(double)), *jz = jlam + 2 * J, *jm = jz + J;
+    double *kinv = jm + J, *k3 = kinv + 3 * J;
+    if (vx == NULL || mass == NULL || lam == NULL || block == NULL || role == NULL || jlam == NULL) {
+        free(vx), free(mass), free(lam), free(block), free(role), free(jlam);
         return -1;
     }
     for (int64_t j = 0; j < J; j++) { /* each joint's K (b2RevoluteJoint::InitVelocityConstraints) and its inverse */
@@ -647,6 +767,14 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
         double det = k11 * k22 - k12 * k12;
         det = det != 0.0 ? 1.0 / det : 0.0; /* b2Mat33::Solve22's */
         kinv[3 * j] = det * k22, kinv[3 * j + 1] = -det * k12, kinv[3 * j + 2] = det * k11;
+        double *m = k3 + 6 * j;
+        m[0] = k11, m[1] = k12, m[2] = -r[1] * ia - r[3] * ib, m[3] = k22, m[4] = r[0] * ia + r[2] * ib, m[5] = ia + ib;
+        const double *lim = jr->limits == NULL ? NULL : jr->limits + JOINT_COLUMNS * j;
+        if (lim != NULL && lim[0] == JOINT_PRISMATIC) { /* b2PrismaticJoint::InitVelocityConstraints's K */
+            const double a1 = lim[9], a2 = lim[10], s1 = lim[11], s2 = lim[12];
+            m[0] = ma + mb + ia * s1 * s1 + ib * s2 * s2, m[1] = ia * s1 + ib * s2, m[2] = ia * s1 * a1 + ib * s2 * a2;
+            m[3] = ia + ib != 0.0 ? ia + ib : 1.0, m[4] = ia * a1 + ib * a2, m[5] = ma + mb + ia * a1 * a1 + ib * a2 * a2;
+        }
     }
     for (int64_t i = 0; i < P; i++) { /* effective masses along the normal and the tangent */
         const int64_t a = g->pa[i], b = g->pb[i];
@@ -701,10 +829,22 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
             for (int64_t j = 0; j < J; j++) {
                 const int64_t a = jr->ab[2 * j], b = jr->ab[2 * j + 1];
                 const double *r = jr->arms + 4 * j, p0 = jlam[2 * j], p1 = jlam[2 * j + 1];
+                const double *lim = jr->limits == NULL ? NULL : jr->limits + JOINT_COLUMNS * j;
+                jz[j] = lim == NULL ? 0.0 : lim[2];
+                jm[j] = lim == NULL ? 0.0 : lim[4];
+                const double turn = jz[j] + jm[j];
+                if (lim != NULL && lim[0] == JOINT_PRISMATIC) { /* across the axis, the angle, then along it */
+                    const double ax = lim[7], ay = lim[8], P0 = -ay * p0 + turn * ax, P1 = ax * p0 + turn * ay;
+                    vx[a] -= P0 * g->inv_mass[a], vy[a] -= P1 * g->inv_mass[a];
+                    w[a] -= (p0 * lim[11] + p1 + turn * lim[9]) * g->inv_inertia[a];
+                    vx[b] += P0 * g->inv_mass[b], vy[b] += P1 * g->inv_mass[b];
+                    w[b] += (p0 * lim[12] + p1 + turn * lim[10]) * g->inv_inertia[b];
+                    continue;
+                }
                 vx[a] -= p0 * g->inv_mass[a], vy[a] -= p1 * g->inv_mass[a];
-                w[a] -= (r[0] * p1 - r[1] * p0) * g->inv_inertia[a];
+                w[a] -= (r[0] * p1 - r[1] * p0 + turn) * g->inv_inertia[a];
                 vx[b] += p0 * g->inv_mass[b], vy[b] += p1 * g->inv_mass[b];
-                w[b] += (r[2] * p1 - r[3] * p0) * g->inv_inertia[b];
+                w[b] += (r[2] * p1 - r[3] * p0 + turn) * g->inv_inertia[b];
             }
         }
         /* With a tolerance, the start's run ends at the first sweep that changes nothing by more
@@ -714,7 +854,7 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
         counts[k] = sweeps + 1;
         for (long sweep = 0; sweep < sweeps; sweep++) {
             if (J > 0) /* Box2D's island solves its joints first in each sweep, then its contacts */
-                solve_joints(g, jr, kinv, vx, vy, w, jlam);
+                solve_joints(g, jr, kinv, k3, vx, vy, w, jlam, jz, jm);
             change = solve_sweep(g, mu, mass, role, block, vx, vy, w, lam);
             if (tolerance > 0.0 && change <= tolerance) {
                 counts[k] = sweep + 1;
@@ -723,12 +863,12 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
         }
         changes[k] = change;
     }
-    free(vx), free(mass), free(lam), free(block), free(role), free(jlam), free(kinv);
+    free(vx), free(mass), free(lam), free(block), free(role), free(jlam);
     return 0;
 }
 
 /* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry, tolerance
- *                [, joint_bodies, joint_arms, joint_starts])
+ *                [, joint_bodies, joint_arms, joint_starts[, joint_limits]])
  *     -> ([change, ...], [sweeps run, ...])
  *
  * sweep_changes of each start: starts float64 (n_starts, P, 2) N s (n_starts from its size);
@@ -737,17 +877,19 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
  * above 0 a start stops at its first sweep that changes nothing by more, and its count is that
  * sweep's number (sweeps + 1 where it does not stop). With the joints (struct joint_rows):
  * joint_bodies int64 (J, 2), joint_arms float64 (J, 4) m, joint_starts float64 (n_starts, J, 2)
- * N s, each start's joint impulses beside its contact impulses. */
+ * N s, each start's joint impulses beside its contact impulses; joint_limits float64 (J, 13), each
+ * joint's kind, limit and motor (struct joint_rows), or absent: every one a revolute joint with
+ * neither. */
 static PyObject *compare_starts(PyObject *self, PyObject *args)
 {
-    Py_buffer b[7];
+    Py_buffer b[8];
     Py_ssize_t n_bodies, n_points;
     double dt, gx, gy, tolerance;
     long sweeps;
     PyObject *prepared;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd|y*y*y*", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx, &gy,
-                          &b[3], &sweeps, &prepared, &tolerance, &b[4], &b[5], &b[6]))
+    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd|y*y*y*y*", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx,
+                          &gy, &b[3], &sweeps, &prepared, &tolerance, &b[4], &b[5], &b[6], &b[7]))
         return NULL;
     PyObject *result = NULL;
     const Py_ssize_t per_start = 2 * n_points * (Py_ssize_t)sizeof(double);
@@ -762,11 +904,12 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         goto done;
     }
     const int n_starts = (int)(b[3].len / per_start);
-    struct joint_rows joints = {0, NULL, NULL, NULL}, *jr = NULL;
+    struct joint_rows joints = {0, NULL, NULL, NULL, NULL}, *jr = NULL;
     if (b[4].obj != NULL) {
         const Py_ssize_t J = b[4].len / (Py_ssize_t)(2 * sizeof(int64_t));
         if (b[5].obj == NULL || b[6].obj == NULL || b[4].len != J * 2 * (Py_ssize_t)sizeof(int64_t)
-            || b[5].len != J * 4 * (Py_ssize_t)sizeof(double) || b[6].len != n_starts * J * 2 * (Py_ssize_t)sizeof(double)) {
+            || b[5].len != J * 4 * (Py_ssize_t)sizeof(double) || b[6].len != n_starts * J * 2 * (Py_ssize_t)sizeof(double)
+            || (b[7].obj != NULL && b[7].len != J * JOINT_COLUMNS * (Py_ssize_t)sizeof(double))) {
             PyErr_SetString(PyExc_ValueError, "_route.compare_starts: joint arrays of the wrong size");
             goto done;
         }
@@ -776,7 +919,16 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
                 PyErr_Format(PyExc_ValueError, "joints name bodies outside 0..%zd", n_bodies - 1);
                 goto done;
             }
-        joints = (struct joint_rows){J, ab, b[5].buf, b[6].buf};
+        const double *limits = b[7].obj != NULL ? b[7].buf : NULL;
+        for (Py_ssize_t j = 0; limits != NULL && j < J; j++) {
+            const double *lim = limits + JOINT_COLUMNS * j;
+            if (!(lim[0] == JOINT_REVOLUTE || lim[0] == JOINT_PRISMATIC)
+                || !(lim[1] == LIMIT_INACTIVE || lim[1] == LIMIT_LOWER || lim[1] == LIMIT_UPPER || lim[1] == LIMIT_EQUAL)) {
+                PyErr_SetString(PyExc_ValueError, "joint limits: a kind other than 0 or 1, or a state other than 0-3");
+                goto done;
+            }
+        }
+        joints = (struct joint_rows){J, ab, b[5].buf, b[6].buf, limits};
         jr = &joints;
     }
     struct geometry own, *g = prepared_or_own(prepared, n_points, n_bodies, &own, "compare_starts");
@@ -810,7 +962,7 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         result = PyTuple_Pack(2, last, run);
     Py_XDECREF(last), Py_XDECREF(run);
 done:
-    for (int k = 0; k < 7; k++)
+    for (int k = 0; k < 8; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);
     return result;

@@ -425,17 +425,25 @@ def sweep_changes(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu
 
 
 class RevoluteRows(NamedTuple):
-    """Rigid revolute joints (no limit, no motor) for the server's copy of the step, which sweeps
-    them as Box2D's b2RevoluteJoint does, before the contacts in each sweep.
+    """Joints for the server's copy of the step, which sweeps them as Box2D's solver does, before
+    the contacts in each sweep: revolute joints (a point constraint, and an angle limit and a
+    motor where `limits` gives them; a rigid weld held as one at equal limits) and prismatic ones.
 
     bodies: (J, 2) int, each joint's body A and body B (the records' rows);
     arms: (J, 4) m, world frame, rA then rB: from each body's centre of mass to its anchor;
-    starts: (S, J, 2) N s, world frame, each start's joint impulses on body B (Box2D's
-    m_impulse.x, .y), one per start of the contact points' starts."""
+    starts: (S, J, 2), each start's joint impulses, one per start of the contact points' starts:
+    a revolute or weld joint's point impulse on body B (world, N s: Box2D's m_impulse.x, .y), a
+    prismatic joint's across its axis (N s) and its angular one (N m s);
+    limits: (J, 13) or None (every joint a revolute one with no limit and no motor):
+    server.revolute.limits's table (its kind for the copy, 0 revolute or 1 prismatic; its
+    limit's state and impulse; its motor on, impulse, largest impulse in the step and speed; a
+    prismatic joint's axis and Box2D's a1, a2, s1, s2); the limits' and motors' impulses start
+    every start (the client keeps its own)."""
 
     bodies: np.ndarray
     arms: np.ndarray
     starts: np.ndarray
+    limits: np.ndarray | None = None
 
 
 def sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
@@ -448,7 +456,7 @@ def sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, m
     is the nearer to where the solver stops; where neither stops within `most` sweeps, the one
     whose last sweep changes less. Comparing the changes at a fixed sweep instead reads noise
     where both starts stop before it (both changes then near zero). At most 64 starts. joints:
-    the step's rigid revolute joints and each start's joint impulses, swept as Box2D does (the
+    the step's revolute joints and each start's joint impulses, swept as Box2D does (the
     stopping rule, as the client's, reads the contacts' changes alone), or None: the joints left
     out, as the server's routes see a step."""
     if not tolerance > 0:
@@ -476,6 +484,11 @@ def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, p
                 or extra[2].shape != (len(starts), len(extra[0]), 2):
             raise ValueError(f"joints: bodies (J, 2), arms (J, 4), starts ({len(starts)}, J, 2), got "
                              f"{extra[0].shape}, {extra[1].shape}, {extra[2].shape}")
+        if joints.limits is not None:
+            limits = np.ascontiguousarray(joints.limits, np.float64)
+            if limits.shape != (len(extra[0]), 13):
+                raise ValueError(f"joints: limits ({len(extra[0])}, 13), got {limits.shape}")
+            extra += (limits,)
     changes, counts = _compiled_route.compare_starts(bodies, len(bodies), points, len(points),
                                                      np.ascontiguousarray(mu, np.float64), float(physics.dt),
                                                      float(gx), float(gy), starts, int(sweeps), prepared,

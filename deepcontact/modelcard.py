@@ -115,7 +115,7 @@ free and the bodies' space declines nearly every such step after its first facto
 a whole number 1 to `rounds`: where it is expected to end in min_rounds of them, its admission then
 running rounds up to `rounds` while the check after them would still end by the deadline, so a
 large step gets fewer rounds rather than no route), revolute_joints (default false; true: where
-every joint of a request is a rigid revolute one and it sends them (StepRequest.joint_revolute)
+every joint of a request is a revolute, rigid weld or prismatic one and it sends them (StepRequest.joint_revolute, their limits and motors in joint_limits)
 with its stopping rule, the route asks its classifier about the step with each joint as two points
 and serves, of five starts, the one that stops soonest on the server's copy of the step with the
 joints swept as Box2D sweeps them, the joints' start on the reply where it is the route's,

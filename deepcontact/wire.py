@@ -65,8 +65,9 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
         two fixtures'; the engine exports it as points["friction"]).
     joints: optional (J, 2) int each joint's body A and body B (engine body indices,
         Engine.joints); they travel as rows of the moving bodies (-1 for static).
-    revolute: optional (J, 7) float32, with joints: each joint as a rigid revolute one holds it
-        (Engine.revolute: 1 where it is one, its anchors on A and B (m), its impulse on B (N s)).
+    revolute: optional (J, 15) float32, with joints: each joint as the solve will hold it
+        (Engine.revolute: its kind, its anchors on A and B (m), its impulse, then its limit and
+        motor); or (J, 7), the first seven alone (no limits or motors sent).
     """
     moving = bodies["type"] != 0
     dyn = bodies[moving]
@@ -102,7 +103,10 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
         msg.joint_count = len(joints)
         msg.joint_bodies = np.ascontiguousarray(row_of[np.asarray(joints)], I32).tobytes()
         if revolute is not None:
-            msg.joint_revolute = np.ascontiguousarray(revolute, F32).tobytes()
+            revolute = np.asarray(revolute, F32)
+            msg.joint_revolute = np.ascontiguousarray(revolute[:, :7]).tobytes()
+            if revolute.shape[1] > 7:
+                msg.joint_limits = np.ascontiguousarray(revolute[:, 7:]).tobytes()
     return msg
 
 
@@ -308,17 +312,38 @@ def decode_joints(msg: pb.StepRequest) -> np.ndarray | None:
     return rows + 1
 
 
+#: The kinds of joint a request's joint_revolute names (its first column): 0 one the server's copy
+#: of a step does not hold, 1 revolute, 2 rigid weld, 3 prismatic.
+JOINT_KINDS = (0, 1, 2, 3)
+
+
 def decode_revolute(msg: pb.StepRequest) -> np.ndarray | None:
-    """Each joint as a rigid revolute one holds it (joint_revolute), (J, 7) float32: 1 where it
-    is one, else 0; its anchors on body A and body B (world, m); its point impulse on body B
-    (world, N s). None when the request sends none. WireError when it does not fit joint_count,
-    is not finite, or flags other than 0 and 1."""
+    """Each joint as the step's solve will hold it (joint_revolute and joint_limits), (J, 15)
+    float32: its kind (JOINT_KINDS); its anchors on body A and body B (world, m); the first two
+    components of its impulse (a revolute or weld joint's point impulse on body B, world, N s; a
+    prismatic joint's across its axis, N s, and angular, N m s); then its limit's state (0 off or
+    inactive, 1 at its lower angle or translation, 2 at its upper, 3 equal limits), the limit's
+    impulse, 1 where its motor is on, the motor's impulse, its largest torque (N m) or force (N),
+    its speed and a prismatic joint's axis (world), all 0 where the request sends no limits. None
+    when the request sends no joint_revolute. WireError when either does not fit joint_count, is
+    not finite, or names a kind, state or motor outside theirs, or a negative torque."""
     if not msg.joint_revolute:
+        if msg.joint_limits:
+            raise WireError("joint_limits", "sent without joint_revolute")
         return None
     rows = _array(msg, "joint_revolute", msg.joint_count, 7)
-    if len(rows) and not _all((rows[:, 0] == 0) | (rows[:, 0] == 1)):
-        raise WireError("joint_revolute", "flags a joint with other than 0 or 1")
-    return rows
+    if len(rows) and not _all(np.isin(rows[:, 0], JOINT_KINDS)):
+        raise WireError("joint_revolute", "names a kind of joint other than 0-3")
+    limits = np.zeros((len(rows), 8), F32)
+    if msg.joint_limits:
+        limits = _array(msg, "joint_limits", msg.joint_count, 8)
+        if len(limits) and not _all(np.isin(limits[:, 0], (0, 1, 2, 3)) & np.isin(limits[:, 2], (0, 1))
+                                    & (limits[:, 4] >= 0)):
+            raise WireError("joint_limits", "states a limit other than 0-3, a motor other than 0 or 1, "
+                                            "or a negative torque")
+    elif len(rows) and not _all(rows[:, 0] <= 1):
+        raise WireError("joint_limits", "missing: weld and prismatic joints need their limits")
+    return np.concatenate([rows, limits], 1)
 
 
 def encode_impulses(step: int, model: str, impulses: np.ndarray, timings: pb.Timings | None = None) -> pb.Impulses:

@@ -1,15 +1,16 @@
 """`deepcontact lab joint-copy`: does the server's copy of a step count the sweeps Box2D's solver
-takes, with a world's rigid revolute joints in it and without them?
+takes, with a world's joints in it and without them?
 
     deepcontact lab joint-copy --world examples/chain.py:build --seeds 850 --steps 150
 
 On Box2D's own trajectory, at each step with contact points, from Box2D's own start: the engine's
 trial solve (its sweeps to the stopping rule, the joints in it) against the server's copy of the
 step (deepcontact.faces.sweeps_to_stop, up to the engine's cap) with the joints swept as
-b2RevoluteJoint does (RevoluteRows, server.revolute.rows) and without them (the routes' check as
-it was before 2026-12-07's joints' start). Prints, for each copy, the steps whose count lies within
-3 sweeps of the engine's and the correlation of the two counts. Only worlds whose every joint is a
-rigid revolute one (no limit, no motor).
+Box2D's solver does (RevoluteRows, server.revolute.rows and .limits: revolute joints with their
+angle limits and motors, rigid welds, prismatic joints) and without them (the routes' check as it
+was before 2026-12-07's joints' start). Prints, for each copy, the steps whose count lies within
+3 sweeps of the engine's and the correlation of the two counts. Only worlds whose every joint is
+of those kinds.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ WITHIN = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--world", required=True, metavar="PATH.py:FUNCTION", help="a world of rigid revolute joints")
+    parser.add_argument("--world", required=True, metavar="PATH.py:FUNCTION", help="a world of revolute, rigid weld and prismatic joints")
     parser.add_argument("--seeds", default="850", help="seeds (default 850, a choosing seed)")
     parser.add_argument("--steps", type=int, default=150, help="steps per simulation (default 150)")
 
@@ -33,7 +34,7 @@ def counts(spec, seed: int) -> np.ndarray:
     """(steps with points, 3) int: the engine's sweeps, the copy's with the joints, without them."""
     from bench.inprocess import declared_world
     from deepcontact.faces import RevoluteRows, sweeps_to_stop
-    from server.revolute import all_rigid, rows
+    from server.revolute import all_held, limits, rows
     from simclient import worlds
 
     engine = worlds.build(spec, seed)
@@ -45,13 +46,13 @@ def counts(spec, seed: int) -> np.ndarray:
         bodies, points = engine.bodies(), engine.contacts()
         if len(points):
             revolute = engine.revolute()
-            if not all_rigid(revolute):
-                raise ValueError("a joint of this world is not a rigid revolute one (or it has none)")
+            if not all_held(revolute):
+                raise ValueError("a joint of this world is of a kind the server's copy does not hold (or it has none)")
             start = np.asarray(points["builtin"], np.float64)
             mu = np.asarray(points["friction"], np.float64)
             ab, arms, own = rows(bodies, engine.joints(), revolute)
             joined = sweeps_to_stop(bodies, points, start[None], mu, physics, tolerance, cap, None,
-                                    RevoluteRows(ab, arms, own[None]))[0][0]
+                                    RevoluteRows(ab, arms, own[None], limits(bodies, engine.joints(), revolute, physics.dt)))[0][0]
             alone = sweeps_to_stop(bodies, points, start[None], mu, physics, tolerance, cap)[0][0]
             normal, tangent = start[:, 0].astype(np.float32), start[:, 1].astype(np.float32)
             out.append((engine.trial(normal, tangent), int(joined), int(alone)))

@@ -1,7 +1,8 @@
 """`deepcontact lab joint-start`: closed loop, what a reply that also carried the joints' impulses
-would buy on a world of rigid revolute joints.
+would buy on a world of revolute joints.
 
     deepcontact lab joint-start --world examples/chain.py:build --seeds 850-869
+    deepcontact lab joint-start --world simclient.zoo:ragdolls --seeds 850-854 --on-builtin
 
 Box2D warm-starts each joint from its own last impulse and the contact points from the served
 answer; its sweeps then carry a joint's correction one link a sweep, so a chain's contacts wait
@@ -41,7 +42,10 @@ called in this process as the server would answer (bench.inprocess.InProcess):
                      joints' own start: a perfect check, which no server has, to bound any check
 
 and prints each one's velocity iterations a step with contacts over Builtin's, 95 % bootstrap
-over seeds, and served+joints over served. Serving it would need the joints' anchors on the
+over seeds, and served+joints over served. With --on-builtin, builtin, served and served+revolute
+are priced instead on Box2D's own trajectory: at each step the engine's trial solve from each
+start (the joints' start set where the answer carries one, then put back), every run on the very
+same states, so a chaotic world's closed-loop spread does not hide the difference. Serving it would need the joints' anchors on the
 request and their impulses on the reply (the request carries only which bodies a joint binds).
 
 A research instrument: the joints are read through pybox2d one at a time, a few seconds a simulation.
@@ -74,6 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="default", help="the model served at the contact points (default: default)")
     parser.add_argument("--runs", default=",".join(RUNS), help=f"which runs, comma-separated (default all: {','.join(RUNS)}); "
                         "builtin and served are always run")
+    parser.add_argument("--on-builtin", action="store_true", help="price builtin, served and served+revolute on "
+                        "Box2D's own trajectory (the engine's trial solves, the same states for each) instead of "
+                        "closed loop")
 
 
 def _beats_box2d(bodies, both, answer, box2d, mu, world) -> bool:
@@ -203,6 +210,34 @@ def simulate(spec, seed: int, models: str, model: str, run: str) -> np.ndarray:
     return np.array(iterations, float)
 
 
+def priced(spec, seed: int, models: str, model: str) -> dict[str, np.ndarray]:
+    """{run: (steps with contacts,) velocity iterations} of builtin, served and served+revolute,
+    each the engine's trial solve from its start on Box2D's own trajectory of (spec, seed): the
+    joints' start set where the answer carries one (served+revolute), then put back."""
+    from bench.inprocess import InProcess
+    from simclient import worlds
+
+    engine = worlds.build(spec, seed)
+    served = InProcess.load(Path(models), model, spec, revolute_joints=False)
+    revolute = InProcess.load(Path(models), model, spec, revolute_joints=True)
+    served.prepare(engine)
+    revolute.prepare(engine)
+    out = {"builtin": [], "served": [], "served+revolute": []}
+    for k in range(spec.steps):
+        engine.collide()
+        bodies, points = engine.bodies(), engine.contacts()
+        if len(points):
+            own = engine.joint_state()
+            box2d = np.asarray(points["builtin"], np.float32)
+            out["builtin"].append(engine.trial(box2d[:, 0].copy(), box2d[:, 1].copy()))
+            out["served"].append(engine.trial(*served.warm_start(engine, bodies, points, k)))
+            out["served+revolute"].append(engine.trial(*revolute.warm_start(engine, bodies, points, k)))
+            engine.set_joint_state(own)  # Box2D's trajectory goes on from its own start
+            engine.set_warm_start(box2d[:, 0].copy(), box2d[:, 1].copy())
+        engine.solve()
+    return {name: np.array(v, float) for name, v in out.items()}
+
+
 def run(args: argparse.Namespace) -> int:
     from lab.joints_price import world_and_seeds
 
@@ -218,6 +253,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"deepcontact lab joint-start: unknown run {unknown[0]!r}; runs are {', '.join(RUNS)}", file=sys.stderr)
         return 2
     chosen = [name for name in RUNS if name in ("builtin", "served") or name in chosen]
+    if args.on_builtin:
+        return _on_builtin(args, spec, seeds)
     try:
         runs = {name: [simulate(spec, s, args.models, args.model, name) for s in tqdm(seeds, unit="sim", desc=name,
                                                                                        file=sys.stderr)]
@@ -232,5 +269,26 @@ def run(args: argparse.Namespace) -> int:
         mean = float(np.mean(np.concatenate(runs[name]))) if any(len(r) for r in runs[name]) else float("nan")
         over = ratio_interval(runs[name], runs["builtin"]).text()
         served = ratio_interval(runs[name], runs["served"]).text() if name != "builtin" else "–"
+        print(f"| {name} | {mean:.1f} | {over} | {served} |")
+    return 0
+
+
+def _on_builtin(args: argparse.Namespace, spec, seeds) -> int:
+    from tqdm import tqdm
+
+    try:
+        per_seed = [priced(spec, s, args.models, args.model) for s in tqdm(seeds, unit="sim", desc="priced",
+                                                                             file=sys.stderr)]
+    except FileNotFoundError as exc:
+        print(f"deepcontact lab joint-start: {exc}", file=sys.stderr)
+        return 2
+    runs = {name: [p[name] for p in per_seed] for name in ("builtin", "served", "served+revolute")}
+    print(f"`{args.world}`, seeds {args.seeds}, {args.model} in process, priced on Box2D's own states: velocity "
+          "iterations a step with contacts over Builtin's")
+    print("| run | mean iterations | / builtin | / served |\n|---|---|---|---|")
+    for name, values in runs.items():
+        mean = float(np.mean(np.concatenate(values))) if any(len(v) for v in values) else float("nan")
+        over = ratio_interval(values, runs["builtin"]).text()
+        served = ratio_interval(values, runs["served"]).text() if name != "builtin" else "–"
         print(f"| {name} | {mean:.1f} | {over} | {served} |")
     return 0

@@ -1,20 +1,22 @@
-"""Worlds of rigid revolute joints: the joints' start served too, each step's start priced with
-the joints swept as Box2D sweeps them.
+"""Worlds of revolute, weld and prismatic joints: each step's start priced with the joints swept
+as Box2D sweeps them, the revolute joints' start served too.
 
 Box2D starts each joint from its own last impulse and its sweeps carry a joint's correction one
 link a sweep, so a chain's contacts wait on their joints (docs/research/2026-12-07-where-jointed-
-worlds-lose.md). Where every joint of the request is a rigid revolute one (no limit, no motor;
-the request's joint_revolute), the server here
+worlds-lose.md). Where every joint of the request is a revolute, rigid weld or prismatic one (the
+request's joint_revolute, their limits and motors in joint_limits), the server here
 
-- holds each joint as two contact points at its anchor, normals opposed, pressing and sticking in
-  a cone too wide to bound them (a rigid revolute joint's two rows), and asks the face route
+- holds each revolute or weld joint as two contact points at its anchor, normals opposed,
+  pressing and sticking in a cone too wide to bound them (its two point rows), and asks the face route
   (its classifier on the points and the joints' points, then its solve and admission) for the
-  whole step: its answer at the contact points and the joints' impulses;
-- prices five starts on its copy of the step with the joints in it, as b2RevoluteJoint sweeps
-  them before the contacts in each sweep (deepcontact.faces.sweeps_to_stop with RevoluteRows),
+  whole step: its answer at the contact points and the joints' impulses (a limit's or a motor's
+  torque, a weld's angle and a prismatic joint are not in that solve);
+- prices five starts on its copy of the step with the joints in it, as Box2D's joints sweep
+  them (b2RevoluteJoint with its angle limit and motor, b2WeldJoint, b2PrismaticJoint) before
+  the contacts in each sweep (deepcontact.faces.sweeps_to_stop with RevoluteRows),
   each to the client's stopping rule: Box2D's start, the served answer and the route's answer,
   each with the joints' own last impulses, and the served and the route's answers with the
-  route's joint impulses;
+  route's impulses at the revolute joints (the client sets no other kind's);
 - serves the one that stops soonest, with its joints' start on the reply (Impulses.joint_impulses)
   where it is the route's.
 
@@ -22,7 +24,10 @@ the request's joint_revolute), the server here
                              deadline, timing=PricingTime())    # the server keeps one PricingTime
 
 Closed loop on the chain of `examples/` over the choosing seeds 850-899 this takes the default from
-0.969x to 0.731x of Builtin's iterations (`deepcontact lab joint-start --runs best:replica`).
+0.969x to 0.731x of Builtin's iterations (`deepcontact lab joint-start --runs served+revolute`); on
+Box2D's own states of 850-859 the zoo's ragdolls from 1.004x to 0.897x and its jointed worlds from
+0.931x to 0.774x (`deepcontact lab joint-start --world simclient.zoo:ragdolls --seeds 850-859
+--on-builtin`).
 """
 
 from __future__ import annotations
@@ -50,20 +55,66 @@ BUILTIN = "builtin"
 ROUNDS = 30
 
 
-def all_rigid(revolute: np.ndarray | None) -> bool:
-    """Whether the request says every one of its joints (at least one) is a rigid revolute one."""
-    return revolute is not None and len(revolute) > 0 and bool((revolute[:, 0] == 1).all())
+#: A joint's kind in a request's joint_revolute (wire.JOINT_KINDS).
+REVOLUTE, WELD, PRISMATIC = 1, 2, 3
+
+
+def all_held(revolute: np.ndarray | None) -> bool:
+    """Whether the request says every one of its joints (at least one) is of a kind the server's
+    copy of a step holds: revolute, rigid weld or prismatic (wire.decode_revolute's (J, 15))."""
+    return revolute is not None and len(revolute) > 0 and bool(np.isin(revolute[:, 0], (REVOLUTE, WELD, PRISMATIC)).all())
+
+
+def limits(bodies: np.ndarray, joints: np.ndarray, revolute: np.ndarray, dt: float) -> np.ndarray | None:
+    """RevoluteRows.limits, (J, 13) float64 (deepcontact/_route.c's struct joint_rows), from the
+    joints as the request holds them (revolute (J, 15), wire.decode_revolute's; joints (J, 2)
+    rows of `bodies`): each one's kind for the copy (0 revolute or weld, which it holds as a
+    revolute joint at equal limits; 1 prismatic), its limit's state and impulse, its motor (on,
+    impulse, the largest torque or force made the largest impulse in a step of dt s, speed), and
+    a prismatic joint's axis and the cross products of its arms with the axis and across it
+    (b2PrismaticJoint's a1, a2, s1, s2, m). None where every joint is a revolute one with no limit
+    and no motor (or revolute is (J, 7): none sent)."""
+    if revolute.shape[1] < 15:
+        return None
+    kind = revolute[:, 0]
+    held = np.asarray(revolute[:, 7:15], np.float64)
+    if not ((kind != REVOLUTE).any() or held[:, 0].any() or held[:, 1].any() or held[:, 2].any()):
+        return None
+    out = np.zeros((len(revolute), 13))
+    out[:, 0] = kind == PRISMATIC
+    out[:, 1:9] = held
+    out[:, 5] *= dt
+    centres = np.asarray(bodies["position"], np.float64)
+    ab = np.asarray(joints, np.int64)
+    anchor_b = np.asarray(revolute[:, 3:5], np.float64)
+    from_a, r_b = anchor_b - centres[ab[:, 0]], anchor_b - centres[ab[:, 1]]  # Box2D's d + rA, and rB
+    axis = held[:, 6:8]
+    perp = np.stack([-axis[:, 1], axis[:, 0]], 1)
+    cross = lambda u, v: u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]  # noqa: E731
+    prismatic = kind == PRISMATIC
+    out[prismatic, 9] = cross(from_a, axis)[prismatic]
+    out[prismatic, 10] = cross(r_b, axis)[prismatic]
+    out[prismatic, 11] = cross(from_a, perp)[prismatic]
+    out[prismatic, 12] = cross(r_b, perp)[prismatic]
+    return out
+
+
+def pointed(revolute: np.ndarray) -> np.ndarray:
+    """(J,) bool: the joints the route holds as two points at their anchor (revolute and weld
+    joints; a prismatic one slides, and is left to the copy's pricing)."""
+    return revolute[:, 0] != PRISMATIC
 
 
 def joint_points(points: np.ndarray, joints: np.ndarray, revolute: np.ndarray) -> np.ndarray:
-    """The 2 J records (points' dtype) of the joints as contact points: each joint's two, at its
-    anchor on body B between its two bodies (joints (J, 2) rows of the step's bodies), normals +x
-    and -x; their builtin the joint's last impulse (revolute (J, 7), wire.decode_revolute's: along
-    each normal where it points that way, half the rest along the tangent)."""
-    J = len(joints)
-    i = np.repeat(np.arange(J), 2)
-    sign = np.tile(np.array([1.0, -1.0], np.float32), J)
-    out = np.zeros(2 * J, points.dtype)
+    """The 2 Jp records (points' dtype) of the pointed joints (`pointed`) as contact points: each
+    one's two, at its anchor on body B between its two bodies (joints (J, 2) rows of the step's
+    bodies), normals +x and -x; their builtin the joint's last point impulse (revolute (J, 7 or
+    15), wire.decode_revolute's: along each normal where it points that way, half the rest along
+    the tangent)."""
+    keep = np.flatnonzero(pointed(revolute))
+    i = np.repeat(keep, 2)
+    sign = np.tile(np.array([1.0, -1.0], np.float32), len(keep))
+    out = np.zeros(2 * len(keep), points.dtype)
     out["key"] = np.uint64(KEY_BASE) + (2 * i + (sign < 0)).astype(np.uint64)
     out["body_a"], out["body_b"] = joints[i, 0], joints[i, 1]
     out["point"] = revolute[i, 3:5]
@@ -78,16 +129,17 @@ def joint_points(points: np.ndarray, joints: np.ndarray, revolute: np.ndarray) -
 
 
 def joints_on_b(answer: np.ndarray) -> np.ndarray:
-    """(J, 2) N s, on each joint's body B: the joints' impulses an answer at their points
-    (joint_points's 2 J, (2 J, 2) N s (normal, tangent)) holds."""
-    a = np.asarray(answer, np.float64).reshape(-1, 2, 2)  # (J, its two points, normal and tangent)
+    """(Jp, 2) N s, on each joint's body B: the joints' impulses an answer at their points
+    (joint_points's 2 Jp, (2 Jp, 2) N s (normal, tangent)) holds."""
+    a = np.asarray(answer, np.float64).reshape(-1, 2, 2)  # (Jp, its two points, normal and tangent)
     sign = np.array([1.0, -1.0])
     return np.stack([(sign * a[:, :, 0]).sum(1), (-sign * a[:, :, 1]).sum(1)], 1)
 
 
 def rows(bodies: np.ndarray, joints: np.ndarray, revolute: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(bodies (J, 2) int64, arms (J, 4) m, own (J, 2) N s): RevoluteRows's pieces, each joint's
-    arms from its bodies' centres of mass (bodies' position) to its anchors, and its own last impulse."""
+    """(bodies (J, 2) int64, arms (J, 4) m, own (J, 2)): RevoluteRows's pieces, each joint's
+    arms from its bodies' centres of mass (bodies' position) to its anchors, and its own last
+    impulse (revolute's columns 5 and 6)."""
     centres = np.asarray(bodies["position"], np.float64)
     ab = np.asarray(joints, np.int64)
     arms = np.asarray(revolute[:, 1:5], np.float64) - np.concatenate([centres[ab[:, 0]], centres[ab[:, 1]]], 1)
@@ -129,7 +181,8 @@ def joint_labels(route, bodies: np.ndarray, points: np.ndarray, joints: np.ndarr
     answer is made (start_with_joints's `labelled`)."""
     t0 = time.perf_counter()
     both = np.concatenate([points, joint_points(points, joints, revolute)])
-    mu = np.concatenate([np.asarray(friction, np.float32), np.full(2 * len(joints), JOINT_POINT_FRICTION, np.float32)])
+    mu = np.concatenate([np.asarray(friction, np.float32), np.full(len(both) - len(points), JOINT_POINT_FRICTION,
+                                                                   np.float32)])
     labels = route.classifier.predict(bodies, both, world, step, previous, friction=mu)
     return both, mu, labels, time.perf_counter() - t0
 
@@ -140,7 +193,7 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
                       labelled=None) -> Prediction:
     """The served answer, or the start of five that the step's copy with its joints says stops
     soonest (module docstring). route: joint_route's; joints (J, 2) rows of bodies, every one a
-    rigid revolute joint (revolute (J, 7), all_rigid); friction (P,); served: the step's answer
+    joint of a kind the copy holds (revolute (J, 15), all_held); friction (P,); served: the step's answer
     as served without the joints; deadline: perf_counter() s, by which the answer must be ready
     (timing: what the pricing has taken, kept across steps; where it would end past the deadline
     the served answer is returned as it is); labelled: a future of joint_labels's for the same
@@ -161,20 +214,24 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     solved = route_compiled(bodies, both, face, np.asarray(mu, np.float64), world.physics, s["pressing"], s["share"],
                             s["label_friction"], min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None)
     ab, arms, own = rows(bodies, joints, revolute)
+    held = limits(bodies, joints, revolute, world.physics.dt)
     starts = [np.asarray(points["builtin"], np.float64), np.asarray(served.impulses, np.float64)]
     joint_starts = [own, own]
     if solved is not None:
         answer = np.asarray(solved.impulses, np.float64)
-        theirs = joints_on_b(answer[P:])
+        # The route's impulses start the revolute joints (the client sets no other kind's).
+        theirs = own.copy()
+        theirs[revolute[:, 0] == REVOLUTE] = joints_on_b(answer[P:])[revolute[pointed(revolute), 0] == REVOLUTE]
         starts += [answer[:P], starts[1], answer[:P]]
         joint_starts += [own, theirs, theirs]
     mu, most = np.asarray(friction, np.float64), route.settings["check_sweeps"] or 200
     # Box2D's start first: a start that has not stopped by the sweep where it stopped has lost,
     # so none is played further (on a step where the others lose that spares most of the sweeps).
     counts, changes = sweeps_to_stop(bodies, points, np.stack(starts[:1]), mu, world.physics, world.tolerance, most,
-                                     None, RevoluteRows(ab, arms, np.stack(joint_starts[:1])))
+                                     None, RevoluteRows(ab, arms, np.stack(joint_starts[:1]), held))
     rest = sweeps_to_stop(bodies, points, np.stack(starts[1:]), mu, world.physics, world.tolerance,
-                          max(1, min(most, int(counts[0]))), None, RevoluteRows(ab, arms, np.stack(joint_starts[1:])))
+                          max(1, min(most, int(counts[0]))), None,
+                          RevoluteRows(ab, arms, np.stack(joint_starts[1:]), held))
     counts, changes = np.concatenate([counts, rest[0]]), np.concatenate([changes, rest[1]])
     best = int(np.lexsort((changes, counts))[0])
     if timing is not None:

@@ -30,7 +30,7 @@ from server import metrics
 from server.batching import QueueFull
 from server.idle import IdleStreams
 from server.joints import predict_around_joints
-from server.revolute import PricingTime, all_rigid, joint_labels, joint_route, start_with_joints
+from server.revolute import PricingTime, all_held, joint_labels, joint_route, start_with_joints
 from deepcontact.channels import NEEDS
 from server.predictors import MAX_GRID_NODES, NOT_JUDGED, GridMismatch, Prediction, Predictor, World
 from server.rejects import reject
@@ -131,7 +131,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
         self.limits = limits
         self.fault = fault
         self.idle = idle  # None: streams may stay open without sending for as long as they like
-        # What pricing a world of rigid revolute joints has taken (server.revolute), kept across steps,
+        # What pricing a world of revolute joints has taken (server.revolute), kept across steps,
         # and a thread that asks its classifier about the step with the joints' points while the
         # served answer is made, where a core is spare.
         self._pricing = PricingTime()
@@ -303,7 +303,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                 history = None
                 if predictor.extrapolates_jointed and histories is not None and request.point_keys:
                     history = histories.setdefault(request.model, ImpulseHistory())
-                route = joint_route(predictor) if all_rigid(revolute) and friction is not None else None
+                route = joint_route(predictor) if all_held(revolute) and friction is not None else None
                 labelled = None
                 if route is not None and self._joint_labels is not None and self._pricing.fits(t1, deadline):
                     labelled = self._joint_labels.submit(joint_labels, route, bodies, points, joints, revolute, world,

@@ -173,14 +173,23 @@ class Engine:
         return out
 
     def revolute(self) -> np.ndarray:
-        """Each joint as a rigid revolute one (no limit, no motor) holds it: (J, 7) float32, the
-        world's joint order (`joints()`): 1 where it is one (else 0 and the row's rest 0), its
-        anchor on body A and on body B (world, m), and its point impulse on body B (world, N s:
-        the joint's warm start for the next solve). What a request's joint_revolute carries."""
-        out = np.empty((self.world.jointCount, 7), np.float32)
-        if len(out):
-            self.world.ExportRevolute(out)
-        return out
+        """Each joint as its next solve will hold it, where the server's copy of a step holds its
+        kind: (J, 15) float32, the world's joint order (`joints()`): its kind (1 revolute, 2 rigid
+        weld, 3 prismatic; else 0 and the row's rest 0), its anchor on body A and on body B
+        (world, m), the first two components of its impulse (the joint's warm start: a revolute
+        or weld joint's point impulse on body B, world, N s; a prismatic joint's across its axis,
+        N s, and its angular one, N m s); then its limit's state (0 off or inactive, 1 at its
+        lower angle or translation, 2 at its upper, 3 equal limits; a rigid weld's angle 3), the
+        limit's impulse (N m s, a prismatic joint's N s), 1 where its motor is on, the motor's
+        impulse, its largest torque (N m) or force (N), its speed (rad/s or m/s) and a prismatic
+        joint's axis (world). What a request's joint_revolute (the first 7) and joint_limits (the
+        last 8) carry."""
+        point = np.empty((self.world.jointCount, 7), np.float32)
+        limit = np.empty((self.world.jointCount, 8), np.float32)
+        if len(point):
+            self.world.ExportRevolute(point)
+            self.world.ExportRevoluteLimits(limit)
+        return np.concatenate([point, limit], 1)
 
     def joint_state(self) -> bytes:
         """Every joint object as it is now (their impulses, the joints' warm start for the next
@@ -194,7 +203,7 @@ class Engine:
     def set_revolute_impulses(self, xy: np.ndarray) -> None:
         """Start the revolute joints from these point impulses: (J, 2) float32, N s, world frame,
         on each joint's body B, the world's joint order (`joints()`); other kinds of joint keep
-        their own. Their limit and motor impulses start at 0. Box2D's solver applies a joint's
+        their own, and so do their limits' and motors' impulses. Box2D's solver applies a joint's
         start before its sweeps as it applies the contacts' (the next `solve()` or trial)."""
         xy = np.ascontiguousarray(xy, np.float32).reshape(-1)
         self.world.SetRevoluteImpulses(xy)

@@ -42,7 +42,7 @@ class StepResult:
     BAD_REPLY or REFUSED), None otherwise; start: the start the guard chose ("learned"
     or "builtin"; None without a guard or without contacts); probe: the guard priced
     both starts on this step; joints_started: the server's answer started the world's revolute
-    joints too (a world of rigid revolute joints, server.revolute)."""
+    joints too (a world of revolute joints, server.revolute)."""
 
     velocity_iterations: int
     position_iterations: int

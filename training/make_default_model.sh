@@ -87,7 +87,7 @@ MODES_LINE="a contact-graph classifier (twelve rounds of message passing over th
 GRAPH_LINE="a contact-graph network (eight rounds of message passing over the contact points): a correction to Box2D's warm start at each point; the default's fallback"
 DEFAULT_LINE="the face route: contact-modes labels each point, the server solves the step on the labels and admits the answer into the friction cones (a world that differs from contact-modes' only in its bodies' size, density, gravity or time step labelled at the scale it was trained at); on worlds contact-modes was not trained on, or where its solve misses its labels, the zoo route answers, then contact-graph inside what it was trained on, else Box2D's own start"
 ZOO_MODES_LINE="a contact-graph classifier like contact-modes, trained on a zoo of worlds (boxes, polygons, joints, terrain, kinematic bodies; gravity, time step and density drawn wide) on inputs in the step's own units"
-ZOO_LINE="the face route on contact-modes-zoo, for any world: the default's route where contact-modes does not know the world, on worlds of rigid revolute joints the joints' start too; contact-graph where its solve misses its labels, inside what contact-graph was trained on, else Box2D's own start"
+ZOO_LINE="the face route on contact-modes-zoo, for any world: the default's route where contact-modes does not know the world, on worlds of revolute joints the joints' start too; contact-graph where its solve misses its labels, inside what contact-graph was trained on, else Box2D's own start"
 PRESSURE_LINE="the thesis's Pressure CNN: the step splatted onto SPH grids, a CNN, the impulses read back at the points (P2G, ONNX, G2P)"
 WHY="the face route: $FACE_NET's labels (twelve rounds, each point's friction an input), read pressing above 0.75 N s, the step solved on them (the minimum-norm solve by its dual, refined) and admitted in at most 40 over-relaxed rounds; where the admitted solve leaves its labels' equations unmet by more than 0.75 of the step's velocities (0.3 until 2026-12-06), or the step has more than 1,000 points, or the world is not one $FACE_NET was trained on (a world of larger or smaller bodies, denser, or pulled or stepped otherwise, read at the scale it was trained at where that is all that differs, the answer then checked against Box2D's start), the zoo route (graph-labels-scaled-zoo-r12-e4's labels, the same route) answers, and where that cannot either the graph model $DEFAULT inside what it was trained on, else Box2D's own start (docs/results.md, The solve refined, the classifier trained on; docs/research/2026-12-06-a-zoo-of-worlds.md); rebuilt by make default-model"
 if [ "${GRID_ONLY:-0}" != 1 ]; then
@@ -178,7 +178,7 @@ ZOO_NET=graph-labels-scaled-zoo-r12-e4
 # loop, 10 ms) 0.842x Builtin's iterations where its large steps otherwise missed the deadline
 # and got Box2D's start (0.868x at 10 rounds; per state 30 rounds cost 1.12x of 100's iterations,
 # 10 rounds 1.25x; docs/research/2026-12-07-fewer-rounds-rather-than-none.md).
-# On a world whose every joint is a rigid revolute one it asks its classifier about the step
+# On a world whose every joint is a revolute one it asks its classifier about the step
 # with each joint as two points and serves, of five starts, the one the server's copy of the step
 # with the joints swept as Box2D sweeps them says stops soonest, the joints' start too: the chain
 # of examples/ 0.709x of Builtin's iterations on 850-899 closed loop, 0.969x without

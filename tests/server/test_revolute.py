@@ -1,5 +1,5 @@
-"""server.revolute: a world of rigid revolute joints, its starts priced with the joints swept as
-Box2D sweeps them, and its joints' start served too (the real patched engine, the shipped default
+"""server.revolute: a world of revolute joints, its starts priced with the joints swept as
+Box2D sweeps them (their angle limits and motors too), and its joints' start served too (the real patched engine, the shipped default
 behind a real server)."""
 
 from __future__ import annotations
@@ -12,16 +12,17 @@ import pytest
 from deepcontact import wire
 from deepcontact.faces import RevoluteRows, sweeps_to_stop
 from deepcontact.kinematics import Physics
-from server.revolute import KEY_BASE, all_rigid, joint_points, joints_on_b, rows
+from server.revolute import KEY_BASE, all_held, joint_points, joints_on_b, limits, rows
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 
-def chain_engine(seed: int = 850, settled: int = 0):
-    """(spec, engine) of the chain of examples/, stepped `settled` steps by Box2D's own start."""
+def settled_engine(source: str, steps: int, seed: int, settled: int):
+    """(spec, engine) of the world `source` (PATH.py:FUNCTION or MODULE:FUNCTION), stepped
+    `settled` steps by Box2D's own start."""
     from simclient.worlds import WorldSpec, build
 
-    spec = WorldSpec(f"{EXAMPLES / 'chain.py'}:build", steps=120)
+    spec = WorldSpec(source, steps=steps)
     spec.validate()
     engine = build(spec, seed)
     for _ in range(settled):
@@ -30,10 +31,16 @@ def chain_engine(seed: int = 850, settled: int = 0):
     return spec, engine
 
 
-def test_every_joint_of_the_chain_is_exported_as_a_rigid_revolute_one_with_its_last_impulse():
+def chain_engine(seed: int = 850, settled: int = 0):
+    """(spec, engine) of the chain of examples/ (free revolute joints)."""
+    return settled_engine(f"{EXAMPLES / 'chain.py'}:build", 120, seed, settled)
+
+
+def test_every_joint_of_the_chain_is_exported_as_a_revolute_one_with_its_last_impulse():
     _, engine = chain_engine(settled=40)
     revolute = engine.revolute()
-    assert revolute.shape == (30, 7) and all_rigid(revolute)
+    assert revolute.shape == (30, 15) and all_held(revolute) and (revolute[:, 0] == 1).all()
+    assert not revolute[:, 7:].any() and limits(engine.bodies(), engine.joints(), revolute, 0.01) is None  # no limit, no motor
     # The joint list is pybox2d's in reverse; each row is the same joint as Engine.joints names.
     by_bodies = {(int(a), int(b)): r for (a, b), r in zip(engine.joints(), revolute)}
     index = {int(body.this): i for i, body in enumerate(engine.world.bodies)}
@@ -41,7 +48,7 @@ def test_every_joint_of_the_chain_is_exported_as_a_rigid_revolute_one_with_its_l
         r = by_bodies[index[int(joint.bodyA.this)], index[int(joint.bodyB.this)]]
         np.testing.assert_allclose(r[1:5], [*joint.anchorA, *joint.anchorB], atol=1e-5)
         np.testing.assert_allclose(r[5:7], tuple(joint.GetReactionForce(1.0)), atol=1e-6)
-    assert not all_rigid(np.concatenate([revolute, np.zeros((1, 7), np.float32)]))  # one other joint: not all
+    assert not all_held(np.concatenate([revolute, np.zeros((1, 15), np.float32)]))  # one other joint: not all
 
 
 def test_a_joint_is_two_points_at_its_anchor_that_hold_its_last_impulse():
@@ -80,6 +87,70 @@ def test_the_servers_copy_of_a_chains_step_counts_the_sweeps_the_engine_does_onc
         engine.solve()
     assert steps > 50
     assert with_joints >= 0.8 * steps and with_joints > without
+
+
+def ragdolls_engine(seed: int = 850, settled: int = 0):
+    """(spec, engine) of the zoo's ragdolls (limited revolute joints, some with joint friction)."""
+    return settled_engine("simclient.zoo:ragdolls", 150, seed, settled)
+
+
+def test_a_ragdolls_joints_are_exported_with_their_limits_and_motors_as_the_next_solve_holds_them():
+    _, engine = ragdolls_engine(settled=60)
+    engine.collide()
+    revolute = engine.revolute()
+    assert all_held(revolute) and (revolute[:, 0] == 1).all()
+    by_bodies = {(int(a), int(b)): r for (a, b), r in zip(engine.joints(), revolute)}
+    index = {int(body.this): i for i, body in enumerate(engine.world.bodies)}
+    dt = 0.01
+    for joint in engine.world.joints:
+        r = by_bodies[index[int(joint.bodyA.this)], index[int(joint.bodyB.this)]]
+        angle = joint.angle  # bodyB's angle less bodyA's less the reference angle, as the solver reads it
+        lower, upper = joint.limits
+        state = 1 if angle <= lower else 2 if angle >= upper else 0
+        assert r[7] == state
+        if state == 0:
+            assert r[8] == 0.0  # an inactive limit starts from no impulse
+        assert r[9] == float(joint.motorEnabled) and r[11] == pytest.approx(joint.GetMaxMotorTorque())
+        assert r[12] == pytest.approx(joint.motorSpeed)
+    held = limits(engine.bodies(), engine.joints(), revolute, dt)
+    assert held.shape == (len(revolute), 13) and np.allclose(held[:, 5], revolute[:, 11] * dt)
+    assert not held[:, 0].any()  # no prismatic joint
+    assert (revolute[:, 7] > 0).any()  # some limit is reached in a pile of ragdolls
+
+
+def copy_agreement(engine, physics: Physics, steps: int) -> dict[str, int]:
+    """Along Box2D's own trajectory, how many steps with points the server's copy counts within 3
+    of the engine's own sweeps from Box2D's start: with the joints as the request holds them
+    (`held`), with every joint a free revolute one (`free`), without the joints (`alone`); and
+    how many steps had points (`steps`)."""
+    tolerance, counts = engine.config.velocity_threshold, {"held": 0, "free": 0, "alone": 0, "steps": 0}
+    for _ in range(steps):
+        engine.collide()
+        bodies, points = engine.bodies(), engine.contacts()
+        if len(points):
+            start = np.asarray(points["builtin"], np.float64)
+            mu, revolute, joints = np.asarray(points["friction"], np.float64), engine.revolute(), engine.joints()
+            ab, arms, own = rows(bodies, joints, revolute)
+            copies = {"held": RevoluteRows(ab, arms, own[None], limits(bodies, joints, revolute, physics.dt)),
+                      "free": RevoluteRows(ab, arms, own[None]), "alone": None}
+            normal, tangent = start[:, 0].astype(np.float32), start[:, 1].astype(np.float32)
+            own_sweeps = engine.trial(normal, tangent)
+            for name, joint_rows in copies.items():
+                count = sweeps_to_stop(bodies, points, start[None], mu, physics, tolerance, 1000, None, joint_rows)[0][0]
+                counts[name] += abs(int(count) - own_sweeps) <= 3
+            counts["steps"] += 1
+            engine.set_warm_start(normal, tangent)
+        engine.solve()
+    return counts
+
+
+def test_the_servers_copy_of_a_ragdolls_step_counts_the_engines_sweeps_better_with_the_limits_and_motors():
+    from bench.inprocess import declared_world
+
+    spec, engine = ragdolls_engine()
+    counts = copy_agreement(engine, declared_world(spec, engine).physics, 120)
+    assert counts["steps"] > 50
+    assert counts["held"] >= 0.6 * counts["steps"] and counts["held"] > max(counts["free"], counts["alone"])
 
 
 def test_the_joints_rows_must_fit_the_starts():
@@ -142,3 +213,60 @@ def test_a_step_the_pricing_would_not_finish_by_its_deadline_keeps_the_served_an
     late = PricingTime()
     late.observe(1.0)  # a second a step: no 10 ms deadline fits it
     assert start_with_joints(*args, deadline=time.perf_counter() + 0.01, timing=late) is served
+
+
+def test_a_request_carries_the_joints_limits_and_motors_beside_their_point_constraints():
+    _, engine = ragdolls_engine(settled=60)
+    engine.collide()
+    revolute = engine.revolute()
+    msg = wire.encode_step(60, "default", engine.bodies(), engine.contacts(), joints=engine.joints(),
+                           revolute=revolute)
+    np.testing.assert_array_equal(wire.decode_revolute(msg), revolute)
+    older = wire.encode_step(60, "default", engine.bodies(), engine.contacts(), joints=engine.joints(),
+                             revolute=revolute[:, :7])  # a client that sends no limits: none are read
+    decoded = wire.decode_revolute(older)
+    np.testing.assert_array_equal(decoded[:, :7], revolute[:, :7])
+    assert not decoded[:, 7:].any() and limits(engine.bodies(), engine.joints(), decoded, 0.01) is None
+
+
+def sliders_and_welds(seed: int):
+    """A world of every other kind the copy holds: boxes on prismatic joints to the ground (limits
+    on, half of them driven) sliding down onto loose boxes, and box-and-disc pairs on rigid welds."""
+    import math
+
+    import Box2D
+
+    from simclient.engine import Engine
+
+    rng = np.random.default_rng(seed)
+    world = Box2D.b2World(gravity=(0.0, -9.8))
+    ground = world.CreateStaticBody()
+    ground.CreateEdgeFixture(vertices=[(-8.0, 0.0), (8.0, 0.0)], friction=0.5)
+    for i in range(12):
+        world.CreateDynamicBody(position=(float(rng.uniform(-6, 6)), 0.3 + 0.6 * i)).CreatePolygonFixture(
+            box=(0.3, 0.25), density=1.0, friction=0.5)
+    for k in range(4):
+        x, y, tilt = -6.0 + 4.0 * k, 5.0, float(rng.uniform(-0.4, 0.4))
+        body = world.CreateDynamicBody(position=(x, y), angle=float(rng.uniform(-0.3, 0.3)))
+        body.CreatePolygonFixture(box=(0.4, 0.3), density=1.0, friction=0.5)
+        drive = {"enableMotor": True, "motorSpeed": -0.5, "maxMotorForce": 5.0} if k % 2 else {}
+        world.CreatePrismaticJoint(bodyA=ground, bodyB=body, anchor=(x, y), axis=(math.sin(tilt), math.cos(tilt)),
+                                   enableLimit=True, lowerTranslation=-y, upperTranslation=0.5, **drive)
+    for k in range(3):
+        box = world.CreateDynamicBody(position=(-5.0 + 5.0 * k, 8.0))
+        box.CreatePolygonFixture(box=(0.3, 0.3), density=1.0, friction=0.5)
+        disc = world.CreateDynamicBody(position=(-4.4 + 5.0 * k, 8.0))
+        disc.CreateCircleFixture(radius=0.3, density=1.0, friction=0.5)
+        world.CreateWeldJoint(bodyA=box, bodyB=disc, anchor=(-4.7 + 5.0 * k, 8.0))
+    return Engine(world)
+
+
+def test_prismatic_and_weld_joints_are_held_by_the_servers_copy_as_box2d_sweeps_them():
+    from deepcontact.kinematics import Physics
+
+    engine = sliders_and_welds(850)
+    kinds = engine.revolute()[:, 0]
+    assert sorted(kinds.tolist()) == [2.0] * 3 + [3.0] * 4  # three welds, four sliders
+    counts = copy_agreement(engine, Physics(dt=engine.config.dt, gravity=(0.0, -9.8)), 200)
+    assert counts["steps"] > 100
+    assert counts["held"] >= 0.9 * counts["steps"] and counts["held"] > counts["alone"]

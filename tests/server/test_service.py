@@ -147,8 +147,15 @@ def test_the_grid_bound_is_the_operators_to_set(model_dir, thesis_steps):
                 setattr(r, "joint_revolute", np.ones(6, np.float32).tobytes())),
      grpc.StatusCode.INVALID_ARGUMENT, "joint_revolute"),
     (lambda r: (setattr(r, "joint_count", 1), setattr(r, "joint_bodies", np.array([0, 1], np.int32).tobytes()),
-                setattr(r, "joint_revolute", np.full(7, 2.0, np.float32).tobytes())),
-     grpc.StatusCode.INVALID_ARGUMENT, "flags"),
+                setattr(r, "joint_revolute", np.full(7, 5.0, np.float32).tobytes())),
+     grpc.StatusCode.INVALID_ARGUMENT, "kind of joint"),
+    (lambda r: (setattr(r, "joint_count", 1), setattr(r, "joint_bodies", np.array([0, 1], np.int32).tobytes()),
+                setattr(r, "joint_revolute", np.ones(7, np.float32).tobytes()),
+                setattr(r, "joint_limits", np.full(8, 4.0, np.float32).tobytes())),
+     grpc.StatusCode.INVALID_ARGUMENT, "joint_limits"),
+    (lambda r: (setattr(r, "joint_count", 1), setattr(r, "joint_bodies", np.array([0, 1], np.int32).tobytes()),
+                setattr(r, "joint_revolute", np.full(7, 3.0, np.float32).tobytes())),
+     grpc.StatusCode.INVALID_ARGUMENT, "need their limits"),
 ])
 def test_bad_requests_get_a_status_that_names_the_problem(stub, thesis_steps, mutate, code, words):
     world, steps = thesis_steps
