@@ -9,7 +9,12 @@ discs at the same places) with one quantity changed, and returns it with its tim
 density scales the problem exactly (every mass and impulse times the factor, every velocity the
 same); gravity and the time step change the motion too. Box2D's stopping rule is an absolute
 impulse (1e-4 N s), so even a denser world takes Box2D's own warm start more sweeps: the ratio
-to Builtin, not the count, is what a unit-free warm start keeps.
+to Builtin, not the count, is what a unit-free warm start keeps. With the stopping rule scaled as
+the step's impulses are (`relative_tolerance`: 1e-4 N s times the world's density, gravity and
+time step over the thesis world's), the dense world is the thesis world to the sweep, and the
+others differ from it only in their motion:
+
+    python -m lab.scaled_worlds        # each world's command with its relative stopping rule
 """
 
 from __future__ import annotations
@@ -46,3 +51,20 @@ def _world(name: str):
 
 
 reference, density_0p5, density_10, gravity_2, gravity_20, dt_1_120, dt_1_30 = (_world(n) for n in SCALINGS)
+
+#: The thesis world's stopping rule (N s) and the quantities its impulses scale with.
+THESIS_TOLERANCE, THESIS = 1e-4, {"density": 1.0, "gravity": 9.8, "dt": 0.01}
+
+
+def relative_tolerance(name: str) -> float:
+    """The stopping rule (N s) that is to the world `name`'s impulses (mass times gravity times
+    the time step, m g dt) what the thesis world's 1e-4 N s is to its own. KeyError for no such world."""
+    scale = {**THESIS, **SCALINGS[name]}
+    return THESIS_TOLERANCE * (scale["density"] / THESIS["density"]) * (scale["gravity"] / THESIS["gravity"]) * (
+        scale["dt"] / THESIS["dt"])
+
+
+if __name__ == "__main__":
+    for name in SCALINGS:
+        print(f"deepcontact bench iterations --world lab.scaled_worlds:{name} --seeds 901-910 --workers 1 --no-guard "
+              f"--tolerance {relative_tolerance(name):.5g} --warm-starts builtin,server:default --out OUT-{name}")

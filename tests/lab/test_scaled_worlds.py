@@ -1,0 +1,26 @@
+"""lab.scaled_worlds: the thesis world scaled in one quantity, and the stopping rule scaled with it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lab.scaled_worlds import SCALINGS, density_10, reference, relative_tolerance
+
+
+def test_the_relative_stopping_rule_scales_as_the_steps_impulses():
+    assert relative_tolerance("reference") == pytest.approx(1e-4)
+    assert relative_tolerance("density_10") == pytest.approx(1e-3)
+    assert relative_tolerance("gravity_2") == pytest.approx(1e-4 * 2 / 9.8)
+    assert relative_tolerance("dt_1_30") == pytest.approx(1e-4 * (1 / 30) / 0.01)
+    assert set(SCALINGS) >= {"density_0p5", "gravity_20", "dt_1_120"}
+    with pytest.raises(KeyError):
+        relative_tolerance("no-such-world")
+
+
+def test_a_denser_world_is_the_thesis_world_with_every_mass_scaled():
+    (dense, dt_dense), (thesis, dt) = density_10(901), reference(901)
+    assert dt_dense == dt == 0.01
+    masses = np.array([b.mass for b in thesis.bodies if b.mass > 0])
+    np.testing.assert_allclose([b.mass for b in dense.bodies if b.mass > 0], 10.0 * masses, rtol=1e-5)
+    np.testing.assert_allclose([tuple(b.position) for b in dense.bodies], [tuple(b.position) for b in thesis.bodies])
