@@ -9,8 +9,9 @@ request's joint_revolute, their limits and motors in joint_limits), the server h
 - holds each revolute or weld joint as two contact points at its anchor, normals opposed,
   pressing and sticking in a cone too wide to bound them (its two point rows), and asks the face route
   (its classifier on the points and the joints' points, then its solve and admission) for the
-  whole step: its answer at the contact points and the joints' impulses (a limit's or a motor's
-  torque, a weld's angle and a prismatic joint are not in that solve);
+  whole step: its answer at the contact points and the joints' impulses, each active angle limit
+  (and a weld's angle) held there as a point on a lever from the anchor (lever_points; a motor's
+  torque and a prismatic joint are not in that solve);
 - prices five starts on its copy of the step with the joints in it, as Box2D's joints sweep
   them (b2RevoluteJoint with its angle limit and motor, b2WeldJoint, b2PrismaticJoint) before
   the contacts in each sweep (deepcontact.faces.sweeps_to_stop with RevoluteRows),
@@ -25,9 +26,9 @@ request's joint_revolute, their limits and motors in joint_limits), the server h
 
 Closed loop on the chain of `examples/` over the choosing seeds 850-899 this takes the default from
 0.969x to 0.731x of Builtin's iterations (`deepcontact lab joint-start --runs served+revolute`); on
-Box2D's own states of 850-859 the zoo's ragdolls from 1.004x to 0.897x and its jointed worlds from
-0.931x to 0.774x (`deepcontact lab joint-start --world simclient.zoo:ragdolls --seeds 850-859
---on-builtin`).
+Box2D's own states of 850-859 the zoo's ragdolls from 1.004x to 0.838x (0.897x before the levers)
+and its jointed worlds from 0.931x to 0.766x (0.774x) (`deepcontact lab joint-start --world
+simclient.zoo:ragdolls --seeds 850-859 --on-builtin`).
 """
 
 from __future__ import annotations
@@ -41,6 +42,10 @@ from server.predictors import Prediction
 
 #: A joint's two points' keys: far above any contact's (the engine's are 32-bit feature keys).
 KEY_BASE = 2**63
+#: An angle limit's lever point's keys (lever_points), above the joints' points'.
+LEVER_KEY_BASE = 2**63 + 2**62
+#: The shortest lever (m) an angle limit is held on, where the joint's arms are shorter.
+LEVER_ARM = 0.05
 #: The label (N s along the normal: pressing) and the cone (friction) of a joint's points in the
 #: route: pressing and sticking, in a cone no impulse of a step reaches.
 JOINT_LABEL = 1e3
@@ -128,6 +133,42 @@ def joint_points(points: np.ndarray, joints: np.ndarray, revolute: np.ndarray) -
     return out
 
 
+def lever_points(points: np.ndarray, bodies: np.ndarray, joints: np.ndarray,
+                 revolute: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each active angle limit as the route can hold it: (records (K,) of the points' dtype,
+    owner (K,) int, the joint each belongs to). A revolute joint at its lower or upper limit, or
+    at equal limits, and a rigid weld (revolute (J, 15), wire.decode_revolute's; joints (J, 2) rows
+    of `bodies`) turn their two bodies about the anchor only one way or not at all. A contact
+    point on a lever from the anchor (along +x, as long as the longer of the joint's arms, at
+    least LEVER_ARM) between the same two bodies, its normal across the lever (+y where the
+    limit's impulse may only be positive, -y where only negative, both at equal limits), holds
+    that: its normal impulse times the lever is the limit's torque, and the joint's point rows,
+    at the anchor, carry its push. Pressing and sticking, as a joint's points are; their builtin
+    the limit's last impulse over the lever."""
+    state = revolute[:, 7] if revolute.shape[1] >= 15 else np.zeros(len(revolute))  # (J, 7): no limits sent
+    held = (revolute[:, 0] != PRISMATIC) & (state > 0)
+    one_way = np.flatnonzero(held)
+    both_ways = np.flatnonzero(held & (state == 3))
+    owner = np.concatenate([one_way, both_ways])
+    sign = np.concatenate([np.where(state[one_way] == 2, -1.0, 1.0), -np.ones(len(both_ways))])
+    out = np.zeros(len(owner), points.dtype)
+    if not len(owner):
+        return out, owner
+    centres = np.asarray(bodies["position"], np.float64)
+    anchor = np.asarray(revolute[owner, 3:5], np.float64)
+    a, b = joints[owner, 0], joints[owner, 1]
+    arm = np.maximum(np.maximum(np.hypot(*(anchor - centres[a]).T), np.hypot(*(anchor - centres[b]).T)), LEVER_ARM)
+    out["key"] = np.uint64(LEVER_KEY_BASE) + np.arange(len(owner), dtype=np.uint64)
+    out["body_a"], out["body_b"] = a, b
+    out["point"][:, 0], out["point"][:, 1] = anchor[:, 0] + arm, anchor[:, 1]
+    out["normal"][:, 1] = sign
+    out["builtin"][:, 0] = np.maximum(sign * revolute[owner, 8] / arm, 0.0)
+    out["warm_start"] = out["builtin"]
+    out["impulse"] = (1.0, 0.0)
+    out["friction"] = JOINT_POINT_FRICTION
+    return out, owner
+
+
 def joints_on_b(answer: np.ndarray) -> np.ndarray:
     """(Jp, 2) N s, on each joint's body B: the joints' impulses an answer at their points
     (joint_points's 2 Jp, (2 Jp, 2) N s (normal, tangent)) holds."""
@@ -210,6 +251,10 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     face = np.asarray(labels.impulses, np.float64).copy()
     face[P:] = (JOINT_LABEL, 0.0)
     mu[P:] = JOINT_FRICTION
+    levers, owner = lever_points(points, bodies, joints, revolute)
+    both = np.concatenate([both, levers])
+    face = np.concatenate([face, np.tile([JOINT_LABEL, 0.0], (len(levers), 1))])
+    mu = np.concatenate([mu, np.full(len(levers), JOINT_FRICTION, mu.dtype)])
     s = route.settings
     solved = route_compiled(bodies, both, face, np.asarray(mu, np.float64), world.physics, s["pressing"], s["share"],
                             s["label_friction"], min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None)
@@ -221,7 +266,16 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
         answer = np.asarray(solved.impulses, np.float64)
         # The route's impulses start the revolute joints (the client sets no other kind's).
         theirs = own.copy()
-        theirs[revolute[:, 0] == REVOLUTE] = joints_on_b(answer[P:])[revolute[pointed(revolute), 0] == REVOLUTE]
+        # Each joint's push on B: its two points' and its levers' (a lever's push, which the
+        # joint's point rows carry in Box2D, as the limit's impulse is a pure torque there).
+        push = np.zeros((len(revolute), 2))
+        with_points = pointed(revolute)
+        push[with_points] = joints_on_b(answer[P:len(answer) - len(levers)])
+        lever = answer[len(answer) - len(levers):]
+        n = np.asarray(levers["normal"], np.float64)
+        np.add.at(push, owner, lever[:, :1] * n + lever[:, 1:] * np.stack([n[:, 1], -n[:, 0]], 1))
+        on_b = push[with_points]
+        theirs[revolute[:, 0] == REVOLUTE] = on_b[revolute[pointed(revolute), 0] == REVOLUTE]
         starts += [answer[:P], starts[1], answer[:P]]
         joint_starts += [own, theirs, theirs]
     mu, most = np.asarray(friction, np.float64), route.settings["check_sweeps"] or 200

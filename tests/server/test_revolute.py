@@ -270,3 +270,26 @@ def test_prismatic_and_weld_joints_are_held_by_the_servers_copy_as_box2d_sweeps_
     counts = copy_agreement(engine, Physics(dt=engine.config.dt, gravity=(0.0, -9.8)), 200)
     assert counts["steps"] > 100
     assert counts["held"] >= 0.9 * counts["steps"] and counts["held"] > counts["alone"]
+
+
+def test_an_active_angle_limit_is_held_on_a_lever_whose_normal_turns_the_way_the_limit_allows():
+    from server.revolute import LEVER_ARM, lever_points
+
+    _, engine = ragdolls_engine(settled=60)
+    engine.collide()
+    points, joints, revolute, bodies = engine.contacts(), engine.joints(), engine.revolute(), engine.bodies()
+    levers, owner = lever_points(points, bodies, joints, revolute)
+    state = revolute[:, 7]
+    assert len(levers) == int((state > 0).sum() + (state == 3).sum()) > 0
+    assert set(owner.tolist()) == set(np.flatnonzero(state > 0).tolist())
+    # At a lower limit the limit's impulse turns B positively: a push along +y on a lever along +x.
+    expected = np.where(state[owner] == 2, -1.0, 1.0)
+    np.testing.assert_array_equal(levers["normal"][:, 1], expected)
+    np.testing.assert_array_equal(levers["body_a"], joints[owner, 0])
+    arm = levers["point"][:, 0] - revolute[owner, 3]
+    assert (arm >= LEVER_ARM - 1e-6).all() and np.allclose(levers["point"][:, 1], revolute[owner, 4])
+    # Its builtin is the limit's last impulse over the lever, where it pushes the lever's way.
+    np.testing.assert_allclose(levers["builtin"][:, 0], np.maximum(expected * revolute[owner, 8] / arm, 0), rtol=1e-4,
+                               atol=1e-7)
+    assert len(np.unique(levers["key"])) == len(levers)
+    assert len(lever_points(points, bodies, joints, revolute[:, :7])[0]) == 0  # no limits sent: none held
