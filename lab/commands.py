@@ -31,7 +31,7 @@ COMMANDS = [
     Command(("jointed-points",), "lab.jointed_points",
             "on a world with joints, do the points at jointed bodies or the rest keep the default from the solution?"),
     Command(("joint-copy",), "lab.joint_copy",
-            "does the server's copy of a step count Box2D's sweeps, with the revolute joints in it and without?"),
+            "does the server's copy of a step count Box2D's sweeps, with the joints (revolute, weld, prismatic) in it and without?"),
     Command(("joint-start",), "lab.joint_start",
             "closed loop (or --on-builtin, on Box2D's states) on revolute joints: would a reply that carried the joints' impulses too buy iterations?"),
     Command(("joints-price",), "lab.joints_price",

@@ -80,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "builtin and served are always run")
     parser.add_argument("--on-builtin", action="store_true", help="price builtin, served and served+revolute on "
                         "Box2D's own trajectory (the engine's trial solves, the same states for each) instead of "
-                        "closed loop")
+                        "closed loop (--runs then does not apply)")
 
 
 def _beats_box2d(bodies, both, answer, box2d, mu, world) -> bool:
