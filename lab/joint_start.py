@@ -45,7 +45,12 @@ and prints each one's velocity iterations a step with contacts over Builtin's, 9
 over seeds, and served+joints over served. With --on-builtin, builtin, served and served+revolute
 are priced instead on Box2D's own trajectory: at each step the engine's trial solve from each
 start (the joints' start set where the answer carries one, then put back), every run on the very
-same states, so a chaotic world's closed-loop spread does not hide the difference. Serving it would need the joints' anchors on the
+same states, so a chaotic world's closed-loop spread does not hide the difference; beside them two
+oracles of the angle limits' own impulse (Engine.set_revolute_impulses with a third column), which
+the reply does not carry: builtin+limits* and served+revolute+limits*, the same starts with each
+active limit started at the impulse Box2D's solve of that step ends at (its limits' warm start
+the limit's own last impulse otherwise; docs/research/2026-12-07-island-by-island.md, "The
+limits' impulse"). Serving it would need the joints' anchors on the
 request and their impulses on the reply (the request carries only which bodies a joint binds).
 
 A research instrument: the joints are read through pybox2d one at a time, a few seconds a simulation.
@@ -78,7 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="default", help="the model served at the contact points (default: default)")
     parser.add_argument("--runs", default=",".join(RUNS), help=f"which runs, comma-separated (default all: {','.join(RUNS)}); "
                         "builtin and served are always run")
-    parser.add_argument("--on-builtin", action="store_true", help="price builtin, served and served+revolute on "
+    parser.add_argument("--on-builtin", action="store_true", help="price builtin, served and served+revolute (and "
+                        "the limits' oracles, builtin+limits* and served+revolute+limits*) on "
                         "Box2D's own trajectory (the engine's trial solves, the same states for each) instead of "
                         "closed loop (--runs then does not apply)")
 
@@ -210,19 +216,32 @@ def simulate(spec, seed: int, models: str, model: str, run: str) -> np.ndarray:
     return np.array(iterations, float)
 
 
+#: --on-builtin's runs (module docstring).
+ON_BUILTIN = ("builtin", "served", "served+revolute", "builtin+limits*", "served+revolute+limits*")
+
+
 def priced(spec, seed: int, models: str, model: str) -> dict[str, np.ndarray]:
-    """{run: (steps with contacts,) velocity iterations} of builtin, served and served+revolute,
-    each the engine's trial solve from its start on Box2D's own trajectory of (spec, seed): the
-    joints' start set where the answer carries one (served+revolute), then put back."""
+    """{run: (steps with contacts,) velocity iterations} of ON_BUILTIN, each the engine's trial
+    solve from its start on Box2D's own trajectory of (spec, seed): the joints' start set where
+    the answer carries one (served+revolute), then put back; the limits' oracles with each active
+    limit's impulse the one Box2D's own solve of the step ends at (read off a first run of the
+    same trajectory)."""
     from bench.inprocess import InProcess
     from simclient import worlds
 
+    engine = worlds.build(spec, seed)
+    ended = []  # each step's joints after Box2D's own solve: the limits' impulses it ends at
+    for k in range(spec.steps):
+        engine.collide()
+        engine.solve()
+        ended.append(engine.revolute()[:, 8].copy())
     engine = worlds.build(spec, seed)
     served = InProcess.load(Path(models), model, spec, revolute_joints=False)
     revolute = InProcess.load(Path(models), model, spec, revolute_joints=True)
     served.prepare(engine)
     revolute.prepare(engine)
-    out = {"builtin": [], "served": [], "served+revolute": []}
+    out = {name: [] for name in ON_BUILTIN}
+    with_limits = lambda: np.concatenate([engine.revolute()[:, 5:7], ended[k][:, None]], 1)  # noqa: E731
     for k in range(spec.steps):
         engine.collide()
         bodies, points = engine.bodies(), engine.contacts()
@@ -230,8 +249,14 @@ def priced(spec, seed: int, models: str, model: str) -> dict[str, np.ndarray]:
             own = engine.joint_state()
             box2d = np.asarray(points["builtin"], np.float32)
             out["builtin"].append(engine.trial(box2d[:, 0].copy(), box2d[:, 1].copy()))
+            engine.set_revolute_impulses(with_limits())
+            out["builtin+limits*"].append(engine.trial(box2d[:, 0].copy(), box2d[:, 1].copy()))
+            engine.set_joint_state(own)
             out["served"].append(engine.trial(*served.warm_start(engine, bodies, points, k)))
-            out["served+revolute"].append(engine.trial(*revolute.warm_start(engine, bodies, points, k)))
+            start = revolute.warm_start(engine, bodies, points, k)
+            out["served+revolute"].append(engine.trial(*start))
+            engine.set_revolute_impulses(with_limits())  # the served joints' start, the limits' at their end
+            out["served+revolute+limits*"].append(engine.trial(*start))
             engine.set_joint_state(own)  # Box2D's trajectory goes on from its own start
             engine.set_warm_start(box2d[:, 0].copy(), box2d[:, 1].copy())
         engine.solve()
@@ -282,7 +307,7 @@ def _on_builtin(args: argparse.Namespace, spec, seeds) -> int:
     except FileNotFoundError as exc:
         print(f"deepcontact lab joint-start: {exc}", file=sys.stderr)
         return 2
-    runs = {name: [p[name] for p in per_seed] for name in ("builtin", "served", "served+revolute")}
+    runs = {name: [p[name] for p in per_seed] for name in ON_BUILTIN}
     print(f"`{args.world}`, seeds {args.seeds}, {args.model} in process, priced on Box2D's own states: velocity "
           "iterations a step with contacts over Builtin's")
     print("| run | mean iterations | / builtin | / served |\n|---|---|---|---|")

@@ -201,12 +201,19 @@ class Engine:
         self.world.SetJointState(state)
 
     def set_revolute_impulses(self, xy: np.ndarray) -> None:
-        """Start the revolute joints from these point impulses: (J, 2) float32, N s, world frame,
-        on each joint's body B, the world's joint order (`joints()`); other kinds of joint keep
-        their own, and so do their limits' and motors' impulses. Box2D's solver applies a joint's
-        start before its sweeps as it applies the contacts' (the next `solve()` or trial)."""
-        xy = np.ascontiguousarray(xy, np.float32).reshape(-1)
-        self.world.SetRevoluteImpulses(xy)
+        """Start the revolute joints from these impulses: (J, 2) float32, each one's point impulse
+        (N s, world frame, on body B), or (J, 3), its limit's impulse (N m s) beside it, the
+        world's joint order (`joints()`). A limit's impulse is set only where the limit will be
+        active at the next solve (`revolute()`'s limit state 1-3; Box2D zeroes it elsewhere); with
+        (J, 2) the limits keep their own. Other kinds of joint keep their own, and so do the
+        motors' impulses. Box2D's solver applies a joint's start before its sweeps as it applies
+        the contacts' (the next `solve()` or trial)."""
+        xy = np.ascontiguousarray(xy, np.float32)
+        if xy.ndim != 2 or xy.shape[1] not in (2, 3):
+            raise ValueError(f"revolute impulses are (J, 2) or (J, 3), got {xy.shape}")
+        self.world.SetRevoluteImpulses(np.ascontiguousarray(xy[:, :2]).reshape(-1))
+        if xy.shape[1] == 3:
+            self.world.SetRevoluteLimitImpulses(np.ascontiguousarray(xy[:, 2]))
 
     def body_friction(self) -> np.ndarray:
         """(B,) each body's friction coefficient (its first fixture's; 0 without one), creation

@@ -45,13 +45,16 @@ def test_ragdolls_priced_on_box2ds_own_states_every_run_on_the_same_steps(capsys
     spec = WorldSpec("simclient.zoo:ragdolls", steps=80)
     spec.validate()
     runs = priced(spec, 850, "models", "default")
-    assert set(runs) == {"builtin", "served", "served+revolute"}
+    assert set(runs) == {"builtin", "served", "served+revolute", "builtin+limits*", "served+revolute+limits*"}
     assert len({len(r) for r in runs.values()}) == 1 and len(runs["builtin"]) > 0  # the very same steps
     # The joints' limits and motors in the server's copy: its start differs from the contacts' alone.
     assert not np.array_equal(runs["served+revolute"], runs["served"])
+    # The limits started at the impulse Box2D's own solve ends at: a start of their own.
+    assert not np.array_equal(runs["builtin+limits*"], runs["builtin"])
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     assert run(parser.parse_args(["--world", "simclient.zoo:ragdolls", "--seeds", "850-851", "--steps", "40",
                                   "--on-builtin"])) == 0
     table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")][1:]
-    assert [line.split("|")[1].strip() for line in table] == ["builtin", "served", "served+revolute"]
+    assert [line.split("|")[1].strip() for line in table] == ["builtin", "served", "served+revolute", "builtin+limits*",
+                                                               "served+revolute+limits*"]

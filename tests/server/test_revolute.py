@@ -118,6 +118,26 @@ def test_a_ragdolls_joints_are_exported_with_their_limits_and_motors_as_the_next
     assert (revolute[:, 7] > 0).any()  # some limit is reached in a pile of ragdolls
 
 
+def test_an_active_limit_starts_from_the_impulse_it_is_given_and_an_inactive_one_from_none():
+    """Engine.set_revolute_impulses with a third column starts each active angle limit from that
+    impulse (N m s), kept by the solve even where the limit has just become active (Box2D zeroes
+    a limit's impulse where its state changes); an inactive limit starts from none whatever it is
+    given, and the point impulses are set as with two columns."""
+    _, engine = ragdolls_engine(settled=60)
+    engine.collide()
+    revolute = engine.revolute()
+    active = revolute[:, 7] > 0
+    assert active.any() and (~active).any()
+    given = np.concatenate([revolute[:, 5:7], np.full((len(revolute), 1), 0.25, np.float32)], 1)
+    engine.set_revolute_impulses(given)
+    after = engine.revolute()
+    np.testing.assert_array_equal(after[active, 8], 0.25)
+    np.testing.assert_array_equal(after[~active, 8], 0.0)
+    np.testing.assert_array_equal(after[:, 5:7], revolute[:, 5:7])
+    with pytest.raises(ValueError, match="revolute impulses are"):
+        engine.set_revolute_impulses(np.zeros((len(revolute), 4), np.float32))
+
+
 def copy_agreement(engine, physics: Physics, steps: int) -> dict[str, int]:
     """Along Box2D's own trajectory, how many steps with points the server's copy counts within 3
     of the engine's own sweeps from Box2D's start: with the joints as the request holds them
