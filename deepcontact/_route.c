@@ -515,7 +515,8 @@ enum { ALONE = 0, BLOCK_FIRST = 1, BLOCK_SECOND = 2, DROPPED = 3 };
  * their bodies and normal. The largest change any impulse made is returned; v (3 B,) the
  * bodies' velocities and lam (2 P,) the impulses are updated. */
 static double solve_sweep(const struct geometry *g, const double *mu, const double *mass, const unsigned char *role,
-                          const double *block, double *vx, double *vy, double *w, double *lam)
+                          const double *block, double *vx, double *vy, double *w, double *lam,
+                          const int32_t *island, double *island_change)
 {
     const int64_t P = g->P;
     double change = 0.0;
@@ -536,6 +537,8 @@ static double solve_sweep(const struct geometry *g, const double *mu, const doub
             const double step = next - lam[2 * q + 1];
             lam[2 * q + 1] = next;
             change = fabs(step) > change ? fabs(step) : change;
+            if (island != NULL && fabs(step) > island_change[island[q]])
+                island_change[island[q]] = fabs(step);
             const double i0 = step * t0, i1 = step * t1;
             vx[a] -= i0 * ma, vy[a] -= i1 * ma, w[a] -= (ra[0] * i1 - ra[1] * i0) * ia;
             vx[b] += i0 * mb, vy[b] += i1 * mb, w[b] += (rb[0] * i1 - rb[1] * i0) * ib;
@@ -575,6 +578,8 @@ static double solve_sweep(const struct geometry *g, const double *mu, const doub
             const double step = x[j] - lam[2 * q];
             lam[2 * q] = x[j];
             change = fabs(step) > change ? fabs(step) : change;
+            if (island != NULL && fabs(step) > island_change[island[q]])
+                island_change[island[q]] = fabs(step);
             const double i0 = step * n0, i1 = step * n1;
             vx[a] -= i0 * ma, vy[a] -= i1 * ma, w[a] -= (ra[0] * i1 - ra[1] * i0) * ia;
             vx[b] += i0 * mb, vy[b] += i1 * mb, w[b] += (rb[0] * i1 - rb[1] * i0) * ib;
@@ -741,20 +746,33 @@ static void solve_joints(const struct geometry *g, const struct joint_rows *jr, 
     }
 }
 
+/* A step's islands, as Box2D's solver forms them (bodies joined by contacts and joints, never
+ * through a static body): island (P,) each point's, 0..I-1; counts and changes (n_starts, I), the
+ * sweep each island stops at and its change there (or at the last sweep), filled by sweep_changes. */
+struct islands {
+    int64_t I;
+    const int32_t *island;
+    long *counts;
+    double *changes;
+};
+
 static int sweep_changes(const struct geometry *g, const double *mu, const double *starts, int n_starts, long sweeps,
-                         double tolerance, const struct joint_rows *jr, double *changes, long *counts)
+                         double tolerance, const struct joint_rows *jr, double *changes, long *counts,
+                         const struct islands *isl)
 {
     const int64_t P = g->P, B = g->B;
     double *vx = malloc(((size_t)3 * B + 1) * sizeof(double)), *vy = vx + B, *w = vy + B;
     double *mass = malloc(((size_t)2 * P + 1) * sizeof(double)), *lam = malloc(((size_t)2 * P + 1) * sizeof(double));
     double *block = malloc(((size_t)6 * P + 1) * sizeof(double));
     unsigned char *role = calloc((size_t)P + 1, 1);
-    const int64_t J = jr == NULL ? 0 : jr->J;
+    const int64_t J = jr == NULL ? 0 : jr->J, I = isl == NULL ? 0 : isl->I;
+    double *island_change = malloc(((size_t)I + 1) * sizeof(double));
     /* per joint: its point impulses (2), its limit's and motor's (2), K's 2 x 2 inverse (3), K (6) */
     double *jlam = malloc(((size_t)13 * J + 1) * sizeof(double)), *jz = jlam + 2 * J, *jm = jz + J;
     double *kinv = jm + J, *k3 = kinv + 3 * J;
-    if (vx == NULL || mass == NULL || lam == NULL || block == NULL || role == NULL || jlam == NULL) {
-        free(vx), free(mass), free(lam), free(block), free(role), free(jlam);
+    if (vx == NULL || mass == NULL || lam == NULL || block == NULL || role == NULL || jlam == NULL
+        || island_change == NULL) {
+        free(vx), free(mass), free(lam), free(block), free(role), free(jlam), free(island_change);
         return -1;
     }
     for (int64_t j = 0; j < J; j++) { /* each joint's K (b2RevoluteJoint::InitVelocityConstraints) and its inverse */
@@ -852,24 +870,94 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
          * sweeps + 1 where none of the first `sweeps` does. */
         double change = 0.0;
         counts[k] = sweeps + 1;
+        long *own_counts = I > 0 ? isl->counts + (size_t)I * k : NULL;
+        double *own_changes = I > 0 ? isl->changes + (size_t)I * k : NULL;
+        int64_t running = I; /* islands not yet stopped */
+        for (int64_t i = 0; i < I; i++)
+            own_counts[i] = sweeps + 1;
         for (long sweep = 0; sweep < sweeps; sweep++) {
             if (J > 0) /* Box2D's island solves its joints first in each sweep, then its contacts */
                 solve_joints(g, jr, kinv, k3, vx, vy, w, jlam, jz, jm);
-            change = solve_sweep(g, mu, mass, role, block, vx, vy, w, lam);
-            if (tolerance > 0.0 && change <= tolerance) {
+            for (int64_t i = 0; i < I; i++)
+                island_change[i] = 0.0;
+            change = solve_sweep(g, mu, mass, role, block, vx, vy, w, lam, I > 0 ? isl->island : NULL, island_change);
+            /* Box2D stops each island at its own first sweep under the tolerance: an island's
+             * count and change are that sweep's, or the last sweep's where it does not stop. */
+            for (int64_t i = 0; i < I; i++) {
+                if (own_counts[i] <= sweeps)
+                    continue;
+                own_changes[i] = island_change[i];
+                if (tolerance > 0.0 && island_change[i] <= tolerance)
+                    own_counts[i] = sweep + 1, running--;
+            }
+            if (tolerance > 0.0 && (I > 0 ? running == 0 : change <= tolerance)) {
                 counts[k] = sweep + 1;
                 break;
             }
         }
         changes[k] = change;
+        for (int64_t i = 0; i < I; i++) /* where every island stops, the tie is read by theirs */
+            changes[k] = i == 0 || own_changes[i] > changes[k] ? own_changes[i] : changes[k];
     }
-    free(vx), free(mass), free(lam), free(block), free(role), free(jlam);
+    free(vx), free(mass), free(lam), free(block), free(role), free(jlam), free(island_change);
     return 0;
 }
 
+static int64_t island_root(int64_t *parent, int64_t k)
+{
+    while (parent[k] != k)
+        k = parent[k] = parent[parent[k]];
+    return k;
+}
+
+/* The step's islands as Box2D's solver forms them (b2World::Solve's search): bodies joined by the
+ * points and the joints of jr (NULL: none) where neither body is static (a kinematic body joins
+ * them, a static one joins none). point_island (P,) each point's island, numbered 0.. in the order
+ * of their first points; joint_island (J,) each joint's, or -1 where no point is on its island.
+ * Returns the number of islands, or -1 (memory). */
+static Py_ssize_t find_islands(const char *bodies, Py_ssize_t B, const char *points, Py_ssize_t P,
+                               const struct joint_rows *jr, int32_t *point_island, int32_t *joint_island)
+{
+    int64_t *parent = malloc(((size_t)B + 1) * sizeof(int64_t)), *number = malloc(((size_t)B + 1) * sizeof(int64_t));
+    unsigned char *moves = malloc((size_t)B + 1);
+    if (parent == NULL || number == NULL || moves == NULL) {
+        free(parent), free(number), free(moves);
+        return -1;
+    }
+    for (Py_ssize_t k = 0; k < B; k++) {
+        parent[k] = k, number[k] = -1;
+        moves[k] = i32_at(bodies + k * BODY_SIZE, BODY_TYPE) != BODY_STATIC;
+    }
+    const Py_ssize_t J = jr == NULL ? 0 : jr->J;
+    for (Py_ssize_t i = 0; i < P + J; i++) {
+        const int64_t a = i < P ? i32_at(points + i * POINT_SIZE, POINT_BODY_A) : jr->ab[2 * (i - P)];
+        const int64_t c = i < P ? i32_at(points + i * POINT_SIZE, POINT_BODY_B) : jr->ab[2 * (i - P) + 1];
+        if (moves[a] && moves[c]) {
+            const int64_t ra = island_root(parent, a), rc = island_root(parent, c);
+            if (ra != rc)
+                parent[ra] = rc;
+        }
+    }
+    Py_ssize_t n = 0;
+    for (Py_ssize_t i = 0; i < P + J; i++) {
+        const int64_t a = i < P ? i32_at(points + i * POINT_SIZE, POINT_BODY_A) : jr->ab[2 * (i - P)];
+        const int64_t c = i < P ? i32_at(points + i * POINT_SIZE, POINT_BODY_B) : jr->ab[2 * (i - P) + 1];
+        const int64_t root = island_root(parent, moves[a] ? a : c);
+        if (i < P) {
+            if (number[root] < 0)
+                number[root] = n++;
+            point_island[i] = (int32_t)number[root];
+        } else {
+            joint_island[i - P] = (int32_t)number[root];
+        }
+    }
+    free(parent), free(number), free(moves);
+    return n;
+}
+
 /* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry, tolerance
- *                [, joint_bodies, joint_arms, joint_starts[, joint_limits]])
- *     -> ([change, ...], [sweeps run, ...])
+ *                [, joint_bodies, joint_arms, joint_starts, joint_limits, by_island])
+ *     -> ([change, ...], [sweeps run, ...][, island counts, island changes, point islands, joint islands, I])
  *
  * sweep_changes of each start: starts float64 (n_starts, P, 2) N s (n_starts from its size);
  * mu float64 (P,); geometry: prepare's for these bodies, points and physics, or None;
@@ -879,7 +967,11 @@ static int sweep_changes(const struct geometry *g, const double *mu, const doubl
  * joint_bodies int64 (J, 2), joint_arms float64 (J, 4) m, joint_starts float64 (n_starts, J, 2)
  * N s, each start's joint impulses beside its contact impulses; joint_limits float64 (J, 13), each
  * joint's kind, limit and motor (struct joint_rows), or absent: every one a revolute joint with
- * neither. */
+ * neither (the joint arguments may be None). by_island (true): the step's islands as Box2D forms
+ * them (find_islands), each stopped at its own first sweep under the tolerance, a start's count the
+ * sweep where its last island stops and its change the largest of the islands' changes there;
+ * the reply then adds (n_starts, I) int64 and float64 bytes, each island's count and change, the
+ * points' and the joints' islands as int32 bytes, and I. */
 static PyObject *compare_starts(PyObject *self, PyObject *args)
 {
     Py_buffer b[8];
@@ -887,11 +979,16 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
     double dt, gx, gy, tolerance;
     long sweeps;
     PyObject *prepared;
+    int by_island = 0;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd|y*y*y*y*", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx,
-                          &gy, &b[3], &sweeps, &prepared, &tolerance, &b[4], &b[5], &b[6], &b[7]))
+    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd|z*z*z*z*p", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx,
+                          &gy, &b[3], &sweeps, &prepared, &tolerance, &b[4], &b[5], &b[6], &b[7], &by_island))
         return NULL;
     PyObject *result = NULL;
+    long *island_counts = NULL;
+    double *island_changes = NULL;
+    int32_t *point_island = NULL, *joint_island = NULL;
+    Py_ssize_t n_islands = 0;
     const Py_ssize_t per_start = 2 * n_points * (Py_ssize_t)sizeof(double);
     if (n_bodies < 0 || n_points <= 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
         || b[1].len != n_points * POINT_SIZE || b[2].len != per_start / 2 || b[3].len % per_start != 0
@@ -904,6 +1001,7 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         goto done;
     }
     const int n_starts = (int)(b[3].len / per_start);
+    struct islands islands = {0, NULL, NULL, NULL}, *isl = NULL;
     struct joint_rows joints = {0, NULL, NULL, NULL, NULL}, *jr = NULL;
     if (b[4].obj != NULL) {
         const Py_ssize_t J = b[4].len / (Py_ssize_t)(2 * sizeof(int64_t));
@@ -931,6 +1029,22 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         joints = (struct joint_rows){J, ab, b[5].buf, b[6].buf, limits};
         jr = &joints;
     }
+    if (by_island) {
+        point_island = malloc(((size_t)n_points + 1) * sizeof(int32_t));
+        joint_island = malloc(((size_t)joints.J + 1) * sizeof(int32_t));
+        n_islands = point_island == NULL || joint_island == NULL ? -1
+                    : find_islands(b[0].buf, n_bodies, b[1].buf, n_points, jr, point_island, joint_island);
+        if (n_islands >= 0) {
+            island_counts = malloc(((size_t)n_starts * n_islands + 1) * sizeof(long));
+            island_changes = malloc(((size_t)n_starts * n_islands + 1) * sizeof(double));
+        }
+        if (n_islands < 0 || island_counts == NULL || island_changes == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        islands = (struct islands){n_islands, point_island, island_counts, island_changes};
+        isl = &islands;
+    }
     struct geometry own, *g = prepared_or_own(prepared, n_points, n_bodies, &own, "compare_starts");
     if (g == NULL)
         goto done;
@@ -940,7 +1054,7 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
     Py_BEGIN_ALLOW_THREADS
     status = g == &own ? geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy) : 0;
     if (status == 0)
-        status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, tolerance, jr, changes, counts);
+        status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, tolerance, jr, changes, counts, isl);
     geometry_free(&own);
     Py_END_ALLOW_THREADS
     if (status != 0) {
@@ -958,10 +1072,29 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
         PyList_SET_ITEM(last, k, x);
         PyList_SET_ITEM(run, k, c);
     }
-    if (last != NULL && run != NULL)
+    if (last != NULL && run != NULL && isl != NULL) { /* int64 and float64 bytes, (n_starts, I) */
+        int64_t *c64 = malloc((size_t)n_starts * n_islands * sizeof(int64_t));
+        if (c64 == NULL) {
+            PyErr_NoMemory();
+        } else {
+            for (Py_ssize_t i = 0; i < n_starts * n_islands; i++)
+                c64[i] = island_counts[i];
+            PyObject *ic = PyBytes_FromStringAndSize((const char *)c64, n_starts * n_islands * (Py_ssize_t)sizeof(int64_t));
+            PyObject *ix = PyBytes_FromStringAndSize((const char *)island_changes,
+                                                     n_starts * n_islands * (Py_ssize_t)sizeof(double));
+            PyObject *pi = PyBytes_FromStringAndSize((const char *)point_island, n_points * (Py_ssize_t)sizeof(int32_t));
+            PyObject *ji = PyBytes_FromStringAndSize((const char *)joint_island, joints.J * (Py_ssize_t)sizeof(int32_t));
+            PyObject *ni = PyLong_FromSsize_t(n_islands);
+            if (ic != NULL && ix != NULL && pi != NULL && ji != NULL && ni != NULL)
+                result = PyTuple_Pack(7, last, run, ic, ix, pi, ji, ni);
+            Py_XDECREF(ic), Py_XDECREF(ix), Py_XDECREF(pi), Py_XDECREF(ji), Py_XDECREF(ni);
+            free(c64);
+        }
+    } else if (last != NULL && run != NULL)
         result = PyTuple_Pack(2, last, run);
     Py_XDECREF(last), Py_XDECREF(run);
 done:
+    free(island_counts), free(island_changes), free(point_island), free(joint_island);
     for (int k = 0; k < 8; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);

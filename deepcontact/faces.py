@@ -465,18 +465,75 @@ def sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, m
     return counts, changes
 
 
+class Islands(NamedTuple):
+    """A step's islands as Box2D's solver forms them (bodies joined by contact points and joints,
+    never through a static body; a kinematic one joins them), and what each start does on each.
+    Box2D sweeps each island on its own and stops it at its own first sweep under the tolerance;
+    a step's iterations are its largest island's count (docs/engine.md, "Islands"). So a start
+    can be the better one on one island and the worse on another.
+
+    point: (P,) int32, each contact point's island, 0..I-1 in the order of their first points;
+    joint: (J,) int32, each joint's, -1 where no contact point is on its island;
+    counts: (S, I) int, the sweep each start stops each island at (most + 1 where it does not);
+    changes: (S, I) N s, that sweep's largest change on the island (or the last sweep's)."""
+
+    point: np.ndarray
+    joint: np.ndarray
+    counts: np.ndarray
+    changes: np.ndarray
+
+    def best(self) -> np.ndarray:
+        """(I,) int: for each island the start that stops it soonest, by the smaller change
+        where two stop at the same sweep (or neither stops)."""
+        if self.counts.shape[1] == 0:
+            return np.zeros(0, np.int64)
+        return np.lexsort((self.changes, self.counts), axis=0)[0]
+
+    def compose(self, starts: np.ndarray, joint_starts: np.ndarray | None = None):
+        """(start (P, 2), joints (J, ...) or None, chosen (I,)): each island's points (and joints)
+        from the start best() picks there; starts (S, P, 2), joint_starts (S, J, ...) or None. A
+        joint on no point's island keeps the first start's (joint_starts[0])."""
+        chosen = self.best()
+        start = np.asarray(starts)[chosen[self.point], np.arange(len(self.point))] if len(self.point) \
+            else np.asarray(starts)[0]
+        joints = None
+        if joint_starts is not None:
+            pick = np.where(self.joint >= 0, chosen[np.maximum(self.joint, 0)] if len(chosen) else 0, 0)
+            joints = np.asarray(joint_starts)[pick, np.arange(len(self.joint))]
+        return start, joints, chosen
+
+
+def island_sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
+                          physics: Physics, tolerance: float, most: int, prepared=None,
+                          joints: RevoluteRows | None = None) -> tuple[np.ndarray, np.ndarray, Islands]:
+    """sweeps_to_stop island by island: ((S,) int, (S,) N s, Islands). Each start's count is Box2D's
+    for the step, its largest island's count (every island stopped by then; most + 1 where one is
+    not), and its change the largest of the islands' changes where they stop; Islands gives each
+    island's. The joints join islands as the contact points do."""
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be > 0 N s, got {tolerance}")
+    changes, counts, islands = _compare_starts(bodies, points, starts, mu, physics, most, prepared, float(tolerance),
+                                               joints, by_island=True)
+    return counts, changes, islands
+
+
 def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, prepared, tolerance: float,
-                    joints: RevoluteRows | None = None):
-    """(changes (S,) N s, sweeps run (S,) int) of compare_starts in deepcontact/_route.c."""
+                    joints: RevoluteRows | None = None, by_island: bool = False):
+    """(changes (S,) N s, sweeps run (S,) int) of compare_starts in deepcontact/_route.c; by_island,
+    also an Islands."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
     points = _records(np.asarray(points), CONTACT_DTYPE, "points")
     starts = np.ascontiguousarray(starts, np.float64)
     if starts.ndim != 3 or starts.shape[1:] != (len(points), 2) or not 1 <= len(starts) <= 64:
         raise ValueError(f"starts: (S, {len(points)}, 2) with 1 <= S <= 64, got {starts.shape}")
     if len(points) == 0:
-        return np.zeros(len(starts)), np.ones(len(starts), np.int64)
+        none = np.zeros(len(starts)), np.ones(len(starts), np.int64)
+        J = 0 if joints is None else len(joints.bodies)
+        return none if not by_island else none + (Islands(np.zeros(0, np.int32), np.full(J, -1, np.int32),
+                                                          np.zeros((len(starts), 0), np.int64),
+                                                          np.zeros((len(starts), 0))),)
     gx, gy = physics.gravity
-    extra = ()
+    extra = (None, None, None, None)
     if joints is not None:
         extra = (np.ascontiguousarray(joints.bodies, np.int64), np.ascontiguousarray(joints.arms, np.float64),
                  np.ascontiguousarray(joints.starts, np.float64))
@@ -484,16 +541,21 @@ def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, p
                 or extra[2].shape != (len(starts), len(extra[0]), 2):
             raise ValueError(f"joints: bodies (J, 2), arms (J, 4), starts ({len(starts)}, J, 2), got "
                              f"{extra[0].shape}, {extra[1].shape}, {extra[2].shape}")
+        limits = None
         if joints.limits is not None:
             limits = np.ascontiguousarray(joints.limits, np.float64)
             if limits.shape != (len(extra[0]), 13):
                 raise ValueError(f"joints: limits ({len(extra[0])}, 13), got {limits.shape}")
-            extra += (limits,)
-    changes, counts = _compiled_route.compare_starts(bodies, len(bodies), points, len(points),
-                                                     np.ascontiguousarray(mu, np.float64), float(physics.dt),
-                                                     float(gx), float(gy), starts, int(sweeps), prepared,
-                                                     float(tolerance), *extra)
-    return np.array(changes), np.array(counts, np.int64)
+        extra = extra[:3] + (limits,)
+    out = _compiled_route.compare_starts(bodies, len(bodies), points, len(points), np.ascontiguousarray(mu, np.float64),
+                                         float(physics.dt), float(gx), float(gy), starts, int(sweeps), prepared,
+                                         float(tolerance), *extra, bool(by_island))
+    changes, counts = np.array(out[0]), np.array(out[1], np.int64)
+    if not by_island:
+        return changes, counts
+    shape = (len(starts), out[6])
+    return changes, counts, Islands(np.frombuffer(out[4], np.int32), np.frombuffer(out[5], np.int32),
+                                    np.frombuffer(out[2], np.int64).reshape(shape), np.frombuffer(out[3]).reshape(shape))
 
 
 def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, mu: np.ndarray,

@@ -97,7 +97,10 @@ faces.sweep_changes, nearer to how the solver itself stops), check_stop (default
 with check_sweeps N and a client that declares its stopping rule, World.solver_tolerance: the
 sweeps each start takes to that rule, up to N, faces.sweeps_to_stop, the route's answer served
 where it stops sooner, and by the last sweep's changes where both stop at the same sweep or neither
-by sweep N; a client that does not declare it is checked by the changes as without), rescale (default
+by sweep N; a client that does not declare it is checked by the changes as without), by_island
+(default false; true, with check_stop: the check counts each island of the step, as Box2D's solver
+forms and stops them, on its own, faces.island_sweeps_to_stop, and serves each island the start
+that stops it sooner, the route's answer on some and Box2D's on the others), rescale (default
 false; true: a step of larger or smaller bodies, denser, or with a larger or smaller gravity times
 time step than the classifier's `trained_on` is labelled scaled into it, deepcontact.envelope.Envelope.rescaled, and
 solved in its own units; the reply's familiar verdict stays the unscaled step's), carry (default
@@ -178,7 +181,7 @@ FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction"
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                  "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
-                 "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False}
+                 "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False}
 
 
 class ModelCardError(ValueError):
@@ -353,7 +356,8 @@ def _face_settings(face: Any, kind: str) -> dict:
     sweeps, fewest = out["check_sweeps"], out["min_rounds"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
-                                           "extrapolate_jointed", "check_stop", "slide_in_bodies", "revolute_joints")
+                                           "extrapolate_jointed", "check_stop", "slide_in_bodies", "revolute_joints",
+                                           "by_island")
                   and not (k in optional + ("max_points", "check_sweeps", "min_rounds") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -368,6 +372,7 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not isinstance(out["rescale"], bool) or not isinstance(out["carry"], bool) \
             or not isinstance(out["extrapolate_jointed"], bool) or not isinstance(out["check_stop"], bool) \
             or not isinstance(out["slide_in_bodies"], bool) or not isinstance(out["revolute_joints"], bool) \
+            or not isinstance(out["by_island"], bool) or (out["by_island"] and not out["check_stop"]) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
             or (out["check_stop"] and sweeps is None) \
             or not (fewest is None or isinstance(fewest, int) and 1 <= fewest <= out["rounds"]):
@@ -378,7 +383,8 @@ def _face_settings(face: Any, kind: str) -> dict:
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
                              f"rescale, carry, extrapolate_jointed, slide_in_bodies and revolute_joints true or false, check_sweeps null or a "
                              f"whole number 1-1000, "
-                             f"check_stop true or false and only with check_sweeps, min_rounds null or a whole "
+                             f"check_stop true or false and only with check_sweeps, by_island true or false and only "
+                             f"with check_stop, min_rounds null or a whole "
                              f"number 1 to rounds, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
@@ -386,7 +392,8 @@ def _face_settings(face: Any, kind: str) -> dict:
             "retry_pressing": [float(r) for r in retries], "relax": float(out["relax"]), "rho": float(out["rho"]),
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
             "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
-            "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest, "revolute_joints": out["revolute_joints"]}
+            "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest, "revolute_joints": out["revolute_joints"],
+            "by_island": out["by_island"]}
 
 
 def _measured(m: Any) -> dict:

@@ -50,6 +50,11 @@ name another:
                     falling back to it; zoo-s7e6-s9e6 and default-s7e6-s9e6 the same on that network
                     trained six epochs more (s7e6-s9e6-modes: graph-labels-scaled-zoo-r12-e4-s7-e6-s9-e6)
                     (docs/research/2026-12-07-the-zoo-classifier-trained-on.md)
+    zoo-island      the zoo route as shipped (models/zoo.json's face) checking each island of a
+                    step on its own and serving each the start that stops it sooner (face
+                    by_island); default-island the shipped default falling back to it; zoo-whole
+                    and default-whole the same without by_island, whatever the shipped zoo route
+                    does (docs/research/2026-12-07-island-by-island.md)
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -106,6 +111,10 @@ def _fill(tmp: Path) -> None:
     shipped_zoo, shipped_default = (json.loads((tmp / f"{n}.json").read_text()) for n in ("zoo", "default"))
     for _, tag in TRAINED_ON:
         card(tmp, f"zoo-{tag}", alias_of=f"{tag}-modes", face=shipped_zoo["face"])
+        card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
+    for tag, by_island in (("island", True), ("whole", False)):
+        card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "by_island": by_island})
         card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
     card(tmp, "zoo-bf", alias_of="contact-modes-zoo", face={k: v for k, v in zoo_face.items() if k != "fallback"})

@@ -63,8 +63,8 @@ import time
 import numpy as np
 
 from deepcontact.admission import AdmissionCarry
-from deepcontact.faces import (admit_solved, prepare_route, read_and_solve, route_compiled, sweep_changes,
-                               sweeps_to_stop)
+from deepcontact.faces import (admit_solved, island_sweeps_to_stop, prepare_route, read_and_solve, route_compiled,
+                               sweep_changes, sweeps_to_stop)
 from deepcontact.kinematics import contact_frame, effective_masses, jacobi_change
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
@@ -198,10 +198,12 @@ class FaceRoutePredictor(Predictor):
             # The reflected half on the spare core while the step's half runs here, and the
             # geometry here after it, filling the wait. Without a free core the step's half
             # alone: in turn the reflection would add the network's time again to the step.
-            later = _Later(_ahead, bodies, points, world.physics, friction, sweeps, stop) if self.compiled and free else None
+            later = _Later(_ahead, bodies, points, world.physics, friction, sweeps, stop, self._by_island(stop)) \
+                if self.compiled and free else None
             mirror = {"spare": self._helper, "reflected": free, "meanwhile": later}
         elif self.compiled and free and len(points) >= AHEAD_POINTS:
-            ahead = self._helper.submit(_ahead, bodies, points, world.physics, friction, sweeps, stop)
+            ahead = self._helper.submit(_ahead, bodies, points, world.physics, friction, sweeps, stop,
+                                        self._by_island(stop))
         asked = scaled if scaled is not None else (bodies, points, previous, world)
         labels = self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction, **mirror)
         if ahead is not None:
@@ -230,11 +232,15 @@ class FaceRoutePredictor(Predictor):
             counted = 0
             if sweeps is not None and builtin_change is None:  # Box2D's side here, not run ahead
                 builtin_change = _sweep_change(bodies, points, points["builtin"], np.asarray(friction, np.float64),
-                                               world.physics, sweeps, prepared, stop)
+                                               world.physics, sweeps, prepared, stop, self._by_island(stop))
                 counted = min(builtin_change[0], sweeps)
             counted += self._route_sweeps(builtin_change, stop)
-            if not self._beats_builtin(bodies, points, impulses, friction, world, prepared, builtin_change):
+            taken = np.broadcast_to(np.asarray(self._beats_builtin(bodies, points, impulses, friction, world, prepared,
+                                                                   builtin_change), bool), (len(points),))
+            if not taken.any():
                 impulses, served_by = points["builtin"].copy(), BUILTIN
+            elif not taken.all():  # the route's answer on the islands it stops sooner, Box2D's on the rest
+                impulses = np.where(taken[:, None], impulses, points["builtin"])
             checked = time.perf_counter() - t0
             stages["admit"] += checked
             self.sweep_cost.observe(len(points), checked / counted)
@@ -264,8 +270,13 @@ class FaceRoutePredictor(Predictor):
         (check_stop) and the client declared it; else 0, the check by the changes at sweep N."""
         return world.tolerance if self.settings["check_stop"] and world.tolerance > 0 else 0.0
 
+    def _by_island(self, stop: float) -> bool:
+        """Whether the check counts each island on its own (the card's by_island, where the check
+        counts sweeps to the client's stopping rule `stop` > 0 N s)."""
+        return self.settings["by_island"] and stop > 0
+
     def _beats_builtin(self, bodies, points, impulses, friction, world, prepared=None,
-                       builtin_change: tuple[int, float] | None = None) -> bool:
+                       builtin_change: tuple | None = None) -> bool | np.ndarray:
         """Whether one projected Jacobi step from the route's answer ((P, 2) N s) would change the
         impulses less than one from Box2D's warm start (the request's builtin): the card's
         against_builtin; with its check_sweeps N, whether the solver's N-th sweep from it would
@@ -276,15 +287,25 @@ class FaceRoutePredictor(Predictor):
         or neither by sweep N. On worlds the classifier was not trained on, labels it reads as right
         can still leave the solver further from its end than Box2D's start, which at rest is
         nearly there (at a time step of 1/30 s the zoo route alone cost 1.42x Builtin's
-        iterations on Builtin's states of 850-854; checked so, 0.97x)."""
+        iterations on Builtin's states of 850-854; checked so, 0.97x). With the card's by_island (and
+        Box2D's side priced so, builtin_change's third item faces.Islands), whether it does so on
+        each point's island: (P,) bool, the route's answer served there and Box2D's start elsewhere
+        (Box2D's solver stops each island at its own sweep)."""
         mu = np.asarray(friction, np.float64)
         sweeps = self.settings["check_sweeps"]
         if sweeps is not None:
             stop = self._stop_tolerance(world)
             if builtin_change is None:
                 builtin_change = _sweep_change(bodies, points, points["builtin"], mu, world.physics, sweeps, prepared,
-                                               stop)
-            box2d_sweeps, box2d = builtin_change
+                                               stop, self._by_island(stop))
+            if len(builtin_change) > 2:
+                box2d = builtin_change[2]
+                route = island_sweeps_to_stop(bodies, points, np.asarray(impulses, np.float64)[None], mu, world.physics,
+                                              stop, self._route_sweeps(builtin_change, stop), prepared)[2]
+                wins = (route.counts[0] < box2d.counts[0]) | (
+                    (route.counts[0] == box2d.counts[0]) & (route.changes[0] < box2d.changes[0]))
+                return wins[box2d.point]
+            box2d_sweeps, box2d = builtin_change[:2]
             route_sweeps, route = _sweep_change(bodies, points, impulses, mu, world.physics,
                                                 self._route_sweeps(builtin_change, stop), prepared, stop)
             if route_sweeps == box2d_sweeps:  # both stop at the same sweep, or neither by sweep N
@@ -423,21 +444,27 @@ class FaceRoutePredictor(Predictor):
         return Prediction(answer.impulses, answer.stages, answer.served_by or self.fallback.name)
 
 
-def _ahead(bodies, points, physics, friction, sweeps: int | None, stop: float = 0.0):
+def _ahead(bodies, points, physics, friction, sweeps: int | None, stop: float = 0.0, by_island: bool = False):
     """(prepare_route's geometry, Box2D's start's side of the check by sweeps as _sweep_change
     gives it, or None where there is no such check): a step's work that does not wait on its labels."""
     prepared = prepare_route(bodies, points, physics)
     if sweeps is None:
         return prepared, None
-    return prepared, _sweep_change(bodies, points, points["builtin"], friction, physics, sweeps, prepared, stop)
+    return prepared, _sweep_change(bodies, points, points["builtin"], friction, physics, sweeps, prepared, stop,
+                                   by_island)
 
 
 def _sweep_change(bodies, points, start, friction, physics, sweeps: int, prepared=None,
-                  stop: float = 0.0) -> tuple[int, float]:
+                  stop: float = 0.0, by_island: bool = False) -> tuple:
     """(sweeps run, the last one's change N s) from one start (P, 2) N s: with a stopping rule
     `stop` > 0 (N s) deepcontact.faces.sweeps_to_stop's (sweeps + 1 where it does not stop by
-    then), else (sweeps + 1, faces.sweep_changes's change at sweep `sweeps`)."""
+    then), else (sweeps + 1, faces.sweep_changes's change at sweep `sweeps`). by_island (with
+    `stop`): island_sweeps_to_stop's, and its faces.Islands third."""
     start = np.asarray(start, np.float64)[None]
+    if stop > 0 and by_island:
+        counts, changes, islands = island_sweeps_to_stop(bodies, points, start, friction, physics, stop, sweeps,
+                                                         prepared)
+        return int(counts[0]), float(changes[0]), islands
     if stop > 0:
         counts, changes = sweeps_to_stop(bodies, points, start, friction, physics, stop, sweeps, prepared)
         return int(counts[0]), float(changes[0])

@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 
-from deepcontact.faces import RevoluteRows, route_compiled, sweeps_to_stop
+from deepcontact.faces import RevoluteRows, island_sweeps_to_stop, route_compiled, sweeps_to_stop
 from server.predictors import Prediction
 
 #: A joint's two points' keys: far above any contact's (the engine's are 32-bit feature keys).
@@ -281,18 +281,28 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     mu, most = np.asarray(friction, np.float64), route.settings["check_sweeps"] or 200
     # Box2D's start first: a start that has not stopped by the sweep where it stopped has lost,
     # so none is played further (on a step where the others lose that spares most of the sweeps).
-    counts, changes = sweeps_to_stop(bodies, points, np.stack(starts[:1]), mu, world.physics, world.tolerance, most,
-                                     None, RevoluteRows(ab, arms, np.stack(joint_starts[:1]), held))
-    rest = sweeps_to_stop(bodies, points, np.stack(starts[1:]), mu, world.physics, world.tolerance,
-                          max(1, min(most, int(counts[0]))), None,
-                          RevoluteRows(ab, arms, np.stack(joint_starts[1:]), held))
-    counts, changes = np.concatenate([counts, rest[0]]), np.concatenate([changes, rest[1]])
-    best = int(np.lexsort((changes, counts))[0])
+    price = island_sweeps_to_stop if route.settings["by_island"] else sweeps_to_stop
+    first = price(bodies, points, np.stack(starts[:1]), mu, world.physics, world.tolerance, most,
+                  None, RevoluteRows(ab, arms, np.stack(joint_starts[:1]), held))
+    rest = price(bodies, points, np.stack(starts[1:]), mu, world.physics, world.tolerance,
+                 max(1, min(most, int(first[0][0]))), None, RevoluteRows(ab, arms, np.stack(joint_starts[1:]), held))
     if timing is not None:
         timing.observe(time.perf_counter() - t0)
     stages = dict(served.stages)
     stages["inference"] = stages.get("inference", 0.0) + asked
     stages["admit"] = stages.get("admit", 0.0) + (time.perf_counter() - t1)
+    if route.settings["by_island"]:
+        # Each island from the start that stops it soonest (Box2D stops each at its own sweep).
+        islands = first[2]._replace(counts=np.concatenate([first[2].counts, rest[2].counts]),
+                                    changes=np.concatenate([first[2].changes, rest[2].changes]))
+        start, joint_start, chosen = islands.compose(np.stack(starts), np.stack(joint_starts))
+        if (chosen == 1).all():
+            return Prediction(served.impulses, stages, served.served_by, served.unfamiliar)
+        served_by = BUILTIN if (chosen == 0).all() else route.name
+        return Prediction(np.asarray(start, np.float32), stages, served_by, served.unfamiliar,
+                          joint_impulses=np.asarray(joint_start, np.float32) if (chosen >= 3).any() else None)
+    counts, changes = np.concatenate([first[0], rest[0]]), np.concatenate([first[1], rest[1]])
+    best = int(np.lexsort((changes, counts))[0])
     if best == 1:
         return Prediction(served.impulses, stages, served.served_by, served.unfamiliar)
     impulses = np.asarray(starts[best], np.float32)

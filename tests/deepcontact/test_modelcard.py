@@ -84,7 +84,7 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                          "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [],
                          "close": None, "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                          "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
-                         "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False}
+                         "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False}
     assert ModelCard.load(tmp_path / "classifier.json").face is None  # the classifier itself is served plain
     for bad, match in (({"pressing": -1}, "pressing >= 0"), ({"rounds": 0}, "rounds a whole number"),
                        ({"rounds": 2.5}, "rounds a whole number"), ({"labels": 1}, "keys among"),
@@ -104,6 +104,8 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                        ({"check_sweeps": 12.5}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_stop": True}, "check_stop true or false and only with check_sweeps"),
                        ({"check_stop": 1, "check_sweeps": 12}, "check_stop true or false"),
+                       ({"by_island": True, "check_sweeps": 12}, "by_island true or false and only with check_stop"),
+                       ({"by_island": 1, "check_sweeps": 12, "check_stop": True}, "by_island true or false"),
                        ({"min_rounds": 0}, "min_rounds null or a whole number 1 to rounds"),
                        ({"min_rounds": 60, "rounds": 50}, "min_rounds null or a whole number 1 to rounds"),
                        ({"min_rounds": 2.5}, "min_rounds null or a whole number 1 to rounds"),

@@ -325,3 +325,65 @@ def test_free_directions_that_several_bodies_share_are_found_and_set_apart():
         assert compiled.in_bodies
         np.testing.assert_allclose(compiled.impulses, piecewise, atol=1e-9 * max(1.0, np.abs(piecewise).max()))
         assert compiled.residual == pytest.approx(residual, rel=1e-6, abs=1e-12)
+
+
+def _two_piles(platform: str):
+    """An engine after 40 steps of two piles of three discs 8 m apart, on a static ground or on
+    one kinematic platform under both (platform "static" or "kinematic"), collided: (engine,
+    bodies, points, the solver's own end (P, 2) N s, mu, physics)."""
+    import Box2D
+
+    from simclient.engine import Engine, SolverConfig
+
+    world = Box2D.b2World(gravity=(0.0, -9.8))
+    make = world.CreateStaticBody if platform == "static" else world.CreateKinematicBody
+    ground = make(position=(0.0, 0.0))
+    ground.CreatePolygonFixture(box=(10.0, 0.2), friction=0.5)
+    for x in (-4.0, 4.0):
+        for level in range(3):
+            disc = world.CreateDynamicBody(position=(x + 0.05 * level, 0.7 + 1.0 * level))
+            disc.CreateCircleFixture(radius=0.5, density=1.0, friction=0.5)
+    engine = Engine(world, SolverConfig())
+    for _ in range(40):
+        engine.collide()
+        engine.solve()
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    b = points["builtin"]
+    exact = engine.oracle(start=(b[:, 0].copy(), b[:, 1].copy())).astype(np.float64)
+    return engine, bodies, points, exact, points["friction"].astype(np.float64), Physics(engine.config.dt, (0.0, -9.8))
+
+
+def test_each_island_stops_at_its_own_sweep_as_box2ds_solver_stops_it():
+    """Two piles on a static ground are two islands (a static body joins none): each island's
+    count is the one its points alone give, the step's count the larger (Box2D's iterations are
+    its largest island's), and each island can be served from another start. One kinematic
+    platform under both joins them into one island."""
+    from deepcontact.faces import island_sweeps_to_stop, sweeps_to_stop
+
+    engine, bodies, points, exact, mu, physics = _two_piles("static")
+    left = bodies["position"][points["body_b"], 0] < 0  # each point's dynamic body is its body B here
+    assert bodies["type"][points["body_b"]].min() == 2
+    starts = np.stack([np.where(left[:, None], exact, 0.0), np.where(left[:, None], 0.0, exact)])
+    counts, changes, islands = island_sweeps_to_stop(bodies, points, starts, mu, physics, 1e-4, 500)
+    assert islands.counts.shape == (2, 2) and len(np.unique(islands.point[left])) == 1
+    assert islands.point[left][0] != islands.point[~left][0]
+    for i in range(2):
+        on = islands.point == i
+        alone, last = sweeps_to_stop(bodies, points[on], starts[:, on], mu[on], physics, 1e-4, 500)
+        np.testing.assert_array_equal(islands.counts[:, i], alone)
+        np.testing.assert_allclose(islands.changes[:, i], last)
+    np.testing.assert_array_equal(counts, islands.counts.max(1))
+    # Each start is the solver's end on one island and nothing on the other: taken island by
+    # island, the start is the solver's end everywhere, which stops at once.
+    start, _, chosen = islands.compose(starts)
+    assert sorted(chosen) == [0, 1] and counts.min() > 1
+    np.testing.assert_array_equal(start, exact)
+    assert sweeps_to_stop(bodies, points, start[None], mu, physics, 1e-4, 500)[0][0] == 1
+    # The engine agrees: Box2D's own solve from the composed start takes fewer iterations.
+    trial = lambda s: engine.trial(s[:, 0].astype(np.float32), s[:, 1].astype(np.float32))  # noqa: E731
+    assert trial(start) < min(trial(starts[0]), trial(starts[1]))
+
+    _, bodies, points, exact, mu, physics = _two_piles("kinematic")
+    one = island_sweeps_to_stop(bodies, points, exact[None], mu, physics, 1e-4, 500)[2]
+    assert one.counts.shape == (1, 1) and (one.point == 0).all()

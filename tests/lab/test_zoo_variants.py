@@ -53,3 +53,8 @@ def test_the_zoo_classifier_trained_on_is_served_behind_the_routes_exactly_as_sh
     assert served["zoo-s7e6-s9e6"].settings == zoo.settings  # its next six epochs, the same way
     assert served["zoo-s7e6-s9e6"].classifier.card.onnx_file == "s7e6-s9e6-modes.onnx"
     assert served["default-s7e6-s9e6"].settings == {**served["default"].settings, "fallback": "zoo-s7e6-s9e6"}
+    # The shipped zoo route island by island and checking the step whole, each behind the default.
+    assert served["zoo-island"].settings == {**zoo.settings, "by_island": True}
+    assert served["zoo-whole"].settings == {**zoo.settings, "by_island": False}
+    for tag in ("island", "whole"):
+        assert served[f"default-{tag}"].settings == {**served["default"].settings, "fallback": f"zoo-{tag}"}

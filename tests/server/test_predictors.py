@@ -594,7 +594,8 @@ def test_a_route_checked_by_the_stopping_rule_breaks_a_tie_by_the_last_change(tm
     bodies, points = steps[0]
     mu = np.full(len(points), 0.5, np.float32)
 
-    def both_stop_at_sweep_five(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0):
+    def both_stop_at_sweep_five(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0,
+                                by_island=False):
         assert stop == 1e-4  # the client's stopping rule reached the check
         return (5, 1e-5) if np.array_equal(start, points["builtin"]) else (5, route_change)
 
@@ -620,8 +621,8 @@ def test_by_the_stopping_rule_the_routes_side_is_counted_no_further_than_box2ds(
     counted = []
     real = server.face_route._sweep_change
 
-    def recorded(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0):
-        answer = real(bodies, points, start, friction, physics, sweeps, prepared, stop)
+    def recorded(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0, by_island=False):
+        answer = real(bodies, points, start, friction, physics, sweeps, prepared, stop, by_island)
         counted.append((sweeps, answer))
         return answer
 
@@ -645,6 +646,60 @@ def test_by_the_stopping_rule_the_routes_side_is_counted_no_further_than_box2ds(
             verdicts.add(verdict)
     assert verdicts == {True, False}  # both ways were met
     assert max(spared) > 0  # where Box2D's start stopped before sweep 200, the rest were spared
+
+
+def test_a_route_checked_island_by_island_serves_each_island_the_start_that_stops_it_sooner(tmp_path):
+    """With by_island, the check counts each island of the step (bodies joined by contacts, not
+    through the static terrain) as Box2D's solver stops it, and serves the route's answer on the
+    islands where it stops sooner and Box2D's start on the rest: on the zoo's terrain, with Box2D's
+    start the solver's own end on the largest island and nothing elsewhere, the islands part."""
+    import shutil
+    from pathlib import Path
+
+    from bench.inprocess import declared_world
+    from deepcontact.faces import island_sweeps_to_stop
+    from server.predictors import load_model
+    from simclient import worlds
+
+    for name in ("contact-modes-zoo.json", "contact-modes-zoo.onnx"):
+        shutil.copy(Path(__file__).parents[2] / "models" / name, tmp_path)
+    settings = dict(against_builtin=True, check_sweeps=200, check_stop=True)
+    by_island = load_model(face_card(tmp_path, "by-island", "contact-modes-zoo", by_island=True, **settings))
+    plain = load_model(face_card(tmp_path, "plain", "contact-modes-zoo"))
+    assert by_island.settings["by_island"] and not plain.settings["by_island"]
+    spec = worlds.WorldSpec("simclient.zoo:terrain")
+    engine = worlds.build(spec, 850)
+    world = declared_world(spec, engine)
+    for _ in range(40):
+        engine.collide()
+        engine.solve()
+    parted = 0
+    for _ in range(3):
+        engine.collide()
+        bodies, points = engine.bodies(), engine.contacts()
+        b = points["builtin"]
+        exact = engine.oracle(start=(b[:, 0].copy(), b[:, 1].copy())).astype(np.float64)
+        mu = points["friction"].astype(np.float32)
+        islands = island_sweeps_to_stop(bodies, points, exact[None], mu.astype(np.float64), world.physics,
+                                        world.tolerance, 1)[2]
+        assert islands.counts.shape[1] > 2  # stones resting apart on the terrain
+        largest = np.bincount(islands.point).argmax() == islands.point
+        mixed = points.copy()
+        mixed["builtin"] = np.where(largest[:, None], exact, 0.0)
+        route = plain.predict(bodies, mixed, world, 0, friction=mu).impulses
+        answer = by_island.predict(bodies, mixed, world, 0, friction=mu)
+        from_route = np.all(answer.impulses == route, axis=1)
+        from_box2d = np.all(answer.impulses == mixed["builtin"], axis=1)
+        assert (from_route | from_box2d).all()
+        for i in np.unique(islands.point):  # an island is served whole from one start
+            on = islands.point == i
+            assert from_route[on].all() or from_box2d[on].all()
+        differ = np.any(route != mixed["builtin"], axis=1)
+        if from_box2d[largest].all() and differ[largest].any() and (from_route & differ)[~largest].any():
+            parted += 1
+            assert answer.served_by is None  # the route's, on the islands it won
+        engine.solve()
+    assert parted > 0
 
 
 def test_a_route_with_min_rounds_fits_at_its_fewest_rounds_and_ends_its_rounds_before_the_check(
