@@ -55,6 +55,10 @@ name another:
                     by_island); default-island the shipped default falling back to it; zoo-whole
                     and default-whole the same without by_island, whatever the shipped zoo route
                     does (docs/research/2026-12-07-island-by-island.md)
+    default-own-stopK  the shipped default with its own route checked by the sweeps each start
+                    takes to the client's stopping rule, up to K (check_stop, check_sweeps K; the
+                    shipped one compares the changes at its twelfth sweep), for K in OWN_STOP_SWEEPS
+                    (docs/research/2026-12-07-island-by-island.md, "The thesis world's check")
 
 Written to a temporary folder and renamed; an existing folder is replaced.
 """
@@ -82,6 +86,8 @@ ZOO_FACE = {"pressing": 0.75, "rounds": 50, "rho": 1000, "max_residual": 0.5, "m
             "against_builtin": True, "check_sweeps": 12, "extrapolate_jointed": True, "fallback": "contact-graph"}
 #: Sweeps of the zoo route's check against Box2D's start (face check_sweeps; 12 in ZOO_FACE).
 CHECK_SWEEPS = (4, 24, 48, 96, 200)
+#: Sweeps to the stopping rule of the default's own route's check in default-own-stopK.
+OWN_STOP_SWEEPS = (48, 200)
 #: max_residual x 10 of the zoo route in 200 rounds checked by 200 sweeps (0.5 shipped, at 50 rounds and 12 sweeps).
 GATES = (5, 10, 20, 50)
 #: Sweeps of the zoo route's check, without its gate and in 200 rounds, counted to the stopping rule.
@@ -117,6 +123,10 @@ def _fill(tmp: Path) -> None:
         card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "by_island": by_island})
         card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
+    for sweeps in OWN_STOP_SWEEPS:
+        card(tmp, f"default-own-stop{sweeps}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "check_stop": True, "check_sweeps": sweeps},
+             measured=shipped_default.get("measured"))
     card(tmp, "zoo-bf", alias_of="contact-modes-zoo", face={k: v for k, v in zoo_face.items() if k != "fallback"})
     card(tmp, "zoo-always", alias_of="contact-modes-zoo",
          face={**{k: v for k, v in zoo_face.items() if k != "fallback"}, "max_points": 5000, "max_residual": None})

@@ -58,3 +58,6 @@ def test_the_zoo_classifier_trained_on_is_served_behind_the_routes_exactly_as_sh
     assert served["zoo-whole"].settings == {**zoo.settings, "by_island": False}
     for tag in ("island", "whole"):
         assert served[f"default-{tag}"].settings == {**served["default"].settings, "fallback": f"zoo-{tag}"}
+    # The default's own route checked by the sweeps to the stopping rule, its fallback as shipped.
+    assert served["default-own-stop200"].settings == {**served["default"].settings, "check_stop": True,
+                                                       "check_sweeps": 200}
