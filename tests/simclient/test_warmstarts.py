@@ -83,3 +83,31 @@ def test_the_product_alone_knows_its_own_warm_starts_and_not_the_labs():
             "print(warmstarts.extensions()); print('lab' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.splitlines()
     assert out == ["none, builtin, copy, copy2, copy0, extrapolate, server:NAME", "()", "False"]
+
+
+def test_the_oracle_start_keeps_box2ds_own_where_no_awake_island_solves():
+    # A box asleep on the ground beside a disc that rolls on, never sleeping: the step's oracle
+    # solves the disc's island alone, and the box's points keep Box2D's start, finite.
+    import Box2D
+
+    from simclient.engine import Engine
+    from simclient.warmstarts import Copy
+
+    world = Box2D.b2World(gravity=(0, -9.8))
+    world.CreateStaticBody(shapes=Box2D.b2EdgeShape(vertices=[(-100, 0), (100, 0)]))
+    box = world.CreateDynamicBody(position=(0, 0.5))
+    box.CreatePolygonFixture(box=(0.5, 0.5), density=1.0, friction=0.5)
+    disc = world.CreateDynamicBody(position=(5, 0.5), linearVelocity=(2, 0), angularVelocity=-4)
+    disc.CreateCircleFixture(radius=0.5, density=1.0, friction=0.5)
+    engine, copy = Engine(world), Copy("copy", None)
+    for step in range(120):
+        engine.collide()
+        points = engine.contacts()
+        normal, tangent = copy.warm_start(engine, engine.bodies(), points, step)
+        engine.set_warm_start(normal, tangent)
+        engine.solve()
+    assert not box.awake and disc.awake
+    on_box = (points["body_a"] == 1) | (points["body_b"] == 1)
+    assert on_box.any() and (~on_box).any()
+    assert np.isfinite(normal).all() and np.isfinite(tangent).all()
+    np.testing.assert_array_equal(normal[on_box], points["builtin"][on_box, 0])
