@@ -28,6 +28,8 @@ COMMANDS = [
     Command(("graph-size",), "lab.graph_size", "a contact-graph model's inference against the step's points and bodies"),
     Command(("joint-route",), "lab.joint_route",
             "would the route pay on jointed worlds with the joints in its problem? priced on Box2D's states"),
+    Command(("route-ceiling",), "lab.route_ceiling",
+            "how far can the face route take a world with the oracle's own labels? priced on Box2D's states"),
     Command(("jointed-points",), "lab.jointed_points",
             "on a world with joints, do the points at jointed bodies or the rest keep the default from the solution?"),
     Command(("joint-copy",), "lab.joint_copy",

@@ -16,7 +16,7 @@ PRODUCT = ["demo", "serve", "health", "simulate", "generate", "train", "train-gr
            "transfer-table"]
 BENCH = ["engine", "iterations", "load", "scale", "server", "soak", "transfer", "walltime"]
 INSTRUMENTS = ["admission", "admission-carry", "corrections", "face-solve", "faces", "generate", "graph-size", "inference",
-               "joint-copy", "joint-route", "joint-start", "jointed-points", "joints-price", "label-reuse", "order", "route-stages", "spread", "step-gate", "surrogate", "simulate", "iterations"]
+               "joint-copy", "joint-route", "joint-start", "jointed-points", "joints-price", "label-reuse", "order", "route-ceiling", "route-stages", "spread", "step-gate", "surrogate", "simulate", "iterations"]
 
 
 def _listed(lines) -> list[str]:
