@@ -152,9 +152,11 @@ def joint_rows(engine, bodies: np.ndarray) -> dict[str, np.ndarray]:
 
 class Problem:
     """One step's velocity problem, dense: the contacts' J (2P, 3D), the joints' (R, 3D), M^-1
-    (3D,), and the velocities after gravity (3D,), over the D dynamic bodies."""
+    (3D,), and the velocities after gravity (3D,), over the D dynamic bodies; restitution (P,)
+    each point's, or None: where a point closes faster than 1 m/s before any impulse its normal
+    row holds the bounce Box2D holds it at (restitution times that speed), else rest."""
 
-    def __init__(self, bodies, points, joints, gravity, dt):
+    def __init__(self, bodies, points, joints, gravity, dt, restitution=None):
         dyn = bodies["type"] == 2
         self.row = np.full(len(bodies), -1)
         self.row[dyn] = np.arange(int(dyn.sum()))
@@ -173,6 +175,9 @@ class Problem:
         v = np.stack([bodies["velocity"][dyn, 0] + dt * gravity[0], bodies["velocity"][dyn, 1] + dt * gravity[1],
                       bodies["angular_velocity"][dyn]], 1).astype(np.float64)
         self.v0 = v.ravel()
+        closing = (self.jc @ self.v0)[0::2]  # (P,) each point's normal velocity before any impulse
+        self.bias = np.zeros(len(points)) if restitution is None else \
+            np.where(closing < -1.0, -np.asarray(restitution, np.float64) * closing, 0.0)
 
     def solve(self, face: np.ndarray, mu: np.ndarray, with_joints: bool = True,
               reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -190,6 +195,7 @@ class Problem:
         C, E = np.vstack(cols), np.vstack(eqs)  # (n, 3D), (m, 3D)
         A = (E * self.minv) @ C.T
         rhs = -E @ self.v0
+        rhs[:len(press)] += self.bias[press]
         if R:
             rhs[len(rhs) - R:] += self.speed
         x0 = np.zeros(A.shape[1])

@@ -16,6 +16,10 @@ dense research route of `lab joint-route` (lab.joint_route.Problem) three ways:
                              reading left out
     labels:oracle-long       the first labels admitted in ten times --rounds: the admission's
                              convergence left out
+    labels:oracle-bounce     the first labels, each point that closes faster than 1 m/s held at its
+                             restitution's bounce (Engine.point_restitution), as Box2D's solver
+                             holds it and the served route does since 2026-12-07; the three above
+                             hold every point at rest, as the route did until then
 
 What the three share and the oracle does not is the route's choice of solution (the face's least-
 norm solve, then the nearest admissible impulses that move the bodies as it does); where they stay
@@ -33,7 +37,7 @@ import numpy as np
 from bench.stats import ratio_interval
 from deepcontact.faces import contact_face
 
-ANSWERS = ("builtin", "oracle", "labels:oracle", "labels:oracle-tight", "labels:oracle-long")
+ANSWERS = ("builtin", "oracle", "labels:oracle", "labels:oracle-tight", "labels:oracle-long", "labels:oracle-bounce")
 #: (pressing N s, share of the cone read as sliding) of labels:oracle-tight
 TIGHT = (1e-12, 0.99999)
 
@@ -84,6 +88,10 @@ def price(spec, seed: int, rounds: int, tick=lambda: None) -> dict[str, np.ndarr
         tight = contact_face(oracle, mu, *TIGHT)
         contact, joint = problem.solve(tight, mu)
         out["labels:oracle-tight"].append(trial(problem.admit(contact, joint, tight, mu, rounds)))
+        bouncing = Problem(bodies, points, joint_rows(engine, bodies), physics.gravity, engine.config.dt,
+                           engine.point_restitution(points))
+        contact, joint = bouncing.solve(face, mu)
+        out["labels:oracle-bounce"].append(trial(bouncing.admit(contact, joint, face, mu, rounds)))
         engine.set_warm_start(*builtin)
         engine.solve()
     return {k: np.array(v, float) for k, v in out.items()}

@@ -55,6 +55,11 @@ name another:
                     by_island); default-island the shipped default falling back to it; zoo-whole
                     and default-whole the same without by_island, whatever the shipped zoo route
                     does (docs/research/2026-12-07-island-by-island.md)
+    zoo-bounce      the zoo route as shipped (models/zoo.json's face), each point that closes faster
+                    than 1 m/s held at its restitution's bounce in its solve and its check, as Box2D's
+                    solver holds it (face restitution); default-bounce the shipped default falling
+                    back to it; zoo-bounceless and default-bounceless the same with every point held
+                    at rest, as until then (docs/research/2026-12-07-the-zoo-pyramids-ceiling.md)
     default-own-stopK  the shipped default with its own route checked by the sweeps each start
                     takes to the client's stopping rule, up to K (check_stop, check_sweeps K; the
                     shipped one compares the changes at its twelfth sweep), for K in OWN_STOP_SWEEPS
@@ -123,6 +128,11 @@ def _fill(tmp: Path) -> None:
         card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "by_island": by_island})
         card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
+    for tag, bounce in (("bounce", True), ("bounceless", False)):
+        card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "restitution": bounce})
+        card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "fallback": f"zoo-{tag}", "restitution": bounce},
+             measured=shipped_default.get("measured"))
     for sweeps in OWN_STOP_SWEEPS:
         card(tmp, f"default-own-stop{sweeps}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "check_stop": True, "check_sweeps": sweeps},
