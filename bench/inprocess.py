@@ -10,7 +10,8 @@ a stream hands it: the step's bodies and points as the engine exports them (the
 records the wire carries, float32 already), the world the stream declares, passed
 through the wire once as the server decodes it (its time step and gravity are
 float32 there), the last step's points for temporal channels, each point's
-friction (float32, as the wire carries it) to a model that reads it, and to a model that
+friction (float32, as the wire carries it) to a model that reads it, each point's restitution to a
+route (Engine.point_restitution, none where no point has any), and to a model that
 keeps state along a stream (a face card's carried admission, Predictor.takes_memory) the
 state a stream keeps, one per simulation. On a world with joints the points that touch a
 jointed body get Box2D's start (extrapolated along the stream for a card that asks), the
@@ -86,6 +87,11 @@ class InProcess(Provider):
             if "point_friction" in self.predictor.requires else {}
         if self.predictor.takes_memory:
             extra["memory"] = self._memory
+        # Each point's restitution as the wire carries it (float32; none where no point has any).
+        restitution = engine.point_restitution(points)
+        restitution = restitution if restitution.any() else None
+        if self.predictor.takes_restitution:
+            extra["restitution"] = restitution
         joints = engine.joints()
         if len(joints) and self.predictor.kind != "provider":  # as server.service answers a step with joints
             answer = predict_around_joints(self.predictor, bodies, points, joints, self.world, step, self._points,
@@ -93,7 +99,8 @@ class InProcess(Provider):
             revolute = engine.revolute() if self.revolute_joints else None
             if all_held(revolute) and "friction" in extra:
                 answer = start_with_joints(joint_route(self.predictor), bodies, points, joints, revolute, self.world,
-                                           step, self._points, extra["friction"], answer)
+                                           step, self._points, extra["friction"], answer,
+                                           restitution=restitution)
                 if answer.joint_impulses is not None:  # as the client sets a reply's joint_impulses
                     engine.set_revolute_impulses(answer.joint_impulses)
         else:

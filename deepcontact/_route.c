@@ -43,6 +43,9 @@ struct geometry {
     int32_t *row, *jp, *ji, *order, *inverse;
     unsigned char *dynamic;
     double *inv_mass, *inv_inertia, *n, *t, *ra, *rb, *vx, *vy, *w, *before, *jd, *weight;
+    /* (P,) the normal velocity Box2D's velocity constraint holds each point at (m/s, >= 0): its
+     * restitution's bounce where it closes faster than b2_velocityThreshold, else 0. */
+    double *bias;
     spchol_factor_t factor;
     int factored;
 };
@@ -51,14 +54,21 @@ static void geometry_free(struct geometry *g)
 {
     free(g->pa), free(g->pb), free(g->row), free(g->jp), free(g->ji), free(g->order), free(g->inverse);
     free(g->dynamic), free(g->inv_mass), free(g->inv_inertia), free(g->n), free(g->t), free(g->ra), free(g->rb);
-    free(g->vx), free(g->vy), free(g->w), free(g->before), free(g->jd), free(g->weight);
+    free(g->vx), free(g->vy), free(g->w), free(g->before), free(g->jd), free(g->weight), free(g->bias);
     spchol_free(&g->factor);
     memset(g, 0, sizeof *g);
 }
 
-/* The frame and the velocities before any impulse, gravity added. Returns 0, or -1 (memory). */
+/* Box2D's b2_velocityThreshold (m/s): a point closing slower than this does not bounce. */
+#define VELOCITY_THRESHOLD 1.0
+
+/* The frame and the velocities before any impulse, gravity added, and each point's bounce
+ * (b2ContactSolver::InitializeVelocityConstraints' velocityBias: -restitution times the normal
+ * velocity before any impulse, where the point closes faster than VELOCITY_THRESHOLD) from
+ * restitution (P,) (Box2D's mix of its two fixtures', the larger), or none where NULL. Returns
+ * 0, or -1 (memory). */
 static int geometry_build(struct geometry *g, const char *bodies, const char *points, int64_t P, int64_t B, double dt,
-                          double gx, double gy)
+                          double gx, double gy, const double *restitution)
 {
     memset(g, 0, sizeof *g);
     g->P = P, g->B = B;
@@ -67,6 +77,7 @@ static int geometry_build(struct geometry *g, const char *bodies, const char *po
     g->pb = malloc(p * sizeof(int64_t));
     g->row = malloc(b * sizeof(int32_t));
     g->dynamic = malloc(b);
+    g->bias = malloc(p * sizeof(double));
     double **per_body[] = {&g->inv_mass, &g->inv_inertia, &g->vx, &g->vy, &g->w};
     for (size_t k = 0; k < sizeof per_body / sizeof per_body[0]; k++)
         *per_body[k] = malloc(b * sizeof(double));
@@ -74,7 +85,7 @@ static int geometry_build(struct geometry *g, const char *bodies, const char *po
     for (size_t k = 0; k < sizeof per_point / sizeof per_point[0]; k++)
         *per_point[k] = malloc(2 * p * sizeof(double));
     if (!(g->pa && g->pb && g->row && g->dynamic && g->inv_mass && g->inv_inertia && g->vx && g->vy && g->w && g->n
-          && g->t && g->ra && g->rb && g->before))
+          && g->t && g->ra && g->rb && g->before && g->bias))
         return -1;
     for (int64_t k = 0; k < B; k++) {
         const char *body = bodies + k * BODY_SIZE;
@@ -105,6 +116,8 @@ static int geometry_build(struct geometry *g, const char *bodies, const char *po
         g->n[2 * i] = f.n0, g->n[2 * i + 1] = f.n1, g->t[2 * i] = f.t0, g->t[2 * i + 1] = f.t1;
         g->ra[2 * i] = f.ra0, g->ra[2 * i + 1] = f.ra1, g->rb[2 * i] = f.rb0, g->rb[2 * i + 1] = f.rb1;
         relative_velocity(&f, g->vx, g->vy, g->w, g->before + 2 * i);
+        const double closing = g->before[2 * i];
+        g->bias[i] = restitution != NULL && closing < -VELOCITY_THRESHOLD ? -restitution[i] * closing : 0.0;
     }
     return 0;
 }
@@ -252,23 +265,24 @@ static struct geometry *prepared_or_own(PyObject *prepared, int64_t P, int64_t B
     return g;
 }
 
-/* prepare(bodies, n_bodies, points, n_points, dt, gx, gy) -> geometry
+/* prepare(bodies, n_bodies, points, n_points, dt, gx, gy[, restitution]) -> geometry
  *
+ * restitution: None, or float64 (P,) each point's restitution (geometry_build's bounce).
  * A step's geometry (struct geometry), its admission's factor included, for solve_and_admit to
  * take: built without the GIL, so that a server can build it on another core while its
  * classifier runs on the same step (deepcontact.faces.prepare_route). An opaque capsule. */
 static PyObject *prepare(PyObject *self, PyObject *args)
 {
-    Py_buffer b[2];
+    Py_buffer b[3];
     Py_ssize_t n_bodies, n_points;
     double dt, gx, gy;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*nddd", &b[0], &n_bodies, &b[1], &n_points, &dt, &gx, &gy))
+    if (!PyArg_ParseTuple(args, "y*ny*nddd|z*", &b[0], &n_bodies, &b[1], &n_points, &dt, &gx, &gy, &b[2]))
         return NULL;
     PyObject *result = NULL;
     struct geometry *g = NULL;
     if (n_bodies < 0 || n_points < 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
-        || b[1].len != n_points * POINT_SIZE) {
+        || b[1].len != n_points * POINT_SIZE || (b[2].buf != NULL && b[2].len != n_points * (Py_ssize_t)sizeof(double))) {
         PyErr_SetString(PyExc_ValueError, "_route.prepare: arrays of the wrong size");
         goto done;
     }
@@ -279,7 +293,7 @@ static PyObject *prepare(PyObject *self, PyObject *args)
     int status;
     Py_BEGIN_ALLOW_THREADS
     g = calloc(1, sizeof *g);
-    status = g == NULL ? -1 : geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy);
+    status = g == NULL ? -1 : geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy, b[2].buf);
     if (status == 0)
         status = geometry_factor(g);
     Py_END_ALLOW_THREADS
@@ -299,7 +313,7 @@ static PyObject *prepare(PyObject *self, PyObject *args)
         free(g);
     }
 done:
-    for (int k = 0; k < 2; k++)
+    for (int k = 0; k < 3; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);
     return result;
@@ -307,7 +321,7 @@ done:
 
 /* solve_and_admit(bodies, n_bodies, points, n_points, labels, mu, read_mu, dt, gx, gy, pressing,
  *                 share, rounds, relax, rho, until, ridge, refinements, optimality, slide_in_bodies,
- *                 impulses, geometry[, carry])
+ *                 impulses, geometry[, carry[, restitution]])
  *     -> (outcome, residual, solve_seconds, admit_seconds, admission_rounds, in_bodies)
  *
  * bodies, points: BODY_DTYPE and CONTACT_DTYPE records; labels float64 (P, 2), the classifier's
@@ -322,7 +336,9 @@ done:
  * admission state (z, s) of the stream's step before, kept (Q, 4) float64 under kept_keys (Q,)
  * uint64 point keys, each point of this step that is among them begins there (its s only with
  * dual; elsewhere cold), and state (P, 4) float64 gets the state this step's rounds end in
- * (admission_kernels.h; (impulses, 0) where no round ran), for the next. outcome: ROUTE_SERVED (impulses written, residual
+ * (admission_kernels.h; (impulses, 0) where no round ran), for the next; restitution: None, or float64
+ * (P,) each point's (geometry_build's bounce, the velocity its normal equation holds; with
+ * geometry, prepare's holds it already). outcome: ROUTE_SERVED (impulses written, residual
  * faces.face_residual of them), ROUTE_NOT_DEFINITE (the sparse factor met a pivot below zero:
  * the caller solves densely) or ROUTE_INCONSISTENT (the labels' system is far from
  * consistent); in_bodies: 1 where the bodies' space answered the solve (face_body_solve), 0 where
@@ -339,13 +355,15 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     int dual = 0;
     memset(b, 0, sizeof b);
     memset(kept, 0, sizeof kept);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddddidpw*O|O", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3],
+    if (!PyArg_ParseTuple(args, "y*ny*ny*y*y*dddddlddddidpw*O|Oz*", &b[0], &n_bodies, &b[1], &n_points, &b[2], &b[3],
                           &b[4], &dt, &gx, &gy, &pressing, &share, &rounds, &relax, &rho, &until, &ridge, &refinements,
-                          &optimality, &slide_in_bodies, &b[5], &prepared, &carried))
+                          &optimality, &slide_in_bodies, &b[5], &prepared, &carried, &b[7]))
         return NULL;
     if (carried != Py_None && !PyArg_ParseTuple(carried, "y*y*w*p", &kept[0], &kept[1], &b[6], &dual)) {
         for (int k = 0; k < 6; k++)
             PyBuffer_Release(&b[k]);
+        if (b[7].obj != NULL || b[7].buf != NULL)
+            PyBuffer_Release(&b[7]);
         return NULL;
     }
     PyObject *result = NULL;
@@ -353,7 +371,7 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     const Py_ssize_t vec = 2 * n_points * (Py_ssize_t)sizeof(double);
     if (n_bodies < 0 || n_points < 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
         || b[1].len != n_points * POINT_SIZE || b[2].len != vec || b[3].len != vec / 2 || b[4].len != vec / 2
-        || b[5].len != vec
+        || b[5].len != vec || (b[7].buf != NULL && b[7].len != vec / 2)
         || (carried != Py_None && (b[6].len != 2 * vec || kept[1].len != 4 * kept[0].len || kept[0].len % 8 != 0))
         || rounds < 0 || refinements < 0 || !(relax > 0.0 && relax < 2.0) || !(rho > 0.0)) {
         PyErr_SetString(PyExc_ValueError, "_route.solve_and_admit: arrays of the wrong size");
@@ -379,7 +397,7 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     double *sx = NULL, *scratch = NULL;
     Py_BEGIN_ALLOW_THREADS
     t0 = monotonic_seconds();
-    if (!alloc_step(&s, P) || (g == &own && geometry_build(g, bodies, points, P, B, dt, gx, gy) != 0))
+    if (!alloc_step(&s, P) || (g == &own && geometry_build(g, bodies, points, P, B, dt, gx, gy, b[7].buf) != 0))
         goto out;
     if (carry != NULL && carry_begin(kept[0].buf, kept[1].buf, kept[0].len / 8, points, P, dual, carry) != 0)
         goto out;
@@ -403,9 +421,9 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     m = next_stick;
     memset(impulses, 0, (size_t)P * 2 * sizeof(double));
     if (m > 0) {
-        for (int64_t i = 0; i < P; i++) { /* rhs = -velocity at each unknown's equation */
+        for (int64_t i = 0; i < P; i++) { /* rhs = the velocity each unknown's equation holds, less the one before */
             if (s.index[2 * i] >= 0)
-                s.rhs[s.index[2 * i]] = -g->before[2 * i];
+                s.rhs[s.index[2 * i]] = g->bias[i] - g->before[2 * i];
             if (s.index[2 * i + 1] >= 0)
                 s.rhs[s.index[2 * i + 1]] = -g->before[2 * i + 1];
         }
@@ -470,15 +488,15 @@ static PyObject *solve_and_admit(PyObject *self, PyObject *args)
     double left = 0.0, scale = 0.0;
     for (int64_t i = 0; i < P; i++) { /* in face_residual's order: pressing normals, sticking tangents, open */
         if (s.face[i] != OPEN)
-            left += s.after[2 * i] * s.after[2 * i];
+            left += (s.after[2 * i] - g->bias[i]) * (s.after[2 * i] - g->bias[i]);
         scale += g->before[2 * i] * g->before[2 * i] + g->before[2 * i + 1] * g->before[2 * i + 1];
     }
     for (int64_t i = 0; i < P; i++)
         if (s.face[i] == STICKS)
             left += s.after[2 * i + 1] * s.after[2 * i + 1];
     for (int64_t i = 0; i < P; i++)
-        if (s.face[i] == OPEN && s.after[2 * i] < 0.0)
-            left += s.after[2 * i] * s.after[2 * i];
+        if (s.face[i] == OPEN && s.after[2 * i] < g->bias[i])
+            left += (s.after[2 * i] - g->bias[i]) * (s.after[2 * i] - g->bias[i]);
     residual = scale > 0.0 ? sqrt(left) / sqrt(scale) : 0.0;
     outcome = ROUTE_SERVED;
 out:
@@ -549,7 +567,7 @@ static double solve_sweep(const struct geometry *g, const double *mu, const doub
             const double *ra = g->ra + 2 * (i + j), *rb = g->rb + 2 * (i + j);
             const double rel0 = vx[b] - w[b] * rb[1] - vx[a] + w[a] * ra[1];
             const double rel1 = vy[b] + w[b] * rb[0] - vy[a] - w[a] * ra[0];
-            vn[j] = rel0 * n0 + rel1 * n1;
+            vn[j] = rel0 * n0 + rel1 * n1 - g->bias[i + j]; /* Box2D's vn - velocityBias */
         }
         double x[2];
         if (count == 1) {
@@ -591,7 +609,7 @@ static double solve_sweep(const struct geometry *g, const double *mu, const doub
 
 /* The largest change the solver's sweep number `sweeps` would make, from each of several starts:
  * Box2D's velocity constraints (solve_sweep) after each start is applied as its warm start (a
- * dropped point's not), on the server's copy of the step, without restitution, and with the rigid
+ * dropped point's not), on the server's copy of the step, each point's bounce held, and with the rigid
  * revolute joints of jr (NULL: none) started and swept as Box2D does: what the server knows of it. The solver stops after the first sweep that changes no impulse by more
  * than its threshold, so of two starts the one whose sweep `sweeps` changes less is the nearer
  * to its end; one projected Jacobi step (sweeps 1, kinematics.jacobi_change, every point from
@@ -956,7 +974,7 @@ static Py_ssize_t find_islands(const char *bodies, Py_ssize_t B, const char *poi
 }
 
 /* compare_starts(bodies, n_bodies, points, n_points, mu, dt, gx, gy, starts, sweeps, geometry, tolerance
- *                [, joint_bodies, joint_arms, joint_starts, joint_limits, by_island])
+ *                [, joint_bodies, joint_arms, joint_starts, joint_limits, by_island, restitution])
  *     -> ([change, ...], [sweeps run, ...][, island counts, island changes, point islands, joint islands, I])
  *
  * sweep_changes of each start: starts float64 (n_starts, P, 2) N s (n_starts from its size);
@@ -971,7 +989,8 @@ static Py_ssize_t find_islands(const char *bodies, Py_ssize_t B, const char *poi
  * them (find_islands), each stopped at its own first sweep under the tolerance, a start's count the
  * sweep where its last island stops and its change the largest of the islands' changes there;
  * the reply then adds (n_starts, I) int64 and float64 bytes, each island's count and change, the
- * points' and the joints' islands as int32 bytes, and I. */
+ * points' and the joints' islands as int32 bytes, and I. restitution: None, or float64 (P,) each
+ * point's, for the geometry built here (geometry_build's bounce; prepare's holds it already). */
 static PyObject *compare_starts(PyObject *self, PyObject *args)
 {
     Py_buffer b[8];
@@ -981,8 +1000,10 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
     PyObject *prepared;
     int by_island = 0;
     memset(b, 0, sizeof b);
-    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd|z*z*z*z*p", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx,
-                          &gy, &b[3], &sweeps, &prepared, &tolerance, &b[4], &b[5], &b[6], &b[7], &by_island))
+    Py_buffer rest;
+    memset(&rest, 0, sizeof rest);
+    if (!PyArg_ParseTuple(args, "y*ny*ny*dddy*lOd|z*z*z*z*pz*", &b[0], &n_bodies, &b[1], &n_points, &b[2], &dt, &gx,
+                          &gy, &b[3], &sweeps, &prepared, &tolerance, &b[4], &b[5], &b[6], &b[7], &by_island, &rest))
         return NULL;
     PyObject *result = NULL;
     long *island_counts = NULL;
@@ -992,7 +1013,8 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
     const Py_ssize_t per_start = 2 * n_points * (Py_ssize_t)sizeof(double);
     if (n_bodies < 0 || n_points <= 0 || n_points > INT32_MAX / 16 || b[0].len != n_bodies * BODY_SIZE
         || b[1].len != n_points * POINT_SIZE || b[2].len != per_start / 2 || b[3].len % per_start != 0
-        || b[3].len / per_start > 64 || sweeps < 1 || !(tolerance >= 0.0)) {
+        || b[3].len / per_start > 64 || sweeps < 1 || !(tolerance >= 0.0)
+        || (rest.buf != NULL && rest.len != per_start / 2)) {
         PyErr_SetString(PyExc_ValueError, "_route.compare_starts: arrays of the wrong size");
         goto done;
     }
@@ -1052,7 +1074,7 @@ static PyObject *compare_starts(PyObject *self, PyObject *args)
     long counts[64];
     int status;
     Py_BEGIN_ALLOW_THREADS
-    status = g == &own ? geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy) : 0;
+    status = g == &own ? geometry_build(g, b[0].buf, b[1].buf, n_points, n_bodies, dt, gx, gy, rest.buf) : 0;
     if (status == 0)
         status = sweep_changes(g, b[2].buf, b[3].buf, n_starts, sweeps, tolerance, jr, changes, counts, isl);
     geometry_free(&own);
@@ -1098,6 +1120,8 @@ done:
     for (int k = 0; k < 8; k++)
         if (b[k].obj != NULL || b[k].buf != NULL)
             PyBuffer_Release(&b[k]);
+    if (rest.obj != NULL || rest.buf != NULL)
+        PyBuffer_Release(&rest);
     return result;
 }
 

@@ -114,7 +114,8 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     """The step's contact problem solved as if its solution lay on `face`, (P, 2) N s.
 
     face: (P,) contact_face labels; mu: (P,) friction coefficients; bodies, points,
-    physics as in contact_velocities (restitution 0, as the scenes build). The
+    physics as in contact_velocities (restitution 0: no point bounces; route_compiled holds
+    each point's bounce where it is given one). The
     unknowns are the normal impulses of the points that press and the tangent ones
     of those that stick; a sliding point's tangent impulse is +-mu times its normal
     one, an open point's impulses are 0. The equations ask for no relative normal
@@ -398,30 +399,48 @@ class CompiledRoute(NamedTuple):
     in_bodies: bool = False
 
 
-def prepare_route(bodies: np.ndarray, points: np.ndarray, physics: Physics = Physics()):
+def prepare_route(bodies: np.ndarray, points: np.ndarray, physics: Physics = Physics(),
+                  restitution: np.ndarray | None = None):
     """route_compiled's work that does not depend on the labels, done ahead: the contact frame,
-    the velocities before any impulse and the admission's factorization (an opaque object for
-    route_compiled's `prepared`). It runs without the GIL, so a server can do it on another core
-    while its classifier answers the same step."""
+    the velocities before any impulse, each point's bounce and the admission's factorization (an
+    opaque object for route_compiled's `prepared`). It runs without the GIL, so a server can do it
+    on another core while its classifier answers the same step. restitution: (P,) each point's
+    (Box2D's mix of its two fixtures', the larger), or None: no point bounces. Box2D holds a point
+    closing faster than 1 m/s before any impulse at the restitution times that speed, apart, rather
+    than at rest (b2ContactSolver's velocity bias); the route's solve and the copy's sweeps hold it
+    there too."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
     points = _records(np.asarray(points), CONTACT_DTYPE, "points")
     gx, gy = physics.gravity
-    return _compiled_route.prepare(bodies, len(bodies), points, len(points), float(physics.dt), float(gx), float(gy))
+    return _compiled_route.prepare(bodies, len(bodies), points, len(points), float(physics.dt), float(gx), float(gy),
+                                   _restitution(restitution, len(points)))
+
+
+def _restitution(restitution: np.ndarray | None, n_points: int) -> np.ndarray | None:
+    """restitution as the compiled route takes it: float64 (P,), or None where no point has any."""
+    if restitution is None:
+        return None
+    r = np.ascontiguousarray(restitution, np.float64)
+    if r.shape != (n_points,):
+        raise ValueError(f"restitution: ({n_points},), got {r.shape}")
+    return r if r.any() else None
 
 
 def sweep_changes(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
-                  physics: Physics = Physics(), sweeps: int = 12, prepared=None) -> np.ndarray:
+                  physics: Physics = Physics(), sweeps: int = 12, prepared=None,
+                  restitution: np.ndarray | None = None) -> np.ndarray:
     """(S,) N s: for each start of starts (S, P, 2) N s (normal, tangent), the largest change the
     solver's sweep number `sweeps` would make at any point, on the server's copy of the step:
     Box2D's velocity constraints (each manifold in turn, its tangent impulses held inside mu (P,)
     times their normal ones, then its normal impulses held >= 0, a two-point manifold's as one
-    block, as Box2D's block solver; no joints, no restitution; deepcontact/_route.c). The
+    block, as Box2D's block solver; no joints; each point's bounce held as prepare_route's
+    `restitution` gives it; deepcontact/_route.c). The
     solver stops after the first sweep that changes
     nothing by more than its threshold, so of two starts the one whose sweep changes less is
     the nearer to where it stops: kinematics.jacobi_change is the one-step, every-point-at-once
     version of this. prepared: prepare_route's for the same bodies, points and physics, or
     None. At most 64 starts; about 1.8 us a sweep a start at 130 points."""
-    return _compare_starts(bodies, points, starts, mu, physics, sweeps, prepared, 0.0)[0]
+    return _compare_starts(bodies, points, starts, mu, physics, sweeps, prepared, 0.0, restitution=restitution)[0]
 
 
 class RevoluteRows(NamedTuple):
@@ -448,7 +467,8 @@ class RevoluteRows(NamedTuple):
 
 def sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
                    physics: Physics, tolerance: float, most: int, prepared=None,
-                   joints: RevoluteRows | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   joints: RevoluteRows | None = None,
+                   restitution: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((S,) int, (S,) N s): for each start of starts (S, P, 2) N s, the sweeps the server's copy
     of the step (as sweep_changes) takes to the client's stopping rule, the first sweep that
     changes nothing by more than `tolerance` N s (> 0), or most + 1 where none of the first
@@ -461,7 +481,8 @@ def sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, m
     out, as the server's routes see a step."""
     if not tolerance > 0:
         raise ValueError(f"tolerance must be > 0 N s, got {tolerance}")
-    changes, counts = _compare_starts(bodies, points, starts, mu, physics, most, prepared, float(tolerance), joints)
+    changes, counts = _compare_starts(bodies, points, starts, mu, physics, most, prepared, float(tolerance), joints,
+                                      restitution=restitution)
     return counts, changes
 
 
@@ -505,7 +526,8 @@ class Islands(NamedTuple):
 
 def island_sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.ndarray, mu: np.ndarray,
                           physics: Physics, tolerance: float, most: int, prepared=None,
-                          joints: RevoluteRows | None = None) -> tuple[np.ndarray, np.ndarray, Islands]:
+                          joints: RevoluteRows | None = None,
+                          restitution: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Islands]:
     """sweeps_to_stop island by island: ((S,) int, (S,) N s, Islands). Each start's count is Box2D's
     for the step, its largest island's count (every island stopped by then; most + 1 where one is
     not), and its change the largest of the islands' changes where they stop; Islands gives each
@@ -513,14 +535,15 @@ def island_sweeps_to_stop(bodies: np.ndarray, points: np.ndarray, starts: np.nda
     if not tolerance > 0:
         raise ValueError(f"tolerance must be > 0 N s, got {tolerance}")
     changes, counts, islands = _compare_starts(bodies, points, starts, mu, physics, most, prepared, float(tolerance),
-                                               joints, by_island=True)
+                                               joints, by_island=True, restitution=restitution)
     return counts, changes, islands
 
 
 def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, prepared, tolerance: float,
-                    joints: RevoluteRows | None = None, by_island: bool = False):
+                    joints: RevoluteRows | None = None, by_island: bool = False,
+                    restitution: np.ndarray | None = None):
     """(changes (S,) N s, sweeps run (S,) int) of compare_starts in deepcontact/_route.c; by_island,
-    also an Islands."""
+    also an Islands; restitution as prepare_route's (where prepared is None)."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
     points = _records(np.asarray(points), CONTACT_DTYPE, "points")
     starts = np.ascontiguousarray(starts, np.float64)
@@ -549,7 +572,8 @@ def _compare_starts(bodies, points, starts, mu, physics: Physics, sweeps: int, p
         extra = extra[:3] + (limits,)
     out = _compiled_route.compare_starts(bodies, len(bodies), points, len(points), np.ascontiguousarray(mu, np.float64),
                                          float(physics.dt), float(gx), float(gy), starts, int(sweeps), prepared,
-                                         float(tolerance), *extra, bool(by_island))
+                                         float(tolerance), *extra, bool(by_island),
+                                         _restitution(restitution, len(points)))
     changes, counts = np.array(out[0]), np.array(out[1], np.int64)
     if not by_island:
         return changes, counts
@@ -563,7 +587,7 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
                    label_friction: float | None = None, rounds: int = 1000,
                    until: float | None = None, prepared=None, relax: float = 1.0,
                    rho: float = ADMISSION_RHO, carry: tuple | None = None,
-                   slide_in_bodies: bool = True) -> CompiledRoute | None:
+                   slide_in_bodies: bool = True, restitution: np.ndarray | None = None) -> CompiledRoute | None:
     """solved_on_labels with solver "dual", no damping and no `close`, in one compiled call
     (deepcontact/_route.c, on the same kernels as the pieces here): the same numbers to rounding,
     without the NumPy calls between the pieces (about 0.15-0.25 ms of a served step). The solve's
@@ -581,7 +605,8 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
     as in solved_on_labels; bodies (B,) BODY_DTYPE and points (P,) CONTACT_DTYPE records;
     prepared: prepare_route's for the same bodies, points and physics, or None; carry: None, or
     admission.AdmissionCarry.begin's: the rounds begin where each point's ended on the stream's
-    step before, and write where this step's end. None where the
+    step before, and write where this step's end; restitution: as prepare_route's (where prepared
+    is None; solved_on_labels holds no bounce). None where the
     compiled dual solve declines the labels' system (a pivot below zero, or a system far from
     consistent): solved_on_labels answers those."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
@@ -594,7 +619,8 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
         bodies, len(bodies), points, len(points), np.ascontiguousarray(labels, np.float64), mu, read_at,
         float(physics.dt), float(gx), float(gy), float(pressing), float(share), int(rounds), float(relax), float(rho),
         _monotonic(until),
-        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, bool(slide_in_bodies), impulses, prepared, carry)
+        DUAL_RIDGE, DUAL_REFINEMENTS, DUAL_OPTIMALITY, bool(slide_in_bodies), impulses, prepared, carry,
+        _restitution(restitution, len(points)))
     if outcome != _compiled_route.SERVED:
         return None
     return CompiledRoute(impulses, residual, solve_s, admit_s, used, bool(in_bodies))

@@ -181,7 +181,8 @@ FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction"
                  "fallback": None, "damping": 0.0, "max_points": None, "solver": "gelsy", "retry_pressing": [], "close": None,
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                  "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
-                 "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False}
+                 "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False,
+                 "restitution": True}
 
 
 class ModelCardError(ValueError):
@@ -357,7 +358,7 @@ def _face_settings(face: Any, kind: str) -> dict:
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
                                            "extrapolate_jointed", "check_stop", "slide_in_bodies", "revolute_joints",
-                                           "by_island")
+                                           "by_island", "restitution")
                   and not (k in optional + ("max_points", "check_sweeps", "min_rounds") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -373,6 +374,7 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not isinstance(out["extrapolate_jointed"], bool) or not isinstance(out["check_stop"], bool) \
             or not isinstance(out["slide_in_bodies"], bool) or not isinstance(out["revolute_joints"], bool) \
             or not isinstance(out["by_island"], bool) or (out["by_island"] and not out["check_stop"]) \
+            or not isinstance(out["restitution"], bool) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
             or (out["check_stop"] and sweeps is None) \
             or not (fewest is None or isinstance(fewest, int) and 1 <= fewest <= out["rounds"]):
@@ -381,7 +383,8 @@ def _face_settings(face: Any, kind: str) -> dict:
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
-                             f"rescale, carry, extrapolate_jointed, slide_in_bodies and revolute_joints true or false, check_sweeps null or a "
+                             f"rescale, carry, extrapolate_jointed, slide_in_bodies, revolute_joints and restitution true or false, "
+                             f"check_sweeps null or a "
                              f"whole number 1-1000, "
                              f"check_stop true or false and only with check_sweeps, by_island true or false and only "
                              f"with check_stop, min_rounds null or a whole "
@@ -393,7 +396,7 @@ def _face_settings(face: Any, kind: str) -> dict:
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
             "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
             "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest, "revolute_joints": out["revolute_joints"],
-            "by_island": out["by_island"]}
+            "by_island": out["by_island"], "restitution": out["restitution"]}
 
 
 def _measured(m: Any) -> dict:

@@ -53,7 +53,8 @@ def encode_world(lower: tuple[float, float], upper: tuple[float, float],
 def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *,
                 world: pb.World | None = None, builtin: np.ndarray | None = None,
                 impulses: np.ndarray | None = None, friction: np.ndarray | None = None,
-                joints: np.ndarray | None = None, revolute: np.ndarray | None = None) -> pb.StepRequest:
+                joints: np.ndarray | None = None, revolute: np.ndarray | None = None,
+                restitution: np.ndarray | None = None) -> pb.StepRequest:
     """A step from engine records.
 
     bodies: (B,) BODY_DTYPE in creation order, as the engine exports them
@@ -68,6 +69,8 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
     revolute: optional (J, 15) float32, with joints: each joint as the solve will hold it
         (Engine.revolute: its kind, its anchors on A and B (m), its impulse, then its limit and
         motor); or (J, 7), the first seven alone (no limits or motors sent).
+    restitution: optional (P,) each point's restitution (Box2D's mix of its two fixtures', the
+        larger; Engine.point_restitution); left out where no point has any.
     """
     moving = bodies["type"] != 0
     dyn = bodies[moving]
@@ -99,6 +102,8 @@ def encode_step(step: int, model: str, bodies: np.ndarray, points: np.ndarray, *
         msg.impulses = np.ascontiguousarray(impulses, F32).tobytes()
     if friction is not None:
         msg.point_friction = np.ascontiguousarray(friction, F32).tobytes()
+    if restitution is not None and np.any(restitution):
+        msg.point_restitution = np.ascontiguousarray(restitution, F32).tobytes()
     if joints is not None and len(joints):
         msg.joint_count = len(joints)
         msg.joint_bodies = np.ascontiguousarray(row_of[np.asarray(joints)], I32).tobytes()
@@ -289,15 +294,26 @@ def decode_step(msg: pb.StepRequest, *, max_bodies: int, max_points: int) -> tup
     return bodies, points
 
 
+def decode_restitution(msg: pb.StepRequest) -> np.ndarray | None:
+    """Each point's restitution, (P,) float32, or None when the request sends none (no point
+    bounces). WireError when it does not fit point_count or is negative or not finite."""
+    return _per_point_coefficient(msg, "point_restitution")
+
+
 def decode_friction(msg: pb.StepRequest) -> np.ndarray | None:
     """Each point's friction coefficient, (P,) float32, or None when the request sends none.
     WireError when it does not fit point_count or is negative or not finite."""
-    friction = _array(msg, "point_friction", msg.point_count, 1, optional=True)
-    if friction is None:
+    return _per_point_coefficient(msg, "point_friction")
+
+
+def _per_point_coefficient(msg: pb.StepRequest, field: str) -> np.ndarray | None:
+    """A (P,) float32 field of one non-negative number a point, or None where it is empty."""
+    values = _array(msg, field, msg.point_count, 1, optional=True)
+    if values is None:
         return None
-    if len(friction) and friction.min() < 0:
-        raise WireError("point_friction", "holds negative values")
-    return friction[:, 0]
+    if len(values) and values.min() < 0:
+        raise WireError(field, "holds negative values")
+    return values[:, 0]
 
 
 def decode_joints(msg: pb.StepRequest) -> np.ndarray | None:

@@ -91,6 +91,7 @@ class FaceRoutePredictor(Predictor):
 
     takes_deadline = True
     takes_memory = True  # predict(..., memory=): a stream's state between its steps (the card's carry)
+    takes_restitution = True  # predict(..., restitution=): each point's, the request's point_restitution
 
     def __init__(self, card: ModelCard, classifier: GraphPredictor, fallback: Predictor | None = None):
         if card.face is None:
@@ -140,15 +141,21 @@ class FaceRoutePredictor(Predictor):
         return self.fallback.warm_up(domain) if self.fallback is not None else 0.0
 
     def predict(self, bodies, points, world, step, previous=None, friction=None, deadline=None,
-                slowdown: float = 1.0, memory: dict | None = None) -> Prediction:
+                slowdown: float = 1.0, memory: dict | None = None,
+                restitution: np.ndarray | None = None) -> Prediction:
         """As Predictor.predict; friction: (P,) each point's friction coefficient (the request's
         point_friction, required); deadline: time.perf_counter() s by which the answer is due
         (None: none), see fits; slowdown: how many times its own time a step's work is expected
         to take in wall time (the requests the server answers at once, over its cores); memory:
         a dict the server keeps for this stream and model between its steps (None: a step
         alone), where a card with carry keeps its admission's state (AdmissionCarry, by card
-        name: a fallback route keeps its own)."""
+        name: a fallback route keeps its own); restitution: (P,) each point's (the request's
+        point_restitution), or None: no point bounces. The route solves and checks the step with
+        each point that closes faster than 1 m/s held at its bounce, as Box2D's solver holds it
+        (deepcontact.faces.prepare_route), unless the card's `restitution` is false."""
         started, cpu = time.perf_counter(), time.thread_time()
+        if not self.settings["restitution"]:
+            restitution = None
         if len(points) == 0:
             return Prediction(np.zeros((0, 2), np.float32))
         if friction is None:
@@ -169,11 +176,11 @@ class FaceRoutePredictor(Predictor):
             # A world the classifier was not trained on, too large a step to solve, or to solve
             # in time, or every lane busy with another step's route: no labels asked for.
             answer = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown,
-                                    memory=memory)
+                                    memory=memory, restitution=restitution)
         else:
             try:
                 answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown,
-                                     scaled, memory)
+                                     scaled, memory, restitution)
             finally:
                 if lane is not None:
                     lane.release()
@@ -182,7 +189,7 @@ class FaceRoutePredictor(Predictor):
         return Prediction(answer.impulses, answer.stages, answer.served_by, verdict)
 
     def _route(self, bodies, points, world, step, previous, friction, deadline, cpu: float,
-               slowdown: float = 1.0, scaled=None, memory: dict | None = None) -> Prediction:
+               slowdown: float = 1.0, scaled=None, memory: dict | None = None, restitution=None) -> Prediction:
         """predict's answer along the route (module docstring); cpu: the thread's CPU time when
         the step began; scaled: (bodies, points, previous, world) the classifier reads instead
         (the card's rescale), or None."""
@@ -198,12 +205,13 @@ class FaceRoutePredictor(Predictor):
             # The reflected half on the spare core while the step's half runs here, and the
             # geometry here after it, filling the wait. Without a free core the step's half
             # alone: in turn the reflection would add the network's time again to the step.
-            later = _Later(_ahead, bodies, points, world.physics, friction, sweeps, stop, self._by_island(stop)) \
+            later = _Later(_ahead, bodies, points, world.physics, friction, sweeps, stop, self._by_island(stop),
+                           restitution) \
                 if self.compiled and free else None
             mirror = {"spare": self._helper, "reflected": free, "meanwhile": later}
         elif self.compiled and free and len(points) >= AHEAD_POINTS:
             ahead = self._helper.submit(_ahead, bodies, points, world.physics, friction, sweeps, stop,
-                                        self._by_island(stop))
+                                        self._by_island(stop), restitution)
         asked = scaled if scaled is not None else (bodies, points, previous, world)
         labels = self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction, **mirror)
         if ahead is not None:
@@ -223,7 +231,7 @@ class FaceRoutePredictor(Predictor):
                 else 2 * (sweeps or 1)
             until = deadline - slowdown * planned * self.sweep_cost.estimate(len(points))
         impulses, extra_rounds = self._solved_on_labels(bodies, points, world, labels.impulses, friction, until,
-                                                        stages, prepared, carry)
+                                                        stages, prepared, carry, restitution)
         served_by = None
         # A step read at another scale than its own is one the classifier was not trained on:
         # checked as the card's against_builtin checks every step.
@@ -232,11 +240,13 @@ class FaceRoutePredictor(Predictor):
             counted = 0
             if sweeps is not None and builtin_change is None:  # Box2D's side here, not run ahead
                 builtin_change = _sweep_change(bodies, points, points["builtin"], np.asarray(friction, np.float64),
-                                               world.physics, sweeps, prepared, stop, self._by_island(stop))
+                                               world.physics, sweeps, prepared, stop, self._by_island(stop),
+                                               restitution=restitution)
                 counted = min(builtin_change[0], sweeps)
             counted += self._route_sweeps(builtin_change, stop)
             taken = np.broadcast_to(np.asarray(self._beats_builtin(bodies, points, impulses, friction, world, prepared,
-                                                                   builtin_change), bool), (len(points),))
+                                                                   builtin_change, restitution), bool),
+                                    (len(points),))
             if not taken.any():
                 impulses, served_by = points["builtin"].copy(), BUILTIN
             elif not taken.all():  # the route's answer on the islands it stops sooner, Box2D's on the rest
@@ -276,7 +286,7 @@ class FaceRoutePredictor(Predictor):
         return self.settings["by_island"] and stop > 0
 
     def _beats_builtin(self, bodies, points, impulses, friction, world, prepared=None,
-                       builtin_change: tuple | None = None) -> bool | np.ndarray:
+                       builtin_change: tuple | None = None, restitution=None) -> bool | np.ndarray:
         """Whether one projected Jacobi step from the route's answer ((P, 2) N s) would change the
         impulses less than one from Box2D's warm start (the request's builtin): the card's
         against_builtin; with its check_sweeps N, whether the solver's N-th sweep from it would
@@ -290,24 +300,27 @@ class FaceRoutePredictor(Predictor):
         iterations on Builtin's states of 850-854; checked so, 0.97x). With the card's by_island (and
         Box2D's side priced so, builtin_change's third item faces.Islands), whether it does so on
         each point's island: (P,) bool, the route's answer served there and Box2D's start elsewhere
-        (Box2D's solver stops each island at its own sweep)."""
+        (Box2D's solver stops each island at its own sweep). restitution: as predict's, where
+        prepared is None."""
         mu = np.asarray(friction, np.float64)
         sweeps = self.settings["check_sweeps"]
         if sweeps is not None:
             stop = self._stop_tolerance(world)
             if builtin_change is None:
                 builtin_change = _sweep_change(bodies, points, points["builtin"], mu, world.physics, sweeps, prepared,
-                                               stop, self._by_island(stop))
+                                               stop, self._by_island(stop), restitution=restitution)
             if len(builtin_change) > 2:
                 box2d = builtin_change[2]
                 route = island_sweeps_to_stop(bodies, points, np.asarray(impulses, np.float64)[None], mu, world.physics,
-                                              stop, self._route_sweeps(builtin_change, stop), prepared)[2]
+                                              stop, self._route_sweeps(builtin_change, stop), prepared,
+                                              restitution=restitution)[2]
                 wins = (route.counts[0] < box2d.counts[0]) | (
                     (route.counts[0] == box2d.counts[0]) & (route.changes[0] < box2d.changes[0]))
                 return wins[box2d.point]
             box2d_sweeps, box2d = builtin_change[:2]
             route_sweeps, route = _sweep_change(bodies, points, impulses, mu, world.physics,
-                                                self._route_sweeps(builtin_change, stop), prepared, stop)
+                                                self._route_sweeps(builtin_change, stop), prepared, stop,
+                                                restitution=restitution)
             if route_sweeps == box2d_sweeps:  # both stop at the same sweep, or neither by sweep N
                 return route < box2d
             return route_sweeps < box2d_sweeps
@@ -338,7 +351,8 @@ class FaceRoutePredictor(Predictor):
         return self.cost.fits(n_points, now, deadline, slowdown)
 
     def _solved_on_labels(self, bodies, points, world, labels, friction, deadline,
-                          stages: dict[str, float], prepared=None, carry=None) -> tuple[np.ndarray | None, float]:
+                          stages: dict[str, float], prepared=None, carry=None,
+                          restitution=None) -> tuple[np.ndarray | None, float]:
         """(impulses, extra): impulses (P, 2) N s, the route's answer: the classifier's answer
         (labels, (P, 2) N s) read as each point's label, the step solved on them and admitted
         (deepcontact.faces, as solved_on_labels); where the admitted solve misses its labels by
@@ -354,7 +368,8 @@ class FaceRoutePredictor(Predictor):
             args = carry[0].begin(points, carry[1]) if carry is not None else None
             answer = route_compiled(bodies, points, labels, friction, world.physics, face["pressing"], face["share"],
                                     face["label_friction"], face["rounds"], deadline, prepared, face["relax"],
-                                    face["rho"], args, slide_in_bodies=face["slide_in_bodies"])
+                                    face["rho"], args, slide_in_bodies=face["slide_in_bodies"],
+                                    restitution=restitution)
             if carry is not None:
                 if answer is not None:
                     carry[0].keep(points, carry[1], args)
@@ -410,7 +425,8 @@ class FaceRoutePredictor(Predictor):
         return envelope is None or envelope.unfamiliar(bodies, points, friction, world.physics, None) is None
 
     def _fallback(self, bodies, points, world, step, previous, friction, deadline=None,
-                  slowdown: float = 1.0, second_route: bool = True, memory: dict | None = None) -> Prediction:
+                  slowdown: float = 1.0, second_route: bool = True, memory: dict | None = None,
+                  restitution=None) -> Prediction:
         """The answer where the route is not served: the fallback card's where the step lies in
         what it was trained on, else Box2D's warm start (the request's builtin impulses), with
         served_by naming it. With a deadline, Box2D's
@@ -437,6 +453,8 @@ class FaceRoutePredictor(Predictor):
             extra.update(deadline=deadline, slowdown=slowdown)
         if getattr(self.fallback, "takes_memory", False):
             extra["memory"] = memory
+        if isinstance(self.fallback, FaceRoutePredictor):  # another route: the same bounces
+            extra["restitution"] = restitution
         cpu = time.thread_time()
         answer = self.fallback.predict(bodies, points, world, step, previous, **extra)
         self.fallback_cost.observe(len(points), time.thread_time() - cpu)
@@ -444,31 +462,35 @@ class FaceRoutePredictor(Predictor):
         return Prediction(answer.impulses, answer.stages, answer.served_by or self.fallback.name)
 
 
-def _ahead(bodies, points, physics, friction, sweeps: int | None, stop: float = 0.0, by_island: bool = False):
+def _ahead(bodies, points, physics, friction, sweeps: int | None, stop: float = 0.0, by_island: bool = False,
+           restitution=None):
     """(prepare_route's geometry, Box2D's start's side of the check by sweeps as _sweep_change
     gives it, or None where there is no such check): a step's work that does not wait on its labels."""
-    prepared = prepare_route(bodies, points, physics)
+    prepared = prepare_route(bodies, points, physics, restitution)
     if sweeps is None:
         return prepared, None
     return prepared, _sweep_change(bodies, points, points["builtin"], friction, physics, sweeps, prepared, stop,
-                                   by_island)
+                                   by_island, restitution=restitution)
 
 
 def _sweep_change(bodies, points, start, friction, physics, sweeps: int, prepared=None,
-                  stop: float = 0.0, by_island: bool = False) -> tuple:
+                  stop: float = 0.0, by_island: bool = False, restitution=None) -> tuple:
     """(sweeps run, the last one's change N s) from one start (P, 2) N s: with a stopping rule
     `stop` > 0 (N s) deepcontact.faces.sweeps_to_stop's (sweeps + 1 where it does not stop by
     then), else (sweeps + 1, faces.sweep_changes's change at sweep `sweeps`). by_island (with
-    `stop`): island_sweeps_to_stop's, and its faces.Islands third."""
+    `stop`): island_sweeps_to_stop's, and its faces.Islands third. restitution: as prepare_route's,
+    where prepared is None."""
     start = np.asarray(start, np.float64)[None]
     if stop > 0 and by_island:
         counts, changes, islands = island_sweeps_to_stop(bodies, points, start, friction, physics, stop, sweeps,
-                                                         prepared)
+                                                         prepared, restitution=restitution)
         return int(counts[0]), float(changes[0]), islands
     if stop > 0:
-        counts, changes = sweeps_to_stop(bodies, points, start, friction, physics, stop, sweeps, prepared)
+        counts, changes = sweeps_to_stop(bodies, points, start, friction, physics, stop, sweeps, prepared,
+                                         restitution=restitution)
         return int(counts[0]), float(changes[0])
-    return sweeps + 1, float(sweep_changes(bodies, points, start, friction, physics, sweeps, prepared)[0])
+    return sweeps + 1, float(sweep_changes(bodies, points, start, friction, physics, sweeps, prepared,
+                                           restitution)[0])
 
 
 class _Later:

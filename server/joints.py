@@ -70,7 +70,10 @@ def predict_around_joints(predictor, bodies: np.ndarray, points: np.ndarray, joi
 
 
 def _with(friction, keep, extra: dict) -> dict:
-    """predict()'s keyword arguments: the friction at the kept points where the predictor takes it."""
+    """predict()'s keyword arguments: the friction at the kept points where the predictor takes it,
+    and the restitution (extra's) at them where it is given."""
+    if keep is not None and extra.get("restitution") is not None:
+        extra = {**extra, "restitution": extra["restitution"][keep]}
     if friction is None:
         return extra
     return {**extra, "friction": friction if keep is None else friction[keep]}

@@ -118,6 +118,7 @@ class Predictor:
     batchable: bool = False  # infer(x) on one (1, ny, nx, C) grid, which server.batching can stack
     takes_deadline: bool = False  # predict(..., deadline=) may answer otherwise to meet it
     takes_memory: bool = False  # predict(..., memory=) keeps state along a stream (a dict per stream and model)
+    takes_restitution: bool = False  # predict(..., restitution=) reads each point's restitution (P,) or None
     # At points on jointed bodies, which no model speaks for (server.joints), Box2D's start
     # extrapolated in time along the stream (deepcontact.temporal) rather than as it is.
     extrapolates_jointed: bool = False

@@ -231,15 +231,17 @@ def joint_labels(route, bodies: np.ndarray, points: np.ndarray, joints: np.ndarr
 def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.ndarray, revolute: np.ndarray, world,
                       step: int, previous, friction: np.ndarray, served: Prediction,
                       deadline: float | None = None, timing: PricingTime | None = None,
-                      labelled=None) -> Prediction:
+                      labelled=None, restitution: np.ndarray | None = None) -> Prediction:
     """The served answer, or the start of five that the step's copy with its joints says stops
     soonest (module docstring). route: joint_route's; joints (J, 2) rows of bodies, every one a
     joint of a kind the copy holds (revolute (J, 15), all_held); friction (P,); served: the step's answer
     as served without the joints; deadline: perf_counter() s, by which the answer must be ready
     (timing: what the pricing has taken, kept across steps; where it would end past the deadline
     the served answer is returned as it is); labelled: a future of joint_labels's for the same
-    step, asked on another core while the served answer was made, or None (asked here). Its
-    stages add the classifier's, the route's and the pricing's seconds (inference, admit)."""
+    step, asked on another core while the served answer was made, or None (asked here);
+    restitution: (P,) each point's, or None (deepcontact.faces.prepare_route; the joints' points
+    and levers bounce at nothing). Its stages add the classifier's, the route's and the pricing's
+    seconds (inference, admit)."""
     t0 = time.perf_counter()
     if route is None or world.tolerance <= 0 or len(points) == 0 or (deadline is not None and t0 >= deadline) or (
             timing is not None and not timing.fits(t0, deadline)):
@@ -256,8 +258,12 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     face = np.concatenate([face, np.tile([JOINT_LABEL, 0.0], (len(levers), 1))])
     mu = np.concatenate([mu, np.full(len(levers), JOINT_FRICTION, mu.dtype)])
     s = route.settings
+    if not s["restitution"]:
+        restitution = None
+    bounce = None if restitution is None else np.concatenate([restitution, np.zeros(len(both) - P)])
     solved = route_compiled(bodies, both, face, np.asarray(mu, np.float64), world.physics, s["pressing"], s["share"],
-                            s["label_friction"], min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None)
+                            s["label_friction"], min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None,
+                            restitution=bounce)
     ab, arms, own = rows(bodies, joints, revolute)
     held = limits(bodies, joints, revolute, world.physics.dt)
     starts = [np.asarray(points["builtin"], np.float64), np.asarray(served.impulses, np.float64)]
@@ -283,9 +289,10 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     # so none is played further (on a step where the others lose that spares most of the sweeps).
     price = island_sweeps_to_stop if route.settings["by_island"] else sweeps_to_stop
     first = price(bodies, points, np.stack(starts[:1]), mu, world.physics, world.tolerance, most,
-                  None, RevoluteRows(ab, arms, np.stack(joint_starts[:1]), held))
+                  None, RevoluteRows(ab, arms, np.stack(joint_starts[:1]), held), restitution=restitution)
     rest = price(bodies, points, np.stack(starts[1:]), mu, world.physics, world.tolerance,
-                 max(1, min(most, int(first[0][0]))), None, RevoluteRows(ab, arms, np.stack(joint_starts[1:]), held))
+                 max(1, min(most, int(first[0][0]))), None, RevoluteRows(ab, arms, np.stack(joint_starts[1:]), held),
+                 restitution=restitution)
     if timing is not None:
         timing.observe(time.perf_counter() - t0)
     stages = dict(served.stages)

@@ -263,6 +263,7 @@ class WarmStartService(pb_grpc.WarmStartServicer):
             bodies, points = wire.decode_step(request, max_bodies=self.limits.max_bodies,
                                               max_points=self.limits.max_points)
             friction, joints = wire.decode_friction(request), wire.decode_joints(request)
+            restitution = wire.decode_restitution(request)
             revolute = wire.decode_revolute(request)
             # Only a predictor that asks for the friction gets it: the others' predict() takes none.
             extra = {"friction": friction} if "point_friction" in predictor.requires else {}
@@ -275,6 +276,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                 waited = _waited_us(request, t0) if local else 0
                 deadline = (t0 + 1e-6 * (request.budget_us - waited) - self.deadline_margin_s
                             - (load - 1) * LOAD_SHARE_S)
+            if predictor.takes_restitution:
+                extra["restitution"] = restitution
             if predictor.takes_memory and memory is not None:
                 extra["memory"] = memory.setdefault(request.model, {})
             if predictor.takes_deadline and deadline is not None:
@@ -312,7 +315,8 @@ class WarmStartService(pb_grpc.WarmStartServicer):
                                                history=history, **extra)
                 if route is not None:
                     answer = start_with_joints(route, bodies, points, joints, revolute, world, request.step, previous,
-                                               friction, answer, deadline, self._pricing, labelled)
+                                               friction, answer, deadline, self._pricing, labelled,
+                                               restitution=restitution)
             else:
                 answer = predictor.predict(bodies, points, world, request.step, previous, **extra)
         except QueueFull as exc:

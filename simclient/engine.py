@@ -135,6 +135,7 @@ class Engine:
         self.world = world
         self.step_index = 0
         self._friction: np.ndarray | None = None  # body_friction(), read once
+        self._restitution: np.ndarray | None = None  # point_restitution()'s bodies', read once
         self._inv_dt0 = np.float32(0.0)  # 1 / the last solved step's dt, as Box2D keeps it (0 before the first)
         self.configure(config)
 
@@ -224,6 +225,16 @@ class Engine:
         if self._friction is None or len(self._friction) != self.world.bodyCount:
             self._friction = np.array([b.fixtures[0].friction if b.fixtures else 0.0 for b in self.world.bodies])
         return self._friction
+
+    def point_restitution(self, points: np.ndarray) -> np.ndarray:
+        """(P,) float32 each point's restitution, as Box2D mixes its two fixtures' (the larger),
+        each body's taken from its first fixture (0 without one). The bodies' are read from
+        pybox2d once while the body count holds, as body_friction's are: a body whose fixtures
+        differ in restitution is read at its first one's."""
+        if self._restitution is None or len(self._restitution) != self.world.bodyCount:
+            self._restitution = np.array([b.fixtures[0].restitution if b.fixtures else 0.0 for b in self.world.bodies],
+                                         np.float32)
+        return np.maximum(self._restitution[points["body_a"]], self._restitution[points["body_b"]])
 
     def contacts(self) -> np.ndarray:
         """This step's contact points in export order: (n,) CONTACT_DTYPE.

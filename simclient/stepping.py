@@ -231,7 +231,8 @@ class Stepper:
         joints = engine.joints()
         request = wire.encode_step(k, provider.model, bodies, points, builtin=points["builtin"], impulses=oracle,
                                    friction=points["friction"], joints=joints,
-                                   revolute=engine.revolute() if len(joints) else None)
+                                   revolute=engine.revolute() if len(joints) else None,
+                                   restitution=engine.point_restitution(points))
         t1 = time.perf_counter()
         streams = client.reconnects
         try:

@@ -387,3 +387,60 @@ def test_each_island_stops_at_its_own_sweep_as_box2ds_solver_stops_it():
     _, bodies, points, exact, mu, physics = _two_piles("kinematic")
     one = island_sweeps_to_stop(bodies, points, exact[None], mu, physics, 1e-4, 500)[2]
     assert one.counts.shape == (1, 1) and (one.point == 0).all()
+
+
+def _boxes_landing(restitution: float):
+    """A row of three boxes falling onto a ground edge at 3 m/s, each fixture of `restitution`:
+    an Engine at the step they land (every point closing faster than Box2D's 1 m/s threshold), its
+    bodies, points and physics."""
+    import Box2D
+
+    from simclient.engine import Engine
+
+    world = Box2D.b2World(gravity=(0.0, -9.8))
+    world.CreateStaticBody().CreateEdgeFixture(vertices=[(-10.0, 0.0), (10.0, 0.0)], friction=0.5,
+                                               restitution=restitution)
+    for x in (-2.0, 0.0, 2.0):
+        box = world.CreateDynamicBody(position=(x, 0.52), linearVelocity=(0.0, -3.0))
+        box.CreatePolygonFixture(box=(0.5, 0.5), density=1.0, friction=0.5, restitution=restitution)
+    engine = Engine(world)
+    while engine.collide() == 0:
+        engine.solve()
+    return engine, engine.bodies(), engine.contacts(), Physics(dt=engine.config.dt, gravity=(0.0, -9.8))
+
+
+def test_a_landing_is_solved_and_swept_at_the_bounce_box2d_holds_it_at():
+    # Box2D holds a point that closes faster than 1 m/s at its restitution times that speed,
+    # apart: the route solves the landing there and the server's copy sweeps it so.
+    from deepcontact.faces import contact_face, sweep_changes
+
+    engine, bodies, points, physics = _boxes_landing(0.3)
+    restitution = engine.point_restitution(points)
+    assert len(points) == 6 and np.allclose(restitution, 0.3)
+    mu = points["friction"].astype(np.float64)
+    solution = engine.oracle().astype(np.float64)  # Box2D's own: every point bounces
+    first = {bounce: sweep_changes(bodies, points, solution[None], mu, physics, sweeps=1,
+                                   restitution=restitution if bounce else None)[0] for bounce in (True, False)}
+    assert first[True] < 1e-5 and first[False] > 0.1 * solution[:, 0].max()  # its end where the copy knows
+    labels = labels_of(solution, mu, np.random.default_rng(0))
+    assert (contact_face(solution, mu) != OPEN).all()
+    answers = {bounce: route_compiled(bodies, points, labels, mu, physics, pressing=0.75, rounds=100,
+                                      restitution=restitution if bounce else None).impulses for bounce in (True, False)}
+    np.testing.assert_allclose(answers[True], solution, atol=1e-4 * solution[:, 0].max())
+    assert np.abs(answers[False] - solution).max() > 0.1 * solution[:, 0].max()  # held at rest: 1 / 1.3 of it
+
+
+def test_without_restitution_nothing_bounces():
+    # Points of no restitution (or none given) are held at rest: the same answer either way.
+    from deepcontact.faces import contact_face
+
+    engine, bodies, points, physics = _boxes_landing(0.0)
+    mu = points["friction"].astype(np.float64)
+    labels = labels_of(engine.oracle().astype(np.float64), mu, np.random.default_rng(0))
+    plain = route_compiled(bodies, points, labels, mu, physics, pressing=0.75, rounds=100)
+    given = route_compiled(bodies, points, labels, mu, physics, pressing=0.75, rounds=100,
+                           restitution=engine.point_restitution(points))
+    np.testing.assert_array_equal(plain.impulses, given.impulses)
+    assert (contact_face(plain.impulses, mu) != OPEN).all()
+    with pytest.raises(ValueError, match="restitution"):
+        route_compiled(bodies, points, labels, mu, physics, restitution=np.ones(2))

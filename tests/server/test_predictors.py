@@ -595,7 +595,7 @@ def test_a_route_checked_by_the_stopping_rule_breaks_a_tie_by_the_last_change(tm
     mu = np.full(len(points), 0.5, np.float32)
 
     def both_stop_at_sweep_five(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0,
-                                by_island=False):
+                                by_island=False, restitution=None):
         assert stop == 1e-4  # the client's stopping rule reached the check
         return (5, 1e-5) if np.array_equal(start, points["builtin"]) else (5, route_change)
 
@@ -621,8 +621,9 @@ def test_by_the_stopping_rule_the_routes_side_is_counted_no_further_than_box2ds(
     counted = []
     real = server.face_route._sweep_change
 
-    def recorded(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0, by_island=False):
-        answer = real(bodies, points, start, friction, physics, sweeps, prepared, stop, by_island)
+    def recorded(bodies, points, start, friction, physics, sweeps, prepared=None, stop=0.0, by_island=False,
+                 restitution=None):
+        answer = real(bodies, points, start, friction, physics, sweeps, prepared, stop, by_island, restitution)
         counted.append((sweeps, answer))
         return answer
 
