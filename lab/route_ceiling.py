@@ -20,6 +20,7 @@ dense research route of `lab joint-route` (lab.joint_route.Problem) three ways:
                              restitution's bounce (Engine.point_restitution), as Box2D's solver
                              holds it and the served route does since 2026-12-07; the three above
                              hold every point at rest, as the route did until then
+    labels:oracle-bounce-long the same admitted in ten times --rounds
 
 What the three share and the oracle does not is the route's choice of solution (the face's least-
 norm solve, then the nearest admissible impulses that move the bodies as it does); where they stay
@@ -37,7 +38,8 @@ import numpy as np
 from bench.stats import ratio_interval
 from deepcontact.faces import contact_face
 
-ANSWERS = ("builtin", "oracle", "labels:oracle", "labels:oracle-tight", "labels:oracle-long", "labels:oracle-bounce")
+ANSWERS = ("builtin", "oracle", "labels:oracle", "labels:oracle-tight", "labels:oracle-long", "labels:oracle-bounce",
+           "labels:oracle-bounce-long")
 #: (pressing N s, share of the cone read as sliding) of labels:oracle-tight
 TIGHT = (1e-12, 0.99999)
 
@@ -92,6 +94,7 @@ def price(spec, seed: int, rounds: int, tick=lambda: None) -> dict[str, np.ndarr
                            engine.point_restitution(points))
         contact, joint = bouncing.solve(face, mu)
         out["labels:oracle-bounce"].append(trial(bouncing.admit(contact, joint, face, mu, rounds)))
+        out["labels:oracle-bounce-long"].append(trial(bouncing.admit(contact, joint, face, mu, 10 * rounds)))
         engine.set_warm_start(*builtin)
         engine.solve()
     return {k: np.array(v, float) for k, v in out.items()}
@@ -128,6 +131,6 @@ def run(args: argparse.Namespace) -> int:
               f"in {args.steps} steps; give more --steps", file=sys.stderr)
         return 1
     print(f"`{args.world}`, seeds {args.seeds}, {args.steps} steps, on Box2D's own states; admission in "
-          f"{args.rounds} rounds ({10 * args.rounds} for labels:oracle-long)")
+          f"{args.rounds} rounds ({10 * args.rounds} for the -long answers)")
     print(table(runs, spec.solver.velocity_iterations))
     return 0
