@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from deepcontact.admission import ADMISSION_RHO, _monotonic, nearest_admissible
-from deepcontact.kinematics import (ContactFrame, Physics, _records, contact_frame, contact_velocities,
+from deepcontact.kinematics import (ContactFrame, Physics, _records, bounce, contact_frame, contact_velocities,
                                     velocities_before_and_after)
 from deepcontact.records import BODY_DTYPE, CONTACT_DTYPE
 
@@ -110,12 +110,14 @@ def repair_face(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu
 
 def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: np.ndarray,
                   physics: Physics = Physics(), frame: ContactFrame | None = None,
-                  damping: float = 0.0, solver: str = "gelsy") -> np.ndarray:
+                  damping: float = 0.0, solver: str = "gelsy",
+                  restitution: np.ndarray | None = None) -> np.ndarray:
     """The step's contact problem solved as if its solution lay on `face`, (P, 2) N s.
 
     face: (P,) contact_face labels; mu: (P,) friction coefficients; bodies, points,
-    physics as in contact_velocities (restitution 0: no point bounces; route_compiled holds
-    each point's bounce where it is given one). The
+    physics as in contact_velocities; restitution: (P,) each point's, or None: a pressing
+    point is held at its bounce (kinematics.bounce) where it closes faster than 1 m/s, as
+    Box2D's solver holds it, else at rest. The
     unknowns are the normal impulses of the points that press and the tangent ones
     of those that stick; a sliding point's tangent impulse is +-mu times its normal
     one, an open point's impulses are 0. The equations ask for no relative normal
@@ -141,7 +143,9 @@ def solve_on_face(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, mu: 
     pressing, sticking = np.flatnonzero(face != OPEN), np.flatnonzero(face == STICKS)
     if len(pressing) == 0:
         return np.zeros((n_points, 2))
-    velocity = contact_velocities(bodies, points, physics=physics).ravel()  # (2P,) m/s before any impulse
+    velocity = contact_velocities(bodies, points, physics=physics)  # (P, 2) m/s before any impulse
+    velocity[:, 0] -= bounce(velocity[:, 0], restitution)  # what each normal equation must take away
+    velocity = velocity.ravel()
     system, rows, slide = face_system_sparse(f, face, mu)
     x = _least_squares(system, -velocity[rows], damping, solver)
     out = np.zeros((n_points, 2))
@@ -348,7 +352,8 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
                      rounds: int = 1000, label_friction: float | None = None,
                      frame: ContactFrame | None = None, damping: float = 0.0,
                      solver: str = "gelsy", until: float | None = None,
-                     close: float | None = None, relax: float = 1.0, rho: float = ADMISSION_RHO) -> tuple[np.ndarray, float]:
+                     close: float | None = None, relax: float = 1.0, rho: float = ADMISSION_RHO,
+                     restitution: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The warm start of the face route, (P, 2) N s: a classifier's answer read as labels,
     the step solved on them, the result admitted.
 
@@ -380,8 +385,8 @@ def solved_on_labels(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray,
     """
     frame = contact_frame(bodies, points) if frame is None else frame
     face, solved = read_and_solve(bodies, points, labels, mu, physics, pressing, share, label_friction, frame,
-                                  damping, solver, close)
-    return admit_solved(bodies, points, face, solved, mu, physics, rounds, frame, until, relax, rho)
+                                  damping, solver, close, restitution)
+    return admit_solved(bodies, points, face, solved, mu, physics, rounds, frame, until, relax, rho, restitution)
 
 
 class CompiledRoute(NamedTuple):
@@ -606,7 +611,7 @@ def route_compiled(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
     prepared: prepare_route's for the same bodies, points and physics, or None; carry: None, or
     admission.AdmissionCarry.begin's: the rounds begin where each point's ended on the stream's
     step before, and write where this step's end; restitution: as prepare_route's (where prepared
-    is None; solved_on_labels holds no bounce). None where the
+    is None). None where the
     compiled dual solve declines the labels' system (a pivot below zero, or a system far from
     consistent): solved_on_labels answers those."""
     bodies = _records(np.asarray(bodies), BODY_DTYPE, "bodies")
@@ -630,7 +635,7 @@ def read_and_solve(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
                    physics: Physics = Physics(), pressing: float = 0.5, share: float = 1.0,
                    label_friction: float | None = None, frame: ContactFrame | None = None,
                    damping: float = 0.0, solver: str = "gelsy",
-                   close: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   close: float | None = None, restitution: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """solved_on_labels's first half: (face (P,) int8, impulses (P, 2) N s), the labels read as
     a face (contact_face) and the step solved on it (solve_on_face; again on the relabelled face
     where `close` relabels), not yet admitted. Arguments as in solved_on_labels. A server times
@@ -638,7 +643,7 @@ def read_and_solve(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
     frame = contact_frame(bodies, points) if frame is None else frame
     read_at = mu if label_friction is None else np.full(len(points), float(label_friction))
     face = contact_face(labels, read_at, pressing=pressing, share=share)
-    solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver)
+    solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver, restitution)
     if close is not None:
         closing = (face == OPEN) & (contact_velocities(bodies, points, solved, physics)[:, 0] < -close)
         if closing.any():
@@ -646,14 +651,14 @@ def read_and_solve(bodies: np.ndarray, points: np.ndarray, labels: np.ndarray, m
             # read pressing, and its tangent answer read against a pressing label's normal one
             relabelled[closing, 0] = max(FACE_IMPULSE, np.nextafter(pressing, np.inf))
             face = contact_face(relabelled, read_at, pressing=pressing, share=share)
-            solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver)
+            solved = solve_on_face(bodies, points, face, mu, physics, frame, damping, solver, restitution)
     return face, solved
 
 
 def admit_solved(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, solved: np.ndarray, mu: np.ndarray,
                  physics: Physics = Physics(), rounds: int = 1000, frame: ContactFrame | None = None,
                  until: float | None = None, relax: float = 1.0,
-                 rho: float = ADMISSION_RHO) -> tuple[np.ndarray, float]:
+                 rho: float = ADMISSION_RHO, restitution: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """solved_on_labels's second half: (impulses (P, 2) N s, residual), a step solved on a face
     (P,) (read_and_solve's `solved`, (P, 2) N s) moved by the smallest self-stress that every cone
     admits, the face's open points held at 0 (admission.nearest_admissible, at most `rounds`
@@ -662,17 +667,20 @@ def admit_solved(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, solve
     "admit" stage)."""
     admitted = nearest_admissible(bodies, points, solved, mu, open_points=face == OPEN, iterations=rounds, frame=frame,
                                   until=until, relax=relax, rho=rho)
-    return admitted, face_residual(bodies, points, face, admitted, physics)
+    return admitted, face_residual(bodies, points, face, admitted, physics, restitution)
 
 
 def face_residual(bodies: np.ndarray, points: np.ndarray, face: np.ndarray, impulses: np.ndarray,
-                  physics: Physics = Physics()) -> float:
+                  physics: Physics = Physics(), restitution: np.ndarray | None = None) -> float:
     """How far impulses (P, 2) N s leave a face's equations unmet: the norm of the relative
     velocity where the face (P,) labels ask for none (the normal where a point presses, the
     tangent where it sticks) and of the closing velocity where it says a point lets go, after
     the impulses, over the norm of the relative velocity at those points before any impulse.
-    0 for a face the impulses meet exactly. bodies, points, physics as in contact_velocities."""
+    0 for a face the impulses meet exactly. bodies, points, physics as in contact_velocities;
+    restitution as solve_on_face's: the normal velocities measured from each point's bounce."""
     before, after = velocities_before_and_after(bodies, points, impulses, physics)
+    after = after.copy()
+    after[:, 0] -= bounce(before[:, 0], restitution)
     rows = np.concatenate([2 * np.flatnonzero(face != OPEN), 2 * np.flatnonzero(face == STICKS) + 1])
     left = np.concatenate([after.ravel()[rows], np.minimum(after[face == OPEN, 0], 0.0)])
     scale = float(np.linalg.norm(before))

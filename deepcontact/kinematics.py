@@ -380,6 +380,20 @@ def body_space_part_of(bodies: np.ndarray, points: np.ndarray, impulses: np.ndar
 #: in a step of 1 ms, far below a falling body's and far above a settled pile's drift.
 REST_SPEED = 0.01
 
+#: Box2D's b2_velocityThreshold (m/s): a point closing slower than this does not bounce.
+VELOCITY_THRESHOLD = 1.0
+
+
+def bounce(normal_velocity: np.ndarray, restitution: np.ndarray | None) -> np.ndarray:
+    """(P,) m/s, >= 0: the normal velocity Box2D's solver holds each point at (b2ContactSolver's
+    velocity bias): its restitution (P,) times its closing speed where its normal velocity
+    before any impulse (P,) m/s closes faster than VELOCITY_THRESHOLD, else 0; zeros where
+    restitution is None. deepcontact/_route.c's geometry_build computes the same."""
+    v = np.asarray(normal_velocity, np.float64)
+    if restitution is None:
+        return np.zeros_like(v)
+    return np.where(v < -VELOCITY_THRESHOLD, -np.asarray(restitution, np.float64) * v, 0.0)
+
 
 def points_at_rest(bodies: np.ndarray, points: np.ndarray, speed: float = REST_SPEED) -> np.ndarray:
     """(P,) bool: the points whose dynamic bodies both move slower than `speed` (m/s,

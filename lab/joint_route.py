@@ -52,7 +52,7 @@ import numpy as np
 
 from bench.stats import ratio_interval
 from deepcontact.faces import OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, contact_face
-from deepcontact.kinematics import contact_jacobian
+from deepcontact.kinematics import bounce, contact_jacobian
 
 ANSWERS = ("builtin", "served", "oracle", "labels:oracle", "labels:oracle-route", "labels:oracle-near-builtin", "labels:zoo",
            "labels:zoo-near-builtin", "labels:zoo-free", "labels:builtin", "labels:builtin-route")
@@ -175,9 +175,7 @@ class Problem:
         v = np.stack([bodies["velocity"][dyn, 0] + dt * gravity[0], bodies["velocity"][dyn, 1] + dt * gravity[1],
                       bodies["angular_velocity"][dyn]], 1).astype(np.float64)
         self.v0 = v.ravel()
-        closing = (self.jc @ self.v0)[0::2]  # (P,) each point's normal velocity before any impulse
-        self.bias = np.zeros(len(points)) if restitution is None else \
-            np.where(closing < -1.0, -np.asarray(restitution, np.float64) * closing, 0.0)
+        self.bias = bounce((self.jc @ self.v0)[0::2], restitution)  # (P,) m/s, what each normal row holds
 
     def solve(self, face: np.ndarray, mu: np.ndarray, with_joints: bool = True,
               reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

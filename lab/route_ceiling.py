@@ -21,6 +21,9 @@ dense research route of `lab joint-route` (lab.joint_route.Problem) three ways:
                              holds it and the served route does since 2026-12-07; the three above
                              hold every point at rest, as the route did until then
     labels:oracle-bounce-long the same admitted in ten times --rounds
+    labels:oracle-bounce-near the bounce's solve taken nearest Box2D's start (its unknowns' values)
+                             rather than least norm: of a redundant pile's solutions, the one
+                             nearest where Box2D's sweeps begin
 
 What the three share and the oracle does not is the route's choice of solution (the face's least-
 norm solve, then the nearest admissible impulses that move the bodies as it does); where they stay
@@ -39,7 +42,7 @@ from bench.stats import ratio_interval
 from deepcontact.faces import contact_face
 
 ANSWERS = ("builtin", "oracle", "labels:oracle", "labels:oracle-tight", "labels:oracle-long", "labels:oracle-bounce",
-           "labels:oracle-bounce-long")
+           "labels:oracle-bounce-long", "labels:oracle-bounce-near")
 #: (pressing N s, share of the cone read as sliding) of labels:oracle-tight
 TIGHT = (1e-12, 0.99999)
 
@@ -95,6 +98,8 @@ def price(spec, seed: int, rounds: int, tick=lambda: None) -> dict[str, np.ndarr
         contact, joint = bouncing.solve(face, mu)
         out["labels:oracle-bounce"].append(trial(bouncing.admit(contact, joint, face, mu, rounds)))
         out["labels:oracle-bounce-long"].append(trial(bouncing.admit(contact, joint, face, mu, 10 * rounds)))
+        contact, joint = bouncing.solve(face, mu, reference=start)
+        out["labels:oracle-bounce-near"].append(trial(bouncing.admit(contact, joint, face, mu, rounds)))
         engine.set_warm_start(*builtin)
         engine.solve()
     return {k: np.array(v, float) for k, v in out.items()}

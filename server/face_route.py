@@ -398,10 +398,10 @@ class FaceRoutePredictor(Predictor):
                 break
             read, solved = read_and_solve(bodies, points, labels, mu, world.physics, pressing, face["share"],
                                           face["label_friction"], frame, face["damping"], face["solver"],
-                                          face["close"])
+                                          face["close"], restitution)
             t1 = time.perf_counter()
             impulses, residual = admit_solved(bodies, points, read, solved, mu, world.physics, face["rounds"], frame,
-                                              deadline, face["relax"], face["rho"])
+                                              deadline, face["relax"], face["rho"], restitution)
             t2 = time.perf_counter()
             stages["solve"] += t1 - t0
             stages["admit"] += t2 - t1

@@ -430,6 +430,18 @@ def test_a_landing_is_solved_and_swept_at_the_bounce_box2d_holds_it_at():
     assert np.abs(answers[False] - solution).max() > 0.1 * solution[:, 0].max()  # held at rest: 1 / 1.3 of it
 
 
+def test_the_piecewise_route_holds_the_same_bounces_as_the_compiled_one():
+    engine, bodies, points, physics = _boxes_landing(0.3)
+    mu = points["friction"].astype(np.float64)
+    labels = labels_of(engine.oracle().astype(np.float64), mu, np.random.default_rng(0))
+    restitution = engine.point_restitution(points)
+    settings = dict(physics=physics, pressing=0.75, share=1.0, rounds=100, restitution=restitution)
+    reference, residual = solved_on_labels(bodies, points, labels, mu, solver="dual", **settings)
+    compiled = route_compiled(bodies, points, labels, mu, **settings)
+    np.testing.assert_allclose(compiled.impulses, reference, atol=1e-8 * np.abs(reference).max())
+    assert compiled.residual == pytest.approx(residual, rel=1e-6, abs=1e-12)
+
+
 def test_without_restitution_nothing_bounces():
     # Points of no restitution (or none given) are held at rest: the same answer either way.
     from deepcontact.faces import contact_face
