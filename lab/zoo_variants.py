@@ -65,7 +65,11 @@ name another:
                     shipped one compares the changes at its twelfth sweep), for K in OWN_STOP_SWEEPS
                     (docs/research/2026-12-07-island-by-island.md, "The thesis world's check")
 
-Written to a temporary folder and renamed; an existing folder is replaced.
+Every variant here holds each point's bounce where the zoo's worlds have restitution (face
+`restitution`, true unless a card says otherwise) since the evening of 2026-12-07; the figures the
+notes before then give for these variants on the zoo's classes were measured with every point held
+at rest (default-bounceless is the shipped default so; on worlds without restitution nothing
+changed). Written to a temporary folder and renamed; an existing folder is replaced.
 """
 
 from __future__ import annotations
