@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a world, FUNCTION(seed) in PATH.py or MODULE:FUNCTION (e.g. simclient.zoo:pyramid)")
     parser.add_argument("--seeds", default="850", help="seeds (default 850, a choosing seed)")
     parser.add_argument("--steps", type=int, default=120, help="steps per simulation (default 120)")
-    parser.add_argument("--rounds", type=int, default=200, help="admission rounds (default 200; labels:oracle-long "
+    parser.add_argument("--rounds", type=int, default=200, help="admission rounds (default 200; the -long answers "
                                                                 "ten times as many)")
 
 
