@@ -1,9 +1,11 @@
 """What a route has cost at each step size, to tell whether it fits a step's deadline.
 
-A face card's route (the classifier, the solve on its labels, the admission) costs about
-the cube of the step's size and differs from host to host by a factor of three: a
-threshold fixed in the card would be wrong somewhere. A `CostBySize` learns it on the host
-that serves, from the steps it serves:
+A face card's route (the classifier, the solve on its labels, the admission) grows with the
+step's size, by a power that differs from world to world (its served CPU time, from about 40
+points to about 600, grew as the 0.9th power of (size + OFFSET) on Box2D's Pyramid and, from
+about 30 to about 150, as the 1.7th on the thesis world's piles of discs), and it differs from
+host to host by a factor of three: a threshold fixed in the card would be wrong somewhere. A
+`CostBySize` learns it on the host that serves, from the steps it serves:
 
     cost = CostBySize()
     if cost.fits(len(points), time.perf_counter(), deadline):   # deadline: perf_counter() s
@@ -15,8 +17,13 @@ that serves, from the steps it serves:
 Steps are grouped by size in buckets of BUCKET_POINTS points. A bucket with TRIALS steps
 seen or more is estimated by the QUANTILE of its last WINDOW steps, so that steps that run
 long on a busy host (the reason for the deadline) count. A bucket with fewer is estimated from
-the nearest smaller one that has them, grown with the square of (size + OFFSET) (the route's
-fixed costs: the classifier, the set-up of the solve). With none such, from the steps seen
+the nearest smaller one that has them, grown with a power of (size + OFFSET) (OFFSET: the
+route's fixed costs, the classifier's and the solve's set-up): the power the known buckets
+show between the smallest and the largest of them, where those lie at least SPREAD apart in
+(size + OFFSET), held between MIN_POWER and MAX_POWER; DEFAULT_POWER until then. (Grown with
+the square, a route that had seen only a pile's first steps, of about 40 points, expected 6 ms
+at 110 and 34 ms at 320 where it took 3 and 5, and no larger step was ever tried: Box2D's
+Pyramid served Box2D's start on 119 of its 129 steps.) With none such, from the steps seen
 within NEAR of its size, each scaled so to it, by their median (steps of several sizes, and a
 cold first call among them), once there are TRIALS of them: a stream whose steps change by
 more than a bucket from one step to the next fills no bucket for a while, and each new size
@@ -34,6 +41,7 @@ recent step would still fit, so that an estimate a busy moment raised comes down
 from __future__ import annotations
 
 import collections
+import math
 import threading
 
 
@@ -43,6 +51,10 @@ QUANTILE = 0.9
 PROBE_EVERY = 16
 TRIALS = 3
 OFFSET = 50
+#: The power of (size + OFFSET) a cost grows with, learned between these bounds from the known
+#: buckets where they lie at least SPREAD apart in (size + OFFSET); DEFAULT_POWER until then.
+MIN_POWER, DEFAULT_POWER, MAX_POWER = 1.0, 1.5, 2.0
+SPREAD = 1.5
 #: The share of a step's size within which steps of other sizes speak for it while no bucket at
 #: or below it is known.
 NEAR = 0.2
@@ -58,10 +70,23 @@ def _quantile(ordered: list[float], q: float) -> float:
     return ordered[low] + (ordered[high] - ordered[low]) * (at - low)
 
 
-def _grow(seen: int, asked: int) -> float:
-    """The factor from a step's cost in bucket `seen` to one in bucket `asked`: the square of
-    (size + OFFSET)."""
-    return 1.0 if seen == asked else ((asked * BUCKET_POINTS + OFFSET) / (seen * BUCKET_POINTS + OFFSET)) ** 2
+def _grow(seen: int, asked: int, power: float = DEFAULT_POWER) -> float:
+    """The factor from a step's cost in bucket `seen` to one in bucket `asked`: (size + OFFSET)
+    to the `power`."""
+    return 1.0 if seen == asked else ((asked * BUCKET_POINTS + OFFSET) / (seen * BUCKET_POINTS + OFFSET)) ** power
+
+
+def _power(known: dict[int, float]) -> float:
+    """The power of (size + OFFSET) that a route's cost grows with, from its known buckets'
+    median seconds ({bucket: s}): between the smallest and the largest where they lie SPREAD
+    apart, held inside [MIN_POWER, MAX_POWER]; DEFAULT_POWER where none do."""
+    if len(known) < 2:
+        return DEFAULT_POWER
+    low, high = min(known), max(known)
+    ratio = (high * BUCKET_POINTS + OFFSET) / (low * BUCKET_POINTS + OFFSET)
+    if ratio < SPREAD or known[low] <= 0.0 or known[high] <= 0.0:
+        return DEFAULT_POWER
+    return min(MAX_POWER, max(MIN_POWER, math.log(known[high] / known[low]) / math.log(ratio)))
 
 
 class CostBySize:
@@ -69,6 +94,8 @@ class CostBySize:
 
     def __init__(self) -> None:
         self._seen: dict[int, collections.deque] = {}
+        self._medians: dict[int, float] = {}  # the median seconds of each bucket with TRIALS steps seen
+        self._power = DEFAULT_POWER  # _power(self._medians), kept as steps are observed
         self._declined: collections.Counter = collections.Counter()
         self._lock = threading.Lock()
 
@@ -76,7 +103,11 @@ class CostBySize:
         """One step of `points` points took `seconds` s along the route."""
         k = points // BUCKET_POINTS
         with self._lock:
-            self._seen.setdefault(k, collections.deque(maxlen=WINDOW)).append(float(seconds))
+            recent = self._seen.setdefault(k, collections.deque(maxlen=WINDOW))
+            recent.append(float(seconds))
+            if len(recent) >= TRIALS:
+                self._medians[k] = _quantile(sorted(recent), 0.5)
+                self._power = _power(self._medians)
 
     def estimate(self, points: int) -> float:
         """Seconds the route is expected to take on a step of `points` points (0: nothing known
@@ -87,17 +118,18 @@ class CostBySize:
         """(the estimate, the fastest recent step's seconds) at this size, as the module says."""
         k = points // BUCKET_POINTS
         with self._lock:
-            known = [b for b, recent in self._seen.items() if len(recent) >= TRIALS and b <= k]
+            power = self._power
+            known = [b for b in self._medians if b <= k]
             if not known:
                 near = max(1.0, NEAR * points / BUCKET_POINTS)  # in buckets; the next ones always
-                pooled = sorted(seconds * _grow(b, k) for b, recent in self._seen.items() if abs(b - k) <= near
-                                for seconds in recent)
+                pooled = sorted(seconds * _grow(b, k, power) for b, recent in self._seen.items()
+                                if abs(b - k) <= near for seconds in recent)
                 if len(pooled) < TRIALS:
                     return 0.0, 0.0
                 return _quantile(pooled, 0.5), pooled[0]
             b = max(known)
             values = sorted(self._seen[b])
-        grow = _grow(b, k)
+        grow = _grow(b, k, power)
         return grow * _quantile(values, QUANTILE), grow * values[0]
 
     def fits(self, points: int, now: float, deadline: float | None, slowdown: float = 1.0) -> bool:

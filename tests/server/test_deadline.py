@@ -1,6 +1,6 @@
 """server.deadline: a route's recent cost by step size decides whether it fits a deadline."""
 
-from server.deadline import BUCKET_POINTS, OFFSET, PROBE_EVERY, TRIALS, WINDOW, CostBySize
+from server.deadline import BUCKET_POINTS, DEFAULT_POWER, MAX_POWER, MIN_POWER, OFFSET, PROBE_EVERY, TRIALS, WINDOW, CostBySize
 
 
 def test_a_route_fits_until_it_has_been_seen_to_cost_more_than_is_left():
@@ -19,10 +19,10 @@ def test_a_size_is_estimated_from_the_nearest_smaller_one_known_until_it_is_know
     for _ in range(TRIALS):
         cost.observe(50, 0.004)
     # Nothing known at or below 45: the steps seen within a fifth of its size, scaled to it.
-    assert abs(cost.estimate(45) - 0.004 * ((40 + OFFSET) / (50 + OFFSET)) ** 2) < 1e-12
+    assert abs(cost.estimate(45) - 0.004 * ((40 + OFFSET) / (50 + OFFSET)) ** DEFAULT_POWER) < 1e-12
     assert cost.estimate(30) == 0.0  # none within a fifth of 30 points
     assert cost.estimate(50 + BUCKET_POINTS - 1) == 0.004  # the same bucket
-    assert abs(cost.estimate(60) - 0.004 * ((60 + OFFSET) / (50 + OFFSET)) ** 2) < 1e-12
+    assert abs(cost.estimate(60) - 0.004 * ((60 + OFFSET) / (50 + OFFSET)) ** DEFAULT_POWER) < 1e-12
     assert cost.fits(60, now=0.0, deadline=0.008)  # a little larger: tried
     assert not cost.fits(200, now=0.0, deadline=0.008)  # far larger: not before the sizes between
     cost.observe(60, 0.100)  # one cold first call at 60 points decides nothing yet
@@ -73,3 +73,23 @@ def test_a_stream_whose_steps_grow_past_every_bucket_is_judged_by_all_its_steps_
     for points in (30, 40, 87):
         small.observe(points, 0.003)
     assert small.fits(400, now=0.0, deadline=0.008)
+
+
+def test_a_size_not_seen_yet_is_grown_by_the_power_the_known_sizes_show():
+    # A pile's route: 1.6 ms at 36 points, 3 ms at 110, about linear in (size + OFFSET) from
+    # there. Learned from its first steps, the sizes it grows to are tried as they come.
+    pile = CostBySize()
+    for _ in range(TRIALS):
+        pile.observe(36, 0.0016)
+    assert pile.fits(111, now=0.0, deadline=0.0058)  # the default power: 3.8 ms expected
+    for _ in range(TRIALS):
+        pile.observe(111, 0.0016 * (111 + OFFSET) / (36 + OFFSET))
+    assert abs(pile._power - MIN_POWER) < 1e-9  # linear, as the two sizes show
+    assert abs(pile.estimate(320) - pile.estimate(111) * (320 + OFFSET) / (110 + OFFSET)) < 1e-12
+    # A route that grows with the cube is held at MAX_POWER: one far larger is still not tried.
+    steep = CostBySize()
+    for points in (30, 150):
+        for _ in range(TRIALS):
+            steep.observe(points, 0.0005 * ((points + OFFSET) / 80) ** 3)
+    assert steep._power == MAX_POWER
+    assert not steep.fits(400, now=0.0, deadline=0.008)
