@@ -122,7 +122,14 @@ every joint of a request is a revolute, rigid weld or prismatic one and it sends
 with its stopping rule, the route asks its classifier about the step with each joint as two points
 and serves, of five starts, the one that stops soonest on the server's copy of the step with the
 joints swept as Box2D sweeps them, the joints' start on the reply where it is the route's,
-server.revolute; read from the last face route along a card's fallbacks).
+server.revolute; read from the last face route along a card's fallbacks), held_labels (default
+false; true: along a stream, the classifier's labels are held by contact point, and a step that
+the route would not end by its deadline with its classifier, but would without it, and whose every
+point has labels held from the last three steps, is solved on those, the classifier labelling it
+after the reply on the spare core for the steps after it, server.held_labels), check_work
+(default null; a whole number, with check_sweeps: the check plays no more than check_work /
+points sweeps from each start on a step, at least one, so that a large step's check costs no
+more point-sweeps than a smaller one's).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -182,7 +189,7 @@ FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction"
                  "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                  "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
                  "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False,
-                 "restitution": True}
+                 "restitution": True, "held_labels": False, "check_work": None}
 
 
 class ModelCardError(ValueError):
@@ -354,12 +361,12 @@ def _face_settings(face: Any, kind: str) -> dict:
         raise ModelCardError(f"model card face: an object with keys among {sorted(FACE_DEFAULTS)}, got {face!r}")
     out = {**FACE_DEFAULTS, **face}
     optional = ("label_friction", "max_residual", "close")
-    sweeps, fewest = out["check_sweeps"], out["min_rounds"]
+    sweeps, fewest, work = out["check_sweeps"], out["min_rounds"], out["check_work"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
                                            "extrapolate_jointed", "check_stop", "slide_in_bodies", "revolute_joints",
-                                           "by_island", "restitution")
-                  and not (k in optional + ("max_points", "check_sweeps", "min_rounds") and out[k] is None))
+                                           "by_island", "restitution", "held_labels")
+                  and not (k in optional + ("max_points", "check_sweeps", "min_rounds", "check_work") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
                                                    for r in retries) and (not retries or out["max_residual"] is not None)
@@ -374,19 +381,21 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not isinstance(out["extrapolate_jointed"], bool) or not isinstance(out["check_stop"], bool) \
             or not isinstance(out["slide_in_bodies"], bool) or not isinstance(out["revolute_joints"], bool) \
             or not isinstance(out["by_island"], bool) or (out["by_island"] and not out["check_stop"]) \
-            or not isinstance(out["restitution"], bool) \
+            or not isinstance(out["restitution"], bool) or not isinstance(out["held_labels"], bool) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
             or (out["check_stop"] and sweeps is None) \
+            or not (work is None or isinstance(work, int) and work >= 1 and sweeps is not None) \
             or not (fewest is None or isinstance(fewest, int) and 1 <= fewest <= out["rounds"]):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
                              f"between 0 and 2, rho > 0, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
                              f"whole number >= 1, fallback null or a card's name, solver one of {SOLVERS}, "
                              f"retry_pressing a list of numbers >= 0 (N s) and only with max_residual, against_builtin, "
-                             f"rescale, carry, extrapolate_jointed, slide_in_bodies, revolute_joints and restitution true or false, "
+                             f"rescale, carry, extrapolate_jointed, slide_in_bodies, revolute_joints, restitution and held_labels true or false, "
                              f"check_sweeps null or a "
                              f"whole number 1-1000, "
-                             f"check_stop true or false and only with check_sweeps, by_island true or false and only "
+                             f"check_stop true or false and only with check_sweeps, check_work null or a whole "
+                             f"number >= 1 and only with check_sweeps, by_island true or false and only "
                              f"with check_stop, min_rounds null or a whole "
                              f"number 1 to rounds, got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
@@ -396,7 +405,8 @@ def _face_settings(face: Any, kind: str) -> dict:
             "against_builtin": out["against_builtin"], "rescale": out["rescale"], "carry": out["carry"],
             "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
             "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest, "revolute_joints": out["revolute_joints"],
-            "by_island": out["by_island"], "restitution": out["restitution"]}
+            "by_island": out["by_island"], "restitution": out["restitution"], "held_labels": out["held_labels"],
+            "check_work": work}
 
 
 def _measured(m: Any) -> dict:

@@ -65,6 +65,16 @@ name another:
                     shipped one compares the changes at its twelfth sweep), for K in OWN_STOP_SWEEPS
                     (docs/research/2026-12-07-island-by-island.md, "The thesis world's check")
 
+    zoo-work-W      the zoo route as shipped until 2026-12-07's last change (LARGE_BEFORE) with its
+                    check playing no more than W / points sweeps from each start (face check_work W)
+                    for W in CHECK_WORK; zoo-work-none that route as it was (200 sweeps at any
+                    size); zoo-sweeps-K it checked by K sweeps at any size for K in FLAT_SWEEPS;
+                    zoo-held it with labels held along the stream for the steps its classifier would
+                    not fit in time (face held_labels), zoo-work-W-held both (zoo-work-40000-held
+                    is the zoo route shipped since);
+                    default-... the shipped default falling back to each
+                    (docs/research/2026-12-07-large-steps-at-the-deadline.md)
+
 Every variant here holds each point's bounce where the zoo's worlds have restitution (face
 `restitution`, true unless a card says otherwise) since the evening of 2026-12-07; the figures the
 notes before then give for these variants on the zoo's classes were measured with every point held
@@ -95,6 +105,16 @@ ZOO_FACE = {"pressing": 0.75, "rounds": 50, "rho": 1000, "max_residual": 0.5, "m
             "against_builtin": True, "check_sweeps": 12, "extrapolate_jointed": True, "fallback": "contact-graph"}
 #: Sweeps of the zoo route's check against Box2D's start (face check_sweeps; 12 in ZOO_FACE).
 CHECK_SWEEPS = (4, 24, 48, 96, 200)
+#: Point-sweeps a start of the zoo route's check may play on a step, in zoo-work-W (face check_work).
+CHECK_WORK = (10_000, 20_000, 40_000)
+#: The zoo route's face as shipped until its check's work was capped and its labels held
+#: (2026-12-07): zoo-work-..., zoo-sweeps-... and zoo-held change this one.
+LARGE_BEFORE = {"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": None, "max_points": 1000,
+                "solver": "dual", "against_builtin": True, "check_sweeps": 200, "check_stop": True,
+                "extrapolate_jointed": True, "min_rounds": 30, "revolute_joints": True, "by_island": True,
+                "fallback": "contact-graph"}
+#: Sweeps of the zoo route's check at any step size, in zoo-sweeps-K.
+FLAT_SWEEPS = (50, 100)
 #: Sweeps to the stopping rule of the default's own route's check in default-own-stopK.
 OWN_STOP_SWEEPS = (48, 200)
 #: max_residual x 10 of the zoo route in 200 rounds checked by 200 sweeps (0.5 shipped, at 50 rounds and 12 sweeps).
@@ -137,6 +157,16 @@ def _fill(tmp: Path) -> None:
         card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-{tag}", "restitution": bounce},
              measured=shipped_default.get("measured"))
+    # The check's cost on large steps: capped by its work, by a flat count, and labels held; each a
+    # change of the zoo route as it was before any of them (LARGE_BEFORE).
+    large = {f"work-{w}": {"check_work": w} for w in CHECK_WORK}
+    large.update({"work-none": {}, "held": {"held_labels": True}})
+    large.update({f"sweeps-{k}": {"check_sweeps": k} for k in FLAT_SWEEPS})
+    large.update({f"work-{w}-held": {"check_work": w, "held_labels": True} for w in CHECK_WORK})
+    for tag, change in large.items():
+        card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"], face={**LARGE_BEFORE, **change})
+        card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
     for sweeps in OWN_STOP_SWEEPS:
         card(tmp, f"default-own-stop{sweeps}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "check_stop": True, "check_sweeps": sweeps},

@@ -56,6 +56,7 @@ for Box2D's warm start).
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import os
 import threading
 import time
@@ -69,6 +70,7 @@ from deepcontact.kinematics import contact_frame, effective_masses, jacobi_chang
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
 from server.deadline import CostBySize
+from server.held_labels import HeldLabels
 from server.mirror_image import MirroredGraphPredictor
 from server.predictors import Domain, GraphPredictor, Prediction, Predictor, World
 
@@ -81,6 +83,9 @@ BUILTIN = "builtin"
 #: The fewest points at which a step's geometry is built ahead, on another core: below, the
 #: hand-off costs about what it saves.
 AHEAD_POINTS = 60
+#: served_by's ending where the route answered on labels its classifier gave an earlier step of
+#: the stream (the card's held_labels: server.held_labels).
+HELD = " (held labels)"
 
 
 class FaceRoutePredictor(Predictor):
@@ -114,6 +119,7 @@ class FaceRoutePredictor(Predictor):
         # (where the admission's rounds past min_rounds must stop: the check's sweeps vary from
         # step to step far more than its cost a sweep does).
         self.cost = CostBySize()
+        self.held_cost = CostBySize()  # the route's on held labels: without its classifier
         self.sweep_cost = CostBySize()
         self.fallback_cost = CostBySize()  # the fallback card's
         # A step with a budget runs the route only in a free lane, one a core: on a server
@@ -124,6 +130,10 @@ class FaceRoutePredictor(Predictor):
         self._lanes = threading.BoundedSemaphore(cores)
         # A thread that builds a step's geometry while its classifier runs, where a core is spare.
         self._helper = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="route-ahead") if cores > 1 else None
+        # With the card's held_labels, a thread that labels a step after its reply has gone, where
+        # the route did not fit with its classifier, for the stream's steps after it.
+        self._labeller = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="route-labels") \
+            if cores > 1 and self.settings["held_labels"] else None
         # The route after the classifier in one compiled call where the card asks for nothing it
         # leaves out (deepcontact.faces.route_compiled): the dual solve, no damping, no
         # relabelling, no retries; the same numbers, without the NumPy calls between the pieces.
@@ -171,37 +181,73 @@ class FaceRoutePredictor(Predictor):
                 scaled_world = World(world.domain, physics, world.tolerance)
                 if self.unfamiliar(b, p, friction, scaled_world) is None:
                     scaled = (b, p, prev, scaled_world)
-        if (verdict is not None and scaled is None) or not self.fits(len(points), started, deadline, slowdown) \
-                or (lane is not None and not lane.acquire(blocking=False)):
+        familiar = verdict is None or scaled is not None
+        most = self.settings["max_points"]
+        within = most is None or len(points) <= most
+        held = memory.setdefault(f"{self.name}:held", HeldLabels()) \
+            if self.settings["held_labels"] and memory is not None and familiar and within else None
+        timely = self.fits(len(points), started, deadline, slowdown)
+        answer, labelled = None, False
+        if familiar and timely:
+            if lane is None or lane.acquire(blocking=False):
+                try:
+                    answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown,
+                                         scaled, memory, restitution, held=held)
+                    labelled = True
+                finally:
+                    if lane is not None:
+                        lane.release()
+        elif held is not None and within:
+            # Too large a step to label and solve in time: solved on the labels held for its
+            # points, where each has some and the route ends in time without its classifier.
+            labels = held.lookup(points, step)
+            if labels is not None and self.held_cost.fits(len(points), started, deadline, slowdown) \
+                    and (lane is None or lane.acquire(blocking=False)):
+                try:
+                    answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown,
+                                         scaled, memory, restitution, labels=labels)
+                finally:
+                    if lane is not None:
+                        lane.release()
+        if answer is None:
             # A world the classifier was not trained on, too large a step to solve, or to solve
             # in time, or every lane busy with another step's route: no labels asked for.
             answer = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown,
                                     memory=memory, restitution=restitution)
-        else:
-            try:
-                answer = self._route(bodies, points, world, step, previous, friction, deadline, cpu, slowdown,
-                                     scaled, memory, restitution)
-            finally:
-                if lane is not None:
-                    lane.release()
+        if held is not None and not labelled and self._labeller is not None and slowdown <= 1.0:
+            # Labelled on the spare core after the reply, for the stream's next steps.
+            held.label_later(self._labeller, functools.partial(self._labels, bodies.copy(), points.copy(), world,
+                                                               step, previous, friction, scaled), points, step)
         # The verdict goes with the answer: the reply says whether the step is familiar without
         # judging it again (the same envelope, about 15 us a step).
         return Prediction(answer.impulses, answer.stages, answer.served_by, verdict)
 
+    def _labels(self, bodies, points, world, step, previous, friction, scaled=None) -> np.ndarray:
+        """The classifier's answer (P, 2) on a step, as _route asks it (scaled: as _route's), its
+        network's plain half alone: what server.held_labels holds."""
+        asked = scaled if scaled is not None else (bodies, points, previous, world)
+        return self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction).impulses
+
     def _route(self, bodies, points, world, step, previous, friction, deadline, cpu: float,
-               slowdown: float = 1.0, scaled=None, memory: dict | None = None, restitution=None) -> Prediction:
+               slowdown: float = 1.0, scaled=None, memory: dict | None = None, restitution=None,
+               held: HeldLabels | None = None, labels: np.ndarray | None = None) -> Prediction:
         """predict's answer along the route (module docstring); cpu: the thread's CPU time when
         the step began; scaled: (bodies, points, previous, world) the classifier reads instead
-        (the card's rescale), or None."""
+        (the card's rescale), or None; held: where the classifier's answer is held for the
+        stream's later steps (server.held_labels), or None; labels: (P, 2) labels held from an
+        earlier step, solved on in place of the classifier's (its answer's served_by then ends
+        in HELD), or None."""
         # The route's geometry (the frame, the admission's factorization) does not depend on the
         # labels: on a server with a core to spare it is built there while the classifier runs.
         # So does Box2D's start's side of the check against it (check_sweeps).
         ahead, mirror, prepared, builtin_change = None, {}, None, None
         free = self._helper is not None and slowdown <= 1.0
         checks = self.settings["against_builtin"] or scaled is not None
-        sweeps = self.settings["check_sweeps"] if checks else None
+        sweeps = self._check_sweeps(len(points)) if checks else None
         stop = self._stop_tolerance(world)
-        if isinstance(self.classifier, MirroredGraphPredictor):
+        if labels is not None:
+            pass  # held labels: no classifier to run beside the geometry
+        elif isinstance(self.classifier, MirroredGraphPredictor):
             # The reflected half on the spare core while the step's half runs here, and the
             # geometry here after it, filling the wait. Without a free core the step's half
             # alone: in turn the reflection would add the network's time again to the step.
@@ -212,14 +258,22 @@ class FaceRoutePredictor(Predictor):
         elif self.compiled and free and len(points) >= AHEAD_POINTS:
             ahead = self._helper.submit(_ahead, bodies, points, world.physics, friction, sweeps, stop,
                                         self._by_island(stop), restitution)
-        asked = scaled if scaled is not None else (bodies, points, previous, world)
-        labels = self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction, **mirror)
+        if labels is not None:  # held: no classifier, and nothing to build ahead while it runs
+            guess = labels
+            stages = {"features": 0.0, "inference": 0.0, "solve": 0.0, "admit": 0.0}
+        else:
+            asked = scaled if scaled is not None else (bodies, points, previous, world)
+            answer = self.classifier.predict(asked[0], asked[1], asked[3], step, asked[2], friction=friction,
+                                             **mirror)
+            guess = answer.impulses
+            if held is not None:
+                held.keep(points, step, guess)
+            stages = {"features": answer.stages["features"], "inference": answer.stages["inference"],
+                      "solve": answer.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
         if ahead is not None:
             prepared, builtin_change = ahead.result()
         elif mirror.get("meanwhile") is not None and mirror["meanwhile"].value is not None:
             prepared, builtin_change = mirror["meanwhile"].value
-        stages = {"features": labels.stages["features"], "inference": labels.stages["inference"],
-                  "solve": labels.stages["g2p"], "admit": 0.0}  # the network's output read as labels: the solve's
         carry = None
         if self.settings["carry"] and memory is not None:
             carry = (memory.setdefault(self.name, AdmissionCarry()), step)
@@ -227,10 +281,10 @@ class FaceRoutePredictor(Predictor):
         if deadline is not None and self.settings["min_rounds"] is not None and checks:
             # Rounds past min_rounds only while the check after them would still end in time: its
             # sweeps are known where Box2D's side has run ahead, else at most both sides' in full.
-            planned = self._route_sweeps(builtin_change, stop) if builtin_change is not None \
+            planned = self._route_sweeps(builtin_change, stop, len(points)) if builtin_change is not None \
                 else 2 * (sweeps or 1)
             until = deadline - slowdown * planned * self.sweep_cost.estimate(len(points))
-        impulses, extra_rounds = self._solved_on_labels(bodies, points, world, labels.impulses, friction, until,
+        impulses, extra_rounds = self._solved_on_labels(bodies, points, world, guess, friction, until,
                                                         stages, prepared, carry, restitution)
         served_by = None
         # A step read at another scale than its own is one the classifier was not trained on:
@@ -243,7 +297,7 @@ class FaceRoutePredictor(Predictor):
                                                world.physics, sweeps, prepared, stop, self._by_island(stop),
                                                restitution=restitution)
                 counted = min(builtin_change[0], sweeps)
-            counted += self._route_sweeps(builtin_change, stop)
+            counted += self._route_sweeps(builtin_change, stop, len(points))
             taken = np.broadcast_to(np.asarray(self._beats_builtin(bodies, points, impulses, friction, world, prepared,
                                                                    builtin_change, restitution), bool),
                                     (len(points),))
@@ -267,7 +321,9 @@ class FaceRoutePredictor(Predictor):
         # large steps than the replies past the deadline it spared (0.930x against 0.858x of
         # Builtin's iterations, 2 against 8 of 2,581 replies late; docs/research/2026-12-07-fewer-
         # rounds-rather-than-none.md); the service's margin is there for it.
-        self.cost.observe(len(points), time.thread_time() - cpu - extra_rounds)
+        (self.cost if labels is None else self.held_cost).observe(len(points), time.thread_time() - cpu - extra_rounds)
+        if labels is not None and served_by is None:
+            served_by = f"{self.name}{HELD}"
         if self.gate is not None:
             t0 = time.perf_counter()
             if not self.gate.serves_model(step_features(bodies, points, impulses)):
@@ -303,7 +359,7 @@ class FaceRoutePredictor(Predictor):
         (Box2D's solver stops each island at its own sweep). restitution: as predict's, where
         prepared is None."""
         mu = np.asarray(friction, np.float64)
-        sweeps = self.settings["check_sweeps"]
+        sweeps = self._check_sweeps(len(points))
         if sweeps is not None:
             stop = self._stop_tolerance(world)
             if builtin_change is None:
@@ -312,14 +368,14 @@ class FaceRoutePredictor(Predictor):
             if len(builtin_change) > 2:
                 box2d = builtin_change[2]
                 route = island_sweeps_to_stop(bodies, points, np.asarray(impulses, np.float64)[None], mu, world.physics,
-                                              stop, self._route_sweeps(builtin_change, stop), prepared,
+                                              stop, self._route_sweeps(builtin_change, stop, len(points)), prepared,
                                               restitution=restitution)[2]
                 wins = (route.counts[0] < box2d.counts[0]) | (
                     (route.counts[0] == box2d.counts[0]) & (route.changes[0] < box2d.changes[0]))
                 return wins[box2d.point]
             box2d_sweeps, box2d = builtin_change[:2]
             route_sweeps, route = _sweep_change(bodies, points, impulses, mu, world.physics,
-                                                self._route_sweeps(builtin_change, stop), prepared, stop,
+                                                self._route_sweeps(builtin_change, stop, len(points)), prepared, stop,
                                                 restitution=restitution)
             if route_sweeps == box2d_sweeps:  # both stop at the same sweep, or neither by sweep N
                 return route < box2d
@@ -328,13 +384,26 @@ class FaceRoutePredictor(Predictor):
         route = jacobi_change(bodies, points, impulses, mu, world.physics, masses)
         return route < jacobi_change(bodies, points, points["builtin"], mu, world.physics, masses)
 
-    def _route_sweeps(self, builtin_change: tuple[int, float] | None, stop: float) -> int:
-        """The sweeps the check plays from the route's answer (1 for the Jacobi check, which has
-        none): the card's check_sweeps, but by the stopping rule (stop > 0 N s) none past the
-        sweep where Box2D's start stopped (builtin_change[0]): stopped by then, its count and last
-        change are the same; not, it has lost either way (its count then one more than Box2D's).
-        On a step the route loses that spares up to check_sweeps of them."""
-        sweeps = self.settings["check_sweeps"]
+    def _check_sweeps(self, n_points: int) -> int | None:
+        """The sweeps the check plays from each start on a step of n_points points: the card's
+        check_sweeps, and with its check_work no more than check_work / n_points (at least
+        one), so that a large step's check costs no more than a smaller one's: on Box2D's
+        Pyramid, where neither start stops within 200 sweeps, 200 of them from each start were
+        about 8 ms of a 700-point step and the route fitted the 10 ms deadline on few of them.
+        None: no check by sweeps."""
+        sweeps, work = self.settings["check_sweeps"], self.settings["check_work"]
+        if sweeps is None or work is None or n_points == 0:
+            return sweeps
+        return max(1, min(sweeps, work // n_points))
+
+    def _route_sweeps(self, builtin_change: tuple[int, float] | None, stop: float, n_points: int) -> int:
+        """The sweeps the check plays from the route's answer on a step of n_points points (1 for
+        the Jacobi check, which has none): _check_sweeps's, but by the stopping rule (stop > 0
+        N s) none past the sweep where Box2D's start stopped (builtin_change[0]): stopped by
+        then, its count and last change are the same; not, it has lost either way (its count
+        then one more than Box2D's). On a step the route loses that spares up to check_sweeps
+        of them."""
+        sweeps = self._check_sweeps(n_points)
         if sweeps is None:
             return 1
         return max(1, min(sweeps, builtin_change[0])) if stop > 0 else sweeps

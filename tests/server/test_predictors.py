@@ -834,3 +834,76 @@ def test_a_route_that_rescales_labels_a_denser_step_as_the_step_it_scales_and_so
     plain = load_model(face_card(tmp_path, "plain", "thesis-only")).predict(dense_bodies, dense_points, world, 0,
                                                                             friction=mu)
     assert plain.served_by == "builtin"
+
+
+def test_a_route_with_check_work_checks_a_larger_step_with_fewer_sweeps(tmp_path, thesis_steps, monkeypatch):
+    """With check_work W, each start's side of the check plays no more than W / points sweeps
+    (the card's check_sweeps where that is fewer): a large step's check costs about what a
+    smaller one's does, where 200 sweeps from each start were most of a 700-point step's time."""
+    import server.face_route
+    from server.predictors import load_model
+
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = dataclasses.replace(thesis_world(world_msg), tolerance=1e-6)  # neither start stops early
+    checked = load_model(face_card(tmp_path, "checked", classifier, against_builtin=True, check_sweeps=200,
+                                   check_stop=True, check_work=8_000))
+    played = []
+    real = server.face_route._sweep_change
+
+    def recorded(bodies, points, start, friction, physics, sweeps, *args, **kwargs):
+        played.append((len(points), sweeps))
+        return real(bodies, points, start, friction, physics, sweeps, *args, **kwargs)
+
+    monkeypatch.setattr(server.face_route, "_sweep_change", recorded)
+    for bodies, points in steps[:: max(1, len(steps) // 8)]:
+        checked._beats_builtin(bodies, points, points["impulse"].astype(np.float64),
+                               points["friction"].astype(np.float64), world)
+    assert len({n_points for n_points, _ in played}) > 1  # steps of several sizes
+    for n_points, sweeps in played:
+        assert 1 <= sweeps <= min(200, 8_000 // n_points)
+    assert max(s for _, s in played) > min(s for _, s in played)  # the smaller steps played more
+
+
+def test_a_step_too_large_to_label_in_time_is_solved_on_the_labels_held_for_its_points(tmp_path, thesis_steps):
+    """With held_labels, a step that the route would not end by its deadline with its classifier
+    is answered by the fallback (here Box2D's start) and labelled after the reply on the spare
+    core; the stream's next step with the same points is solved on those labels, without the
+    classifier, and the reply says so."""
+    import os
+    import time
+
+    from server.held_labels import HeldLabels
+    from server.predictors import load_model
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("labels are held only where the server has a core to spare")
+    classifier = shipped_classifier(tmp_path)
+    world_msg, steps = thesis_steps
+    world = thesis_world(world_msg)
+    bodies, points = steps[-1]
+    mu = np.full(len(points), 0.5, np.float32)
+    route = load_model(face_card(tmp_path, "held", classifier, solver="dual", held_labels=True))
+
+    class NeverInTime:  # the route with its classifier is expected to miss every deadline
+        def fits(self, *args, **kwargs):
+            return False
+
+        def observe(self, *args):
+            pass
+
+    route.cost = NeverInTime()
+    memory: dict = {}
+    first = route.predict(bodies, points, world, 7, friction=mu, deadline=time.perf_counter() + 1.0, memory=memory)
+    assert first.served_by == "builtin"
+    held = memory["held:held"]
+    assert isinstance(held, HeldLabels)
+    waited = time.perf_counter()
+    while held.lookup(points, 8) is None and time.perf_counter() - waited < 10.0:  # labelled in the background
+        time.sleep(0.01)
+    second = route.predict(bodies, points, world, 8, friction=mu, deadline=time.perf_counter() + 1.0, memory=memory)
+    assert second.served_by == "held (held labels)"
+    assert second.stages["inference"] == 0.0  # no classifier on the step itself
+    alone = load_model(face_card(tmp_path, "alone", classifier, solver="dual"))
+    np.testing.assert_allclose(second.impulses, alone.predict(bodies, points, world, 8, friction=mu).impulses,
+                               atol=1e-6)  # the same labels, the same answer
