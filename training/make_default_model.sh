@@ -187,7 +187,16 @@ ZOO_NET=graph-labels-scaled-zoo-r12-e4
 # island the start that stops it sooner (by_island): on Builtin's states of the choosing seeds
 # 850-859, 0.974-1.000x of the iterations of the same route checking the step whole on the zoo's
 # classes and the examples (docs/research/2026-12-07-island-by-island.md).
-ROUTE='"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": null, "max_points": 1000, "solver": "dual", "against_builtin": true, "check_sweeps": 200, "check_stop": true, "extrapolate_jointed": true, "min_rounds": 30, "revolute_joints": true, "by_island": true'
+# Its check plays no more than 40,000 point-sweeps from each start (check_work: all 200 sweeps up
+# to 200 points, 57 at 700, where 200 from each start were about 8 ms of a 700-point step), and
+# where the route with its classifier would not end by the deadline, a step whose every point has
+# labels its classifier gave in the stream's last three steps is solved on those, the classifier
+# labelling it after the reply on the spare core (held_labels): on Box2D's Pyramid (choosing
+# seeds 850-869, closed loop, 10 ms) 0.455x of Builtin's iterations where the route before needed
+# 0.736x; per state (850-854) 1.000-1.004x of the route before's iterations on six of the zoo's
+# classes, 1.014x on its pyramids and 1.039x on the Pyramid
+# (docs/research/2026-12-07-large-steps-at-the-deadline.md).
+ROUTE='"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": null, "max_points": 1000, "solver": "dual", "against_builtin": true, "check_sweeps": 200, "check_stop": true, "extrapolate_jointed": true, "min_rounds": 30, "revolute_joints": true, "by_island": true, "check_work": 40000, "held_labels": true'
 # The default's own route admits in 40 over-relaxed rounds (the same iterations as 50 plain ones
 # on the thesis world's states, 45 us less a step); on the zoo's discs they cost 1.2 %, so the
 # zoo route keeps plain ones (docs/research/2026-12-06-over-relaxed-admission.md). Its labels
