@@ -27,7 +27,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face
+from deepcontact.faces import contact_face, face_labels
 from deepcontact.kinematics import BODY_DYNAMIC, Physics, contact_quantities
 from deepcontact.records import CONTACT_DTYPE
 
@@ -246,10 +246,7 @@ def _face_labels(component: int) -> Callable[[np.ndarray, Step], np.ndarray]:
     served as it answers (combine "replace"), whatever the world's scale of impulse."""
     def channel(a: np.ndarray, step: Step) -> np.ndarray:
         mu = np.full(len(a), FACE_FRICTION) if step.friction is None else np.asarray(step.friction, np.float64)
-        face = contact_face(a["impulse"].astype(np.float64), mu)
-        labels = ((face != OPEN).astype(np.float64) if component == 0 else
-                  np.where(face == SLIDES_PLUS, 1.0, np.where(face == SLIDES_MINUS, -1.0, 0.0)))
-        return FACE_IMPULSE * labels
+        return face_labels(contact_face(a["impulse"].astype(np.float64), mu))[:, component]
     return channel
 
 

@@ -70,6 +70,19 @@ def contact_face(impulses: np.ndarray, mu: np.ndarray, pressing: float = 1e-6, s
     return face
 
 
+def face_labels(face: np.ndarray) -> np.ndarray:
+    """A face (P,) int8 written as a classifier's labels, (P, 2) float64 N s: FACE_IMPULSE along
+    the normal where a point presses (sticks or slides), +-FACE_IMPULSE along the tangent where it
+    slides that way, 0 elsewhere. contact_face at a pressing threshold under FACE_IMPULSE reads
+    them back as the same face (for friction coefficients up to 1 / 0.99, share 0.99)."""
+    face = np.asarray(face)
+    labels = np.zeros((len(face), 2))
+    labels[face != OPEN, 0] = FACE_IMPULSE
+    labels[face == SLIDES_PLUS, 1] = FACE_IMPULSE
+    labels[face == SLIDES_MINUS, 1] = -FACE_IMPULSE
+    return labels
+
+
 #: face_errors' kinds of wrong label, after the count of all of them.
 FACE_ERRORS = ("open where it presses", "presses where it is open", "sticks where it slides", "slides where it sticks",
                "slides the other way")

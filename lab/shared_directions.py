@@ -37,7 +37,7 @@ import numpy as np
 def step_of(seed: int, steps: int):
     """(bodies, points, labels (P, 2), friction (P,), Physics) of the zoo pyramid `seed` after
     `steps` of Box2D's own steps, labelled by the oracle's solution."""
-    from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face
+    from deepcontact.faces import contact_face, face_labels
     from deepcontact.kinematics import Physics
     from simclient import zoo
     from simclient.engine import Engine, SolverConfig
@@ -51,10 +51,7 @@ def step_of(seed: int, steps: int):
     exact = engine.oracle(threshold=1e-9, max_iterations=100000).astype(np.float64)
     mu = points["friction"].astype(np.float64)
     face = contact_face(exact, mu, pressing=1e-6, share=0.99)
-    labels = np.zeros((len(points), 2))
-    labels[face != OPEN, 0] = FACE_IMPULSE
-    labels[face == SLIDES_PLUS, 1] = FACE_IMPULSE
-    labels[face == SLIDES_MINUS, 1] = -FACE_IMPULSE
+    labels = face_labels(face)
     gravity = world.gravity
     return bodies, points, labels, mu, Physics(dt, (gravity[0], gravity[1]))
 

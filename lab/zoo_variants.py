@@ -74,6 +74,15 @@ name another:
                     is the zoo route shipped since);
                     default-... the shipped default falling back to each
                     (docs/research/2026-12-07-large-steps-at-the-deadline.md)
+    zoo-held-builtin  the zoo route as shipped (models/zoo.json's face), a step it would not label
+                    in time solved on the labels held for its points and, for a point with none
+                    held, Box2D's start read as labels (face held_from_builtin); default-held-builtin
+                    the shipped default falling back to it
+                    (docs/research/2026-12-07-new-points-of-a-held-step.md)
+    zoo-mirror      the zoo route as shipped on its classifier served with its mirror image (card
+                    mirror: the mean of its answer and the reflected step's, reflected back);
+                    default-zoo-mirror the shipped default falling back to it
+                    (docs/research/2026-12-07-new-points-of-a-held-step.md)
 
 Every variant here holds each point's bounce where the zoo's worlds have restitution (face
 `restitution`, true unless a card says otherwise) since the evening of 2026-12-07; the figures the
@@ -167,6 +176,15 @@ def _fill(tmp: Path) -> None:
         card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"], face={**LARGE_BEFORE, **change})
         card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
+    # The shipped zoo route with a held step's new points read from Box2D's start.
+    card(tmp, "zoo-held-builtin", alias_of=shipped_zoo["alias_of"],
+         face={**shipped_zoo["face"], "held_from_builtin": True})
+    card(tmp, "default-held-builtin", alias_of=shipped_default["alias_of"],
+         face={**shipped_default["face"], "fallback": "zoo-held-builtin"}, measured=shipped_default.get("measured"))
+    # The shipped zoo route on its classifier and that classifier's mirror image, their mean.
+    card(tmp, "zoo-mirror", alias_of=shipped_zoo["alias_of"], face=shipped_zoo["face"], mirror=True)
+    card(tmp, "default-zoo-mirror", alias_of=shipped_default["alias_of"],
+         face={**shipped_default["face"], "fallback": "zoo-mirror"}, measured=shipped_default.get("measured"))
     for sweeps in OWN_STOP_SWEEPS:
         card(tmp, f"default-own-stop{sweeps}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "check_stop": True, "check_sweeps": sweeps},

@@ -64,8 +64,8 @@ import time
 import numpy as np
 
 from deepcontact.admission import AdmissionCarry
-from deepcontact.faces import (admit_solved, island_sweeps_to_stop, prepare_route, read_and_solve, route_compiled,
-                               sweep_changes, sweeps_to_stop)
+from deepcontact.faces import (admit_solved, contact_face, face_labels, island_sweeps_to_stop, prepare_route,
+                               read_and_solve, route_compiled, sweep_changes, sweeps_to_stop)
 from deepcontact.kinematics import contact_frame, effective_masses, jacobi_change
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
@@ -200,7 +200,10 @@ class FaceRoutePredictor(Predictor):
         elif held is not None and within:
             # Too large a step to label and solve in time: solved on the labels held for its
             # points, where each has some and the route ends in time without its classifier.
-            labels = held.lookup(points, step)
+            fill = None
+            if self.settings["held_from_builtin"]:  # a point new on the step: Box2D's start read as labels
+                fill = face_labels(contact_face(points["builtin"], np.asarray(friction, np.float64)))
+            labels = held.lookup(points, step, fill)
             if labels is not None and self.held_cost.fits(len(points), started, deadline, slowdown) \
                     and (lane is None or lane.acquire(blocking=False)):
                 try:

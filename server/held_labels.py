@@ -7,12 +7,14 @@ world mostly Box2D's own start. A pile's points persist from step to step: the l
 classifier gave them a step or two before, solved on this step's own equations, are nearer this
 step's than Box2D's start is. So a stream keeps, by point key, the last labels its classifier
 gave; a step that the route would not end in time with its classifier, but would without it,
-and whose every point has labels held from the last MAX_AGE steps, is solved on those. The
-classifier then labels that step after its reply has gone, on the spare core, for the steps
-after it:
+and whose every point has labels held from the last MAX_AGE steps, is solved on those (with the
+card's held_from_builtin, a point with none held, new on the step, is read from Box2D's start
+instead, and every such step is solved on labels). The classifier then labels that step after
+its reply has gone, on the spare core, for the steps after it:
 
     held = memory.setdefault(("held", name), HeldLabels())
     labels = held.lookup(points, step)          # (P, 2) or None: a point new, or labels too old
+    labels = held.lookup(points, step, fill)    # (P, 2): `fill`'s where none are held
     ...                                         # the step answered, on them or otherwise
     held.label_later(executor, classify, points, step)   # classify() -> (P, 2), run there
 
@@ -51,17 +53,22 @@ class HeldLabels:
         order = np.argsort(keys, kind="stable")
         self._keys, self._labels, self._step = keys[order], np.asarray(labels, np.float32)[order], step
 
-    def lookup(self, points: np.ndarray, step: int) -> np.ndarray | None:
+    def lookup(self, points: np.ndarray, step: int, fill: np.ndarray | None = None) -> np.ndarray | None:
         """The held labels (P, 2) of step `step`'s points (P,) CONTACT_DTYPE, or None where one
-        of its points has none, or what is held is older than MAX_AGE steps (or not earlier)."""
+        of its points has none, or what is held is older than MAX_AGE steps (or not earlier).
+        fill: (P, 2) labels for the points with none held (all of them where what is held is too
+        old), so that the answer is never None; None: none."""
         self._collect()
         if self._step is None or not 0 < step - self._step <= MAX_AGE or len(self._keys) == 0:
-            return None
+            return None if fill is None else np.asarray(fill, np.float32)
         keys = np.asarray(points["key"], np.uint64)
         at = np.minimum(np.searchsorted(self._keys, keys), len(self._keys) - 1)
-        if not np.array_equal(self._keys[at], keys):
+        found = self._keys[at] == keys
+        if found.all():
+            return self._labels[at]
+        if fill is None:
             return None
-        return self._labels[at]
+        return np.where(found[:, None], self._labels[at], np.asarray(fill, np.float32))
 
     def label_later(self, executor: concurrent.futures.Executor, classify, points: np.ndarray, step: int) -> bool:
         """Run classify() -> (P, 2) labels of step `step`'s points (P,) on `executor`, to be

@@ -16,12 +16,11 @@ def test_closing_relabels_the_open_labels_the_solve_drives_shut_the_wrong_one_an
     # bodies closing there, and `close` labels it pressing again. But the same wrong solve also
     # drives points shut that the answer leaves open, and they are labelled pressing with it:
     # why the rule costs iterations (docs/results.md, "The solve refined, the classifier trained on").
-    from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, contact_face, solved_on_labels
+    from deepcontact.faces import OPEN, contact_face, face_labels, solved_on_labels
 
     bodies, points, exact, mu = sliding_pile()
     face = contact_face(exact, mu)
-    labels = np.stack([np.where(face != OPEN, FACE_IMPULSE, 0.0),
-                       np.where(face == SLIDES_PLUS, FACE_IMPULSE, np.where(face == SLIDES_MINUS, -FACE_IMPULSE, 0.0))], 1)
+    labels = face_labels(face)
     heaviest = int(np.argmax(np.where(face != OPEN, exact[:, 0], 0.0)))
     wrong = labels.copy()
     wrong[heaviest] = 0.0
@@ -122,6 +121,17 @@ def test_a_perfect_classifiers_labels_solved_on_give_the_solutions_motion_inside
     nothing, wrong = solved_on_labels(bodies, points, labels, mu, Physics.thesis(), pressing=2.0)
     assert not nothing.any()
     assert residual < 0.1 < wrong
+
+
+def test_a_face_written_as_labels_reads_back_as_the_same_face():
+    # How a classifier's targets and a held step's new points (server.held_labels) write a face.
+    from deepcontact.faces import FACE_IMPULSE, OPEN, SLIDES_MINUS, SLIDES_PLUS, STICKS, contact_face, face_labels
+
+    face = np.array([OPEN, STICKS, SLIDES_PLUS, SLIDES_MINUS], np.int8)
+    labels = face_labels(face)
+    assert labels.tolist() == [[0, 0], [FACE_IMPULSE, 0], [FACE_IMPULSE, FACE_IMPULSE], [FACE_IMPULSE, -FACE_IMPULSE]]
+    mu = np.array([0.2, 0.5, 0.9, 1.0])
+    assert np.array_equal(contact_face(labels, mu, pressing=0.75, share=0.99), face)
 
 
 def test_face_errors_count_each_kind_of_wrong_label():

@@ -40,3 +40,14 @@ def test_a_step_labelled_in_the_background_is_held_once_done_and_never_waited_on
     with concurrent.futures.ThreadPoolExecutor(1) as pool:  # a run that fails loses its step's labels only
         held.label_later(pool, lambda: 1 / 0, _points([1]), 5)
     assert np.array_equal(held.lookup(_points([1, 2]), 6), np.full((2, 2), 2.0))
+
+
+def test_points_with_no_labels_held_take_the_fill_given():
+    held = HeldLabels()
+    fill = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0]])  # e.g. Box2D's start read as labels
+    # Nothing held yet: the fill for every point.
+    assert np.array_equal(held.lookup(_points([20, 40, 30]), 8, fill), fill)
+    held.keep(_points([30, 10, 20]), 7, np.array([[1.0, 0.0], [0.0, 1.0], [1.0, -1.0]]))
+    # 20 and 30 held, 40 new on the step: its row of the fill.
+    assert np.array_equal(held.lookup(_points([20, 40, 30]), 8, fill), [[1.0, -1.0], [1.0, 1.0], [1.0, 0.0]])
+    assert np.array_equal(held.lookup(_points([20, 40, 30]), 8 + MAX_AGE, fill), fill)  # too old: the fill

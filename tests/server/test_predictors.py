@@ -865,34 +865,45 @@ def test_a_route_with_check_work_checks_a_larger_step_with_fewer_sweeps(tmp_path
     assert max(s for _, s in played) > min(s for _, s in played)  # the smaller steps played more
 
 
+class NeverInTime:
+    """A route's cost estimate (server.deadline.CostBySize) by which no step fits its deadline."""
+
+    def fits(self, *args, **kwargs):
+        return False
+
+    def observe(self, *args):
+        pass
+
+
+def late_route(tmp_path, thesis_steps, name, **face):
+    """A dual-solver face route over the shipped classifier with these face settings, whose
+    classifier is expected never to fit a deadline, and a thesis step to serve it:
+    (route, world, bodies, points, friction (P,)). Skips where the host has one core (labels are
+    held only where the server has a core to spare)."""
+    import os
+
+    from server.predictors import load_model
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("labels are held only where the server has a core to spare")
+    world_msg, steps = thesis_steps
+    bodies, points = steps[-1]
+    route = load_model(face_card(tmp_path, name, shipped_classifier(tmp_path), solver="dual", **face))
+    route.cost = NeverInTime()
+    return route, thesis_world(world_msg), bodies, points, np.full(len(points), 0.5, np.float32)
+
+
 def test_a_step_too_large_to_label_in_time_is_solved_on_the_labels_held_for_its_points(tmp_path, thesis_steps):
     """With held_labels, a step that the route would not end by its deadline with its classifier
     is answered by the fallback (here Box2D's start) and labelled after the reply on the spare
     core; the stream's next step with the same points is solved on those labels, without the
     classifier, and the reply says so."""
-    import os
     import time
 
     from server.held_labels import HeldLabels
     from server.predictors import load_model
 
-    if len(os.sched_getaffinity(0)) < 2:
-        pytest.skip("labels are held only where the server has a core to spare")
-    classifier = shipped_classifier(tmp_path)
-    world_msg, steps = thesis_steps
-    world = thesis_world(world_msg)
-    bodies, points = steps[-1]
-    mu = np.full(len(points), 0.5, np.float32)
-    route = load_model(face_card(tmp_path, "held", classifier, solver="dual", held_labels=True))
-
-    class NeverInTime:  # the route with its classifier is expected to miss every deadline
-        def fits(self, *args, **kwargs):
-            return False
-
-        def observe(self, *args):
-            pass
-
-    route.cost = NeverInTime()
+    route, world, bodies, points, mu = late_route(tmp_path, thesis_steps, "held", held_labels=True)
     memory: dict = {}
     first = route.predict(bodies, points, world, 7, friction=mu, deadline=time.perf_counter() + 1.0, memory=memory)
     assert first.served_by == "builtin"
@@ -904,6 +915,25 @@ def test_a_step_too_large_to_label_in_time_is_solved_on_the_labels_held_for_its_
     second = route.predict(bodies, points, world, 8, friction=mu, deadline=time.perf_counter() + 1.0, memory=memory)
     assert second.served_by == "held (held labels)"
     assert second.stages["inference"] == 0.0  # no classifier on the step itself
-    alone = load_model(face_card(tmp_path, "alone", classifier, solver="dual"))
+    alone = load_model(face_card(tmp_path, "alone", shipped_classifier(tmp_path), solver="dual"))
     np.testing.assert_allclose(second.impulses, alone.predict(bodies, points, world, 8, friction=mu).impulses,
                                atol=1e-6)  # the same labels, the same answer
+
+
+def test_with_held_from_builtin_a_step_with_no_labels_held_is_solved_on_box2ds_start_read_as_labels(tmp_path,
+                                                                                                    thesis_steps):
+    """held_from_builtin: where the route would not end in time with its classifier and no labels
+    are held yet (a stream's first step, or points new on a step), Box2D's start read as labels
+    (its face, deepcontact.faces.face_labels) stands in for the classifier's."""
+    import time
+
+    from deepcontact.faces import contact_face, face_labels
+
+    route, world, bodies, points, mu = late_route(tmp_path, thesis_steps, "fill", held_labels=True,
+                                                  held_from_builtin=True)
+    first = route.predict(bodies, points, world, 7, friction=mu, deadline=time.perf_counter() + 1.0, memory={})
+    assert first.served_by == "fill (held labels)"
+    assert first.stages["inference"] == 0.0  # no classifier on the step itself
+    labels = face_labels(contact_face(points["builtin"], mu))
+    on_builtin = route._route(bodies, points, world, 7, None, mu, None, time.thread_time(), labels=labels)
+    np.testing.assert_allclose(first.impulses, on_builtin.impulses, atol=1e-6)
