@@ -12,7 +12,9 @@ impulse (1e-4 N s), so even a denser world takes Box2D's own warm start more swe
 to Builtin, not the count, is what a unit-free warm start keeps. With the stopping rule scaled as
 the step's impulses are (`relative_tolerance`: 1e-4 N s times the world's density, gravity and
 time step over the thesis world's), the dense world is the thesis world to the sweep, and the
-others differ from it only in their motion:
+others differ from it only in their motion. Gravity and the time step changed together, gravity
+times k with the time step over sqrt(k) (`similar_...`), keep the motion too: every body passes
+through the same positions step by step, its velocities and impulses times sqrt(k):
 
     python -m lab.scaled_worlds        # each world's command with its relative stopping rule
 """
@@ -20,6 +22,7 @@ others differ from it only in their motion:
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from simclient.scene import SceneSpec, build_world
 
@@ -32,6 +35,11 @@ SCALINGS = {
     "gravity_20": {"gravity": 20.0},
     "dt_1_120": {"dt": 1 / 120},
     "dt_1_30": {"dt": 1 / 30},
+    # Similar in time: gravity times k with the time step over sqrt(k) moves every body through the
+    # same positions step by step (x = g t^2 / 2), its velocities and impulses times sqrt(k): the
+    # thesis world's problem in other units, as far as Box2D's velocity thresholds (sleep) allow.
+    "similar_gravity_2": {"gravity": 2.0, "dt": 0.01 * math.sqrt(9.8 / 2.0)},
+    "similar_dt_1_120": {"gravity": 9.8 * 1.2 ** 2, "dt": 1 / 120},
 }
 
 
@@ -50,7 +58,8 @@ def _world(name: str):
     return build
 
 
-reference, density_0p5, density_10, gravity_2, gravity_20, dt_1_120, dt_1_30 = (_world(n) for n in SCALINGS)
+(reference, density_0p5, density_10, gravity_2, gravity_20, dt_1_120, dt_1_30, similar_gravity_2,
+ similar_dt_1_120) = (_world(n) for n in SCALINGS)
 
 #: The thesis world's stopping rule (N s) and the quantities its impulses scale with.
 THESIS_TOLERANCE, THESIS = 1e-4, {"density": 1.0, "gravity": 9.8, "dt": 0.01}
