@@ -180,7 +180,7 @@ class FaceRoutePredictor(Predictor):
             if factors != (1.0, 1.0, 1.0):
                 scaled_world = World(world.domain, physics, world.tolerance)
                 if self.unfamiliar(b, p, friction, scaled_world) is None:
-                    scaled = (b, p, prev, scaled_world)
+                    scaled = (b, p, prev, scaled_world, factors[1] * factors[2])
         familiar = verdict is None or scaled is not None
         most = self.settings["max_points"]
         within = most is None or len(points) <= most
@@ -216,7 +216,7 @@ class FaceRoutePredictor(Predictor):
             # A world the classifier was not trained on, too large a step to solve, or to solve
             # in time, or every lane busy with another step's route: no labels asked for.
             answer = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown,
-                                    memory=memory, restitution=restitution)
+                                    memory=memory, restitution=restitution, scaled=scaled)
         if held is not None and not labelled and self._labeller is not None and slowdown <= 1.0:
             # Labelled on the spare core after the reply, for the stream's next steps.
             held.label_later(self._labeller, functools.partial(self._labels, bodies.copy(), points.copy(), world,
@@ -235,8 +235,9 @@ class FaceRoutePredictor(Predictor):
                slowdown: float = 1.0, scaled=None, memory: dict | None = None, restitution=None,
                held: HeldLabels | None = None, labels: np.ndarray | None = None) -> Prediction:
         """predict's answer along the route (module docstring); cpu: the thread's CPU time when
-        the step began; scaled: (bodies, points, previous, world) the classifier reads instead
-        (the card's rescale), or None; held: where the classifier's answer is held for the
+        the step began; scaled: (bodies, points, previous, world, impulse factor) the classifier
+        reads instead (the card's rescale: the step in the units it was trained in, and what its
+        impulses are multiplied by to come back to the step's own), or None; held: where the classifier's answer is held for the
         stream's later steps (server.held_labels), or None; labels: (P, 2) labels held from an
         earlier step, solved on in place of the classifier's (its answer's served_by then ends
         in HELD), or None."""
@@ -315,7 +316,7 @@ class FaceRoutePredictor(Predictor):
             # Not a second route after this one: on the thesis world it would double a fifth of
             # the steps' cost (round trip p99 5.5 ms against 2.3) for 0.7 % of the iterations.
             fallback = self._fallback(bodies, points, world, step, previous, friction, deadline, slowdown,
-                                      second_route=False)
+                                      second_route=False, scaled=scaled)
             impulses, served_by = fallback.impulses, fallback.served_by
             for name, seconds in fallback.stages.items():
                 stages[name] = stages.get(name, 0.0) + seconds
@@ -498,7 +499,7 @@ class FaceRoutePredictor(Predictor):
 
     def _fallback(self, bodies, points, world, step, previous, friction, deadline=None,
                   slowdown: float = 1.0, second_route: bool = True, memory: dict | None = None,
-                  restitution=None) -> Prediction:
+                  restitution=None, scaled=None) -> Prediction:
         """The answer where the route is not served: the fallback card's where the step lies in
         what it was trained on, else Box2D's warm start (the request's builtin impulses), with
         served_by naming it. With a deadline, Box2D's
@@ -507,18 +508,27 @@ class FaceRoutePredictor(Predictor):
         requests at once than its cores keep up with): an answer in time that the client would
         have used anyway, rather than a better one it cannot wait for. Where the fallback is
         another route and second_route is False (this one's route has run), that route's own
-        fallback answers instead."""
+        fallback answers instead. scaled: the step rescaled as _route's is, or None; a fallback
+        network that does not know the step but knows it so is asked so, its answer brought back
+        to the step's units (a network trained at one scale, as the graph fallback is at the
+        thesis world's, then serves the same world in other units)."""
         if not second_route and isinstance(self.fallback, FaceRoutePredictor):
             return self.fallback._fallback(bodies, points, world, step, previous, friction, deadline, slowdown,
-                                           second_route=False)
+                                           second_route=False, scaled=scaled)
         now = time.perf_counter()
         # A fallback that keeps to the deadline itself (another route) judges its own cost: it
         # knows how few rounds it can end in (its min_rounds), where its whole cost seen from
         # here would turn away every step its full rounds would not end.
         judged = getattr(self.fallback, "takes_deadline", False)
-        if self.fallback is None \
-                or not (judged or self.fallback_cost.fits(len(points), now, deadline, slowdown)) \
-                or not self._fallback_knows(bodies, points, friction, world):
+        asked, factor = (bodies, points, previous, world), 1.0
+        if self.fallback is not None and not self._fallback_knows(bodies, points, friction, world):
+            if scaled is not None and not isinstance(self.fallback, FaceRoutePredictor) \
+                    and self._fallback_knows(scaled[0], scaled[1], friction, scaled[3]):
+                asked, factor = scaled[:4], scaled[4]
+            else:
+                asked = None
+        if self.fallback is None or asked is None \
+                or not (judged or self.fallback_cost.fits(len(points), now, deadline, slowdown)):
             return Prediction(points["builtin"].astype(np.float32), served_by=BUILTIN)
         extra = {"friction": friction} if "point_friction" in self.fallback.requires else {}
         if getattr(self.fallback, "takes_deadline", False):  # another route: it keeps to the same deadline
@@ -528,10 +538,11 @@ class FaceRoutePredictor(Predictor):
         if isinstance(self.fallback, FaceRoutePredictor):  # another route: the same bounces
             extra["restitution"] = restitution
         cpu = time.thread_time()
-        answer = self.fallback.predict(bodies, points, world, step, previous, **extra)
+        answer = self.fallback.predict(asked[0], asked[1], asked[3], step, asked[2], **extra)
         self.fallback_cost.observe(len(points), time.thread_time() - cpu)
+        impulses = answer.impulses if factor == 1.0 else (answer.impulses * np.float32(factor)).astype(np.float32)
         # A route's own fallback, where it answered, is named rather than the route.
-        return Prediction(answer.impulses, answer.stages, answer.served_by or self.fallback.name)
+        return Prediction(impulses, answer.stages, answer.served_by or self.fallback.name)
 
 
 def _ahead(bodies, points, physics, friction, sweeps: int | None, stop: float = 0.0, by_island: bool = False,

@@ -787,28 +787,36 @@ def test_a_step_declined_whole_for_its_joints_is_served_box2ds_start_by_builtin(
     assert free.served_by is None and (free.impulses == 50.0).any()
 
 
-def test_a_route_that_rescales_labels_a_denser_step_as_the_step_it_scales_and_solves_it_in_its_own_units(
-        tmp_path, thesis_steps):
-    """Ten times the density is the same contact problem with every mass and impulse ten times
-    larger: a card with rescale labels it as the thesis step it scales, and its answer is that
-    step's ten times over; the reply still calls the step unfamiliar."""
+def thesis_only_and_denser(tmp_path, thesis_steps):
+    """The shipped classifier as "thesis-only" in tmp_path (trained_on: the thesis world's
+    envelope alone) and a thesis step with it at ten times the density: (world, bodies, points,
+    friction (P,), dense bodies, dense points), every mass, inertia and Box2D start times ten."""
     import json
 
     from deepcontact.envelope import Envelope
-    from server.predictors import load_model
 
     classifier = shipped_classifier(tmp_path)
     card = json.loads((tmp_path / f"{classifier}.json").read_text())
     card.update(name="thesis-only", trained_on=Envelope().to_dict())
     (tmp_path / "thesis-only.json").write_text(json.dumps(card))
     world_msg, steps = thesis_steps
-    world = thesis_world(world_msg)
     bodies, points = steps[0]
-    mu = np.full(len(points), 0.5, np.float32)
     dense_bodies, dense_points = bodies.copy(), points.copy()
     dense_bodies["mass"] *= 10
     dense_bodies["inertia"] *= 10
     dense_points["builtin"] *= 10
+    return (thesis_world(world_msg), bodies, points, np.full(len(points), 0.5, np.float32), dense_bodies,
+            dense_points)
+
+
+def test_a_route_that_rescales_labels_a_denser_step_as_the_step_it_scales_and_solves_it_in_its_own_units(
+        tmp_path, thesis_steps):
+    """Ten times the density is the same contact problem with every mass and impulse ten times
+    larger: a card with rescale labels it as the thesis step it scales, and its answer is that
+    step's ten times over; the reply still calls the step unfamiliar."""
+    from server.predictors import load_model
+
+    world, bodies, points, mu, dense_bodies, dense_points = thesis_only_and_denser(tmp_path, thesis_steps)
     rescaled = load_model(face_card(tmp_path, "rescaled", "thesis-only", rescale=True))
     checked = load_model(face_card(tmp_path, "checked", "thesis-only", against_builtin=True))
     at_scale = checked.predict(bodies, points, world, 0, friction=mu)
@@ -834,6 +842,30 @@ def test_a_route_that_rescales_labels_a_denser_step_as_the_step_it_scales_and_so
     plain = load_model(face_card(tmp_path, "plain", "thesis-only")).predict(dense_bodies, dense_points, world, 0,
                                                                             friction=mu)
     assert plain.served_by == "builtin"
+
+
+def test_a_fallback_network_that_knows_a_step_only_rescaled_answers_it_rescaled_in_the_steps_own_units(
+        tmp_path, thesis_steps):
+    """Where a card that rescales does not serve a step itself (here: never in time), a fallback
+    network trained at one scale that knows the step only rescaled into that scale is asked so,
+    and its answer comes back in the step's units: ten times the density, ten times its answer on
+    the thesis step. The same card without rescale gives Box2D's start there."""
+    import time
+
+    from server.predictors import load_model
+
+    world, bodies, points, mu, dense_bodies, dense_points = thesis_only_and_denser(tmp_path, thesis_steps)
+    answers = {}
+    for rescale in (True, False):
+        route = load_model(face_card(tmp_path, f"late-{rescale}", "thesis-only", rescale=rescale, fallback="thesis-only"))
+        route.cost = NeverInTime()
+        answers[rescale] = route.predict(dense_bodies, dense_points, world, 0, friction=mu,
+                                         deadline=time.perf_counter() + 1.0)
+    at_scale = route.fallback.predict(bodies, points, world, 0, None, friction=mu)
+    assert answers[True].served_by == "thesis-only"
+    np.testing.assert_allclose(answers[True].impulses, 10 * at_scale.impulses, rtol=1e-3, atol=1e-4)
+    assert answers[False].served_by == "builtin"
+    np.testing.assert_array_equal(answers[False].impulses, dense_points["builtin"])
 
 
 def test_a_route_with_check_work_checks_a_larger_step_with_fewer_sweeps(tmp_path, thesis_steps, monkeypatch):
