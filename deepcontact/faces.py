@@ -98,7 +98,8 @@ def face_errors(face: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 
 def repair_face(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu: np.ndarray,
-                physics: Physics = Physics(), slack: float = 1e-4) -> np.ndarray:
+                physics: Physics = Physics(), slack: float = 1e-4,
+                restitution: np.ndarray | None = None) -> np.ndarray:
     """Labels for the next solve, read off a face's admitted solve, (P,) int8: one step of a
     primal-dual active-set method (a step of Newton's on the problem's limits).
 
@@ -111,10 +112,14 @@ def repair_face(bodies: np.ndarray, points: np.ndarray, impulses: np.ndarray, mu
     (STICKS), and one that slides but moves with its friction, not against it, by more
     than `slack`, STICKS. Where the face was the solution's own, its labels come back
     (up to the readings' thresholds); where a few were wrong, a step or two of this
-    usually finds them, each a solve on the new labels.
+    usually finds them, each a solve on the new labels. restitution: (P,) each point's, or None:
+    a point's closing speed is measured from its bounce (kinematics.bounce), as the solve holds it.
     """
     face = contact_face(impulses, mu)
-    after = contact_velocities(bodies, points, np.asarray(impulses, np.float64), physics)  # (P, 2) m/s
+    before, after = velocities_before_and_after(bodies, points, np.asarray(impulses, np.float64), physics)  # (P, 2) m/s
+    if restitution is not None:
+        after = after.copy()
+        after[:, 0] -= bounce(before[:, 0], restitution)
     # Friction pushes against the slip: +t (SLIDES_PLUS) only while the point moves along -t.
     wrong_way = ((face == SLIDES_PLUS) & (after[:, 1] > slack)) | ((face == SLIDES_MINUS) & (after[:, 1] < -slack))
     face[((face == OPEN) & (after[:, 0] < -slack)) | wrong_way] = STICKS

@@ -132,7 +132,12 @@ points sweeps from each start on a step, at least one, so that a large step's ch
 more point-sweeps than a smaller one's), held_from_builtin (default false; true, with
 held_labels: a point with no labels held, new on the step, is read from Box2D's start, as its face
 written as labels (deepcontact.faces.face_labels), so that every step the route would not end in
-time with its classifier, but would without it, is solved on labels).
+time with its classifier, but would without it, is solved on labels), repairs (default 0; a
+whole number 1 to 8, with by_island: the route's answer is repaired up to that many times in
+turn, each repair one step of an active-set method read off the answer before it
+(deepcontact.faces.repair_face, each point's bounce held) and the step solved and admitted again
+on the repaired labels, none begun after the deadline, and the check serves each island the
+start that stops it soonest among Box2D's, the route's answer and its repairs).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -193,7 +198,7 @@ FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction"
                  "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
                  "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False,
                  "restitution": True, "held_labels": False, "check_work": None,
-                 "held_from_builtin": False}
+                 "held_from_builtin": False, "repairs": 0}
 
 
 class ModelCardError(ValueError):
@@ -369,7 +374,8 @@ def _face_settings(face: Any, kind: str) -> dict:
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
                                            "extrapolate_jointed", "check_stop", "slide_in_bodies", "revolute_joints",
-                                           "by_island", "restitution", "held_labels", "held_from_builtin")
+                                           "by_island", "restitution", "held_labels", "held_from_builtin",
+                                           "repairs")
                   and not (k in optional + ("max_points", "check_sweeps", "min_rounds", "check_work") and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
@@ -387,6 +393,8 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not isinstance(out["by_island"], bool) or (out["by_island"] and not out["check_stop"]) \
             or not isinstance(out["restitution"], bool) or not isinstance(out["held_labels"], bool) \
             or not isinstance(out["held_from_builtin"], bool) or (out["held_from_builtin"] and not out["held_labels"]) \
+            or not (isinstance(out["repairs"], int) and not isinstance(out["repairs"], bool)
+                    and 0 <= out["repairs"] <= 8) or (out["repairs"] and not out["by_island"]) \
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
             or (out["check_stop"] and sweeps is None) \
             or not (work is None or isinstance(work, int) and work >= 1 and sweeps is not None) \
@@ -403,6 +411,7 @@ def _face_settings(face: Any, kind: str) -> dict:
                              f"number >= 1 and only with check_sweeps, by_island true or false and only "
                              f"with check_stop, min_rounds null or a whole "
                              f"number 1 to rounds, held_from_builtin true or false and only with held_labels, "
+                             f"repairs a whole number 0-8 and above 0 only with by_island, "
                              f"got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
@@ -412,7 +421,7 @@ def _face_settings(face: Any, kind: str) -> dict:
             "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
             "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest, "revolute_joints": out["revolute_joints"],
             "by_island": out["by_island"], "restitution": out["restitution"], "held_labels": out["held_labels"],
-            "check_work": work, "held_from_builtin": out["held_from_builtin"]}
+            "check_work": work, "held_from_builtin": out["held_from_builtin"], "repairs": out["repairs"]}
 
 
 def _measured(m: Any) -> dict:

@@ -53,8 +53,8 @@ name another:
     zoo-island      the zoo route as shipped (models/zoo.json's face) checking each island of a
                     step on its own and serving each the start that stops it sooner (face
                     by_island); default-island the shipped default falling back to it; zoo-whole
-                    and default-whole the same without by_island, whatever the shipped zoo route
-                    does (docs/research/2026-12-07-island-by-island.md)
+                    and default-whole the same without by_island (nor repairs), whatever the
+                    shipped zoo route does (docs/research/2026-12-07-island-by-island.md)
     zoo-bounce      the zoo route as shipped (models/zoo.json's face), each point that closes faster
                     than 1 m/s held at its restitution's bounce in its solve and its check, as Box2D's
                     solver holds it (face restitution); default-bounce the shipped default falling
@@ -79,6 +79,11 @@ name another:
                     held, Box2D's start read as labels (face held_from_builtin); default-held-builtin
                     the shipped default falling back to it
                     (docs/research/2026-12-07-new-points-of-a-held-step.md)
+    zoo-repairK     the zoo route as shipped (models/zoo.json's face) with its answer repaired up to K
+                    times (face repairs, for K in REPAIRS; three shipped since 2026-12-08, zoo-repair0
+                    the route before), each island served whichever of Box2D's start, the answer and
+                    its repairs stops it soonest; default-repairK the shipped default falling back
+                    to it (docs/research/2026-12-08-repaired-labels.md)
     zoo-mirror      the zoo route as shipped on its classifier served with its mirror image (card
                     mirror: the mean of its answer and the reflected step's, reflected back);
                     default-zoo-mirror the shipped default falling back to it
@@ -124,6 +129,8 @@ LARGE_BEFORE = {"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": No
                 "fallback": "contact-graph"}
 #: Sweeps of the zoo route's check at any step size, in zoo-sweeps-K.
 FLAT_SWEEPS = (50, 100)
+#: Repairs of the zoo route's answer in zoo-repairK (face repairs).
+REPAIRS = (0, 1, 2, 3, 5, 8)
 #: Sweeps to the stopping rule of the default's own route's check in default-own-stopK.
 OWN_STOP_SWEEPS = (48, 200)
 #: max_residual x 10 of the zoo route in 200 rounds checked by 200 sweeps (0.5 shipped, at 50 rounds and 12 sweeps).
@@ -158,7 +165,8 @@ def _fill(tmp: Path) -> None:
         card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
     for tag, by_island in (("island", True), ("whole", False)):
-        card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "by_island": by_island})
+        card(tmp, f"zoo-{tag}", alias_of=shipped_zoo["alias_of"],
+             face={**shipped_zoo["face"], "by_island": by_island, **({} if by_island else {"repairs": 0})})
         card(tmp, f"default-{tag}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-{tag}"}, measured=shipped_default.get("measured"))
     for tag, bounce in (("bounce", True), ("bounceless", False)):
@@ -185,6 +193,11 @@ def _fill(tmp: Path) -> None:
     card(tmp, "zoo-mirror", alias_of=shipped_zoo["alias_of"], face=shipped_zoo["face"], mirror=True)
     card(tmp, "default-zoo-mirror", alias_of=shipped_default["alias_of"],
          face={**shipped_default["face"], "fallback": "zoo-mirror"}, measured=shipped_default.get("measured"))
+    # The shipped zoo route with its answer repaired up to K times, each island served the soonest.
+    for k in REPAIRS:
+        card(tmp, f"zoo-repair{k}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "repairs": k})
+        card(tmp, f"default-repair{k}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "fallback": f"zoo-repair{k}"}, measured=shipped_default.get("measured"))
     for sweeps in OWN_STOP_SWEEPS:
         card(tmp, f"default-own-stop{sweeps}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "check_stop": True, "check_sweeps": sweeps},

@@ -40,7 +40,11 @@ check_stop too, where the client declared its stopping rule (World.tolerance), t
 start takes to it decide (deepcontact.faces.sweeps_to_stop). With the
 card's carry, the admission of a stream's step begins where the same points' stopped on the step
 before (deepcontact.admission.AdmissionCarry, kept in the memory the server keeps per stream
-and model). Its Prediction's stages:
+and model). With its repairs (and by_island), the route's answer is repaired up to that many
+times in turn, each the step solved again on the labels one step of an active-set method reads off
+the answer before it (deepcontact.faces.repair_face), none begun where it would not end in time, and
+the check serves each island whichever of Box2D's start, the answer and its repairs stops it
+soonest. Its Prediction's stages:
 
     features   the classifier's point channels
     inference  the classifier's network (with a mirrored classifier also the route's geometry,
@@ -65,7 +69,7 @@ import numpy as np
 
 from deepcontact.admission import AdmissionCarry
 from deepcontact.faces import (admit_solved, contact_face, face_labels, island_sweeps_to_stop, prepare_route,
-                               read_and_solve, route_compiled, sweep_changes, sweeps_to_stop)
+                               read_and_solve, repair_face, route_compiled, sweep_changes, sweeps_to_stop)
 from deepcontact.kinematics import contact_frame, effective_masses, jacobi_change
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
@@ -78,6 +82,9 @@ from server.predictors import Domain, GraphPredictor, Prediction, Predictor, Wor
 #: so the bodies' inertia, the step's physics, each point's friction, and Box2D's warm start
 #: (the answer where no fallback card is named).
 ROUTE_NEEDS = ("body_inertia", "physics", "point_friction", "builtin")
+#: The friction coefficient a repair's labels are read at (deepcontact.faces.face_labels writes a
+#: sliding point's tangent label at FACE_IMPULSE, its limit at friction 1): any below 1 reads it sliding.
+REPAIR_FRICTION = 0.5
 #: served_by where Box2D's warm start is served in the route's place (no fallback card).
 BUILTIN = "builtin"
 #: The fewest points at which a step's geometry is built ahead, on another core: below, the
@@ -291,6 +298,14 @@ class FaceRoutePredictor(Predictor):
         impulses, extra_rounds = self._solved_on_labels(bodies, points, world, guess, friction, until,
                                                         stages, prepared, carry, restitution)
         served_by = None
+        repaired, repairs_cpu = [], 0.0
+        if impulses is not None and checks and self.settings["repairs"] and sweeps is not None \
+                and self._by_island(stop):
+            c0 = time.thread_time()
+            repaired = self._repaired(bodies, points, world, impulses, friction, until, stages, prepared, restitution,
+                                      slowdown * sweeps * self.sweep_cost.estimate(len(points)),
+                                      stages["solve"] + stages["admit"])
+            repairs_cpu = time.thread_time() - c0
         # A step read at another scale than its own is one the classifier was not trained on:
         # checked as the card's against_builtin checks every step.
         if impulses is not None and checks:
@@ -301,10 +316,16 @@ class FaceRoutePredictor(Predictor):
                                                world.physics, sweeps, prepared, stop, self._by_island(stop),
                                                restitution=restitution)
                 counted = min(builtin_change[0], sweeps)
-            counted += self._route_sweeps(builtin_change, stop, len(points))
-            taken = np.broadcast_to(np.asarray(self._beats_builtin(bodies, points, impulses, friction, world, prepared,
-                                                                   builtin_change, restitution), bool),
-                                    (len(points),))
+            counted += (1 + len(repaired)) * self._route_sweeps(builtin_change, stop, len(points))
+            if repaired:  # each island from whichever of the route's answers stops it soonest, or Box2D's
+                c0 = time.thread_time()
+                impulses, taken = self._soonest_by_island(bodies, points, [impulses, *repaired], friction, world,
+                                                          prepared, builtin_change, restitution)
+                repairs_cpu += (time.thread_time() - c0) * len(repaired) / (1 + len(repaired))
+            else:
+                taken = np.broadcast_to(np.asarray(self._beats_builtin(bodies, points, impulses, friction, world,
+                                                                       prepared, builtin_change, restitution), bool),
+                                        (len(points),))
             if not taken.any():
                 impulses, served_by = points["builtin"].copy(), BUILTIN
             elif not taken.all():  # the route's answer on the islands it stops sooner, Box2D's on the rest
@@ -324,8 +345,11 @@ class FaceRoutePredictor(Predictor):
         # other core busy with a simulation beside the server) turned away more of the Pyramid's
         # large steps than the replies past the deadline it spared (0.930x against 0.858x of
         # Builtin's iterations, 2 against 8 of 2,581 replies late; docs/research/2026-12-07-fewer-
-        # rounds-rather-than-none.md); the service's margin is there for it.
-        (self.cost if labels is None else self.held_cost).observe(len(points), time.thread_time() - cpu - extra_rounds)
+        # rounds-rather-than-none.md); the service's margin is there for it. Nor the repairs and
+        # their share of the check: each begins only where it still ends in time, so a step the
+        # route fits without them is not turned away for them.
+        (self.cost if labels is None else self.held_cost).observe(len(points),
+                                                                  time.thread_time() - cpu - extra_rounds - repairs_cpu)
         if labels is not None and served_by is None:
             served_by = f"{self.name}{HELD}"
         if self.gate is not None:
@@ -334,6 +358,69 @@ class FaceRoutePredictor(Predictor):
                 impulses = points["builtin"].copy()  # Box2D's own warm start: the gate expects the route to lose here
             stages["admit"] += time.perf_counter() - t0
         return Prediction(np.asarray(impulses).astype(np.float32, copy=False), stages, served_by)
+
+    def _repaired(self, bodies, points, world, impulses, friction, until, stages: dict[str, float], prepared,
+                  restitution, check_seconds: float, route_seconds: float) -> list[np.ndarray]:
+        """The route's answer repaired in turn, up to the card's `repairs` times: [(P, 2) N s], each
+        the step solved and admitted on the labels one step of an active-set method reads off the
+        answer before it (deepcontact.faces.repair_face, each point's bounce held), where those
+        labels differ from the ones before. By `until` (perf_counter() s, or None) the k-th repair
+        leaves time for the check's sweeps from k more starts (check_seconds each): none is begun
+        that would not end by then, taking as long as the solve before it (route_seconds, the
+        route's own, for the first), and its admission rounds end there. Their seconds go to
+        stages["solve"] and ["admit"].
+
+        Why: a classifier that labels a falling or sliding point open or sticking leaves it closing
+        or pushed along by its friction, which the solve on those labels then shows; on the zoo's
+        stacks and terrain, read so once or twice, the step's own face comes back, where on piles at
+        rest the labels it reads are seldom better, so the check picks between them island by
+        island (docs/research/2026-12-08-repaired-labels.md)."""
+        face, mu = self.settings, np.asarray(friction, np.float64)
+        out, labels_before, expected = [], None, route_seconds
+        for k in range(1, face["repairs"] + 1):
+            t0 = time.perf_counter()
+            cut = None if until is None else until - k * check_seconds
+            if cut is not None and t0 + expected >= cut:
+                break
+            labels = repair_face(bodies, points, impulses, mu, world.physics, restitution=restitution)
+            if labels_before is not None and np.array_equal(labels, labels_before):
+                break
+            labels_before = labels
+            # Written as a classifier's labels and read back as the same face: a sliding label's
+            # tangent (FACE_IMPULSE) lies at its limit only up to friction 1, and a point's own may be higher.
+            answer = route_compiled(bodies, points, face_labels(labels), mu, world.physics, face["pressing"],
+                                    face["share"], REPAIR_FRICTION, face["rounds"], cut, prepared, face["relax"],
+                                    face["rho"], None, slide_in_bodies=face["slide_in_bodies"],
+                                    restitution=restitution)
+            expected = time.perf_counter() - t0
+            if answer is None:
+                break
+            stages["solve"] += answer.solve_seconds
+            stages["admit"] += answer.admit_seconds
+            if face["max_residual"] is not None and answer.residual > face["max_residual"]:
+                break
+            impulses = answer.impulses
+            out.append(impulses)
+        return out
+
+    def _soonest_by_island(self, bodies, points, answers: list[np.ndarray], friction, world, prepared,
+                           builtin_change: tuple, restitution) -> tuple[np.ndarray, np.ndarray]:
+        """(impulses (P, 2) N s, taken (P,) bool): each island of the step from the start among
+        Box2D's (the request's builtin) and `answers` ([(P, 2) N s], the route's, then its repairs)
+        that stops it soonest on the server's copy of the step, by the smaller last change where
+        two stop at the same sweep (Box2D's first, then the answers in order, on a tie); taken
+        where that is not Box2D's. builtin_change: _sweep_change's by island, Box2D's side."""
+        stop = self._stop_tolerance(world)
+        box2d = builtin_change[2]
+        routes = island_sweeps_to_stop(bodies, points, np.asarray(answers, np.float64),
+                                       np.asarray(friction, np.float64), world.physics, stop,
+                                       self._route_sweeps(builtin_change, stop, len(points)), prepared,
+                                       restitution=restitution)[2]
+        counts = np.concatenate([box2d.counts, routes.counts])
+        changes = np.concatenate([box2d.changes, routes.changes])
+        chosen = np.lexsort((changes, counts), axis=0)[0][box2d.point]  # (P,): 0 Box2D's, k the k-th answer
+        starts = np.concatenate([np.asarray(points["builtin"], np.float64)[None], np.asarray(answers, np.float64)])
+        return starts[chosen, np.arange(len(points))], chosen > 0
 
     def _stop_tolerance(self, world: World) -> float:
         """The client's stopping rule (N s) where the card's check counts the sweeps to it

@@ -97,6 +97,38 @@ def test_a_repair_puts_back_a_sliding_point_said_to_stick_but_moves_other_labels
     assert 0 < moved < 0.1 * len(points)
 
 
+def test_a_repair_measures_a_landing_points_closing_speed_from_its_bounce():
+    # A tall box lands flat at 3 m/s on two points, restitution 0.5: Box2D's solver holds each
+    # point at half its closing speed, moving apart. Pushed at one corner alone, hard enough that
+    # the other corner rises at 0.5 m/s, that corner is still closing on its bounce (1.55 m/s):
+    # read with the restitution, it presses; read at rest, it lets go.
+    import Box2D
+
+    from deepcontact.faces import OPEN, STICKS, repair_face
+    from simclient.engine import Engine, SolverConfig
+
+    world = Box2D.b2World(gravity=(0.0, -10.0))
+    world.CreateStaticBody().CreateEdgeFixture(vertices=[(-5.0, 0.0), (5.0, 0.0)], friction=0.5)
+    box = world.CreateDynamicBody(position=(0.0, 1.005), linearVelocity=(0.0, -3.0))
+    box.CreatePolygonFixture(box=(0.25, 1.0), density=1.0, friction=0.5, restitution=0.5)
+    engine = Engine(world, SolverConfig())
+    engine.collide()
+    bodies, points = engine.bodies(), engine.contacts()
+    assert len(points) == 2
+    physics = Physics(0.01, (0.0, -10.0))
+    mu, restitution = np.full(2, 0.5), engine.point_restitution(points)
+    pushed, other = np.argsort(points["point"][:, 0])  # the left corner pushed, the right one left open
+    unit = np.zeros((2, 2))
+    unit[pushed, 0] = 1.0
+    before = contact_velocities(bodies, points, None, physics)[other, 0]
+    per_n_s = contact_velocities(bodies, points, unit, physics)[other, 0] - before
+    assert before < -3.0 and per_n_s > 0
+    impulses = unit * (0.5 - before) / per_n_s
+    np.testing.assert_allclose(contact_velocities(bodies, points, impulses, physics)[other, 0], 0.5)
+    assert repair_face(bodies, points, impulses, mu, physics)[other] == OPEN
+    assert repair_face(bodies, points, impulses, mu, physics, restitution=restitution)[other] == STICKS
+
+
 def test_a_perfect_classifiers_labels_solved_on_give_the_solutions_motion_inside_the_cones():
     # A classifier answers 1 N s along the normal where a point presses and +-1 N s along the
     # tangent where it slides (train-graph --targets face); solved_on_labels reads that as a

@@ -85,7 +85,8 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                          "close": None, "relax": 1.0, "rho": 100.0, "against_builtin": False, "rescale": False,
                          "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
                          "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False,
-                         "restitution": True, "held_labels": False, "check_work": None, "held_from_builtin": False}
+                         "restitution": True, "held_labels": False, "check_work": None, "held_from_builtin": False,
+                         "repairs": 0}
     assert ModelCard.load(tmp_path / "classifier.json").face is None  # the classifier itself is served plain
     for bad, match in (({"pressing": -1}, "pressing >= 0"), ({"rounds": 0}, "rounds a whole number"),
                        ({"rounds": 2.5}, "rounds a whole number"), ({"labels": 1}, "keys among"),
@@ -105,6 +106,11 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                        ({"held_labels": "on"}, "restitution and held_labels true or false"),
                        ({"held_from_builtin": True}, "held_from_builtin true or false and only with held_labels"),
                        ({"held_from_builtin": 1, "held_labels": True}, "held_from_builtin true or false"),
+                       ({"repairs": 2}, "repairs a whole number 0-8 and above 0 only with by_island"),
+                       ({"repairs": 9, "by_island": True, "check_stop": True, "check_sweeps": 200},
+                        "repairs a whole number 0-8"),
+                       ({"repairs": True, "by_island": True, "check_stop": True, "check_sweeps": 200},
+                        "repairs a whole number 0-8"),
                        ({"check_sweeps": 0}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_sweeps": 12.5}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_stop": True}, "check_stop true or false and only with check_sweeps"),

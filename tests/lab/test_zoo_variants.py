@@ -55,9 +55,20 @@ def test_the_zoo_classifier_trained_on_is_served_behind_the_routes_exactly_as_sh
     assert served["default-s7e6-s9e6"].settings == {**served["default"].settings, "fallback": "zoo-s7e6-s9e6"}
     # The shipped zoo route island by island and checking the step whole, each behind the default.
     assert served["zoo-island"].settings == {**zoo.settings, "by_island": True}
-    assert served["zoo-whole"].settings == {**zoo.settings, "by_island": False}
+    assert served["zoo-whole"].settings == {**zoo.settings, "by_island": False, "repairs": 0}  # repairs need islands
     for tag in ("island", "whole"):
         assert served[f"default-{tag}"].settings == {**served["default"].settings, "fallback": f"zoo-{tag}"}
     # The default's own route checked by the sweeps to the stopping rule, its fallback as shipped.
     assert served["default-own-stop200"].settings == {**served["default"].settings, "check_stop": True,
                                                        "check_sweeps": 200}
+
+
+def test_the_zoo_route_with_each_number_of_repairs_is_served_behind_the_default(tmp_path):
+    out = tmp_path / "variants"
+    assert main([str(out)]) == 0
+    served = {p.name: p for p in load_models(out)}
+    zoo = served["zoo"].settings
+    assert zoo["repairs"] == 3  # shipped
+    for k in (0, 1, 2, 3, 5, 8):
+        assert served[f"zoo-repair{k}"].settings == {**zoo, "repairs": k}
+        assert served[f"default-repair{k}"].settings == {**served["default"].settings, "fallback": f"zoo-repair{k}"}

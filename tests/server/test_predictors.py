@@ -703,6 +703,51 @@ def test_a_route_checked_island_by_island_serves_each_island_the_start_that_stop
     assert parted > 0
 
 
+def test_a_route_with_repairs_serves_each_island_the_soonest_of_its_answer_its_repairs_and_box2ds(tmp_path):
+    """With repairs, the route's answer is repaired (relabelled off its own motion and solved
+    again) and each island served whichever start stops it soonest: never later than the route
+    without them, and on the zoo's stacks of boxes settling, where the classifier labels a landing
+    box's points wrong, much sooner."""
+    import shutil
+    from pathlib import Path
+
+    from bench.inprocess import declared_world
+    from deepcontact.faces import island_sweeps_to_stop
+    from server.predictors import load_model
+    from simclient import worlds
+
+    for name in ("contact-modes-zoo.json", "contact-modes-zoo.onnx"):
+        shutil.copy(Path(__file__).parents[2] / "models" / name, tmp_path)
+    settings = dict(against_builtin=True, check_sweeps=200, check_stop=True, by_island=True, rounds=100)
+    repaired = load_model(face_card(tmp_path, "repaired", "contact-modes-zoo", repairs=3, **settings))
+    plain = load_model(face_card(tmp_path, "plain", "contact-modes-zoo", **settings))
+    spec = worlds.WorldSpec("simclient.zoo:stack")
+    engine = worlds.build(spec, 850)
+    world = declared_world(spec, engine)
+    sweeps = {"repaired": 0, "plain": 0}
+    for _ in range(60):
+        engine.collide()
+        bodies, points = engine.bodies(), engine.contacts()
+        if len(points):
+            mu = points["friction"].astype(np.float32)
+            restitution = engine.point_restitution(points)
+            answers = {name: model.predict(bodies, points, world, 0, friction=mu, restitution=restitution).impulses
+                       for name, model in (("repaired", repaired), ("plain", plain))}
+            # On the server's copy of the step, each island stopped by the repaired route's choice
+            # no later than by the plain one's, so the step too.
+            counts = island_sweeps_to_stop(bodies, points, np.stack([answers["repaired"], answers["plain"]]),
+                                           mu.astype(np.float64), world.physics, world.tolerance, 200,
+                                           restitution=restitution)[0]
+            assert counts[0] <= counts[1]
+            for name, x in answers.items():  # Box2D's own count from each
+                sweeps[name] += engine.trial(np.ascontiguousarray(x[:, 0], np.float32),
+                                             np.ascontiguousarray(x[:, 1], np.float32))
+            b = engine.builtin_start()
+            engine.set_warm_start(*b)
+        engine.solve()
+    assert sweeps["repaired"] < 0.7 * sweeps["plain"], sweeps
+
+
 def test_a_route_with_min_rounds_fits_at_its_fewest_rounds_and_ends_its_rounds_before_the_check(
         tmp_path, thesis_steps):
     """With min_rounds, a step with a deadline takes the route where the route is expected to end
