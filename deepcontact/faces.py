@@ -50,6 +50,10 @@ OPEN, STICKS, SLIDES_PLUS, SLIDES_MINUS = 0, 1, 2, 3
 #: A label written as an impulse (N s): a classifier's answer along the normal where a point
 #: presses, and +-this along the tangent where it slides (deepcontact.channels' face targets).
 FACE_IMPULSE = 1.0
+#: The friction coefficient a face written as labels (face_labels) is read back at by the route
+#: (its label_friction): a sliding label's tangent, FACE_IMPULSE, lies at its limit at any friction
+#: up to 1, and a point's own may be higher.
+LABELS_FRICTION = 0.5
 
 
 def contact_face(impulses: np.ndarray, mu: np.ndarray, pressing: float = 1e-6, share: float = 0.99) -> np.ndarray:

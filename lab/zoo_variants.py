@@ -60,6 +60,10 @@ name another:
                     solver holds it (face restitution); default-bounce the shipped default falling
                     back to it; zoo-bounceless and default-bounceless the same with every point held
                     at rest, as until then (docs/research/2026-12-07-the-zoo-pyramids-ceiling.md)
+    default-own-repairK  the shipped default with its own route checked island by island by the
+                    sweeps each start takes to the client's stopping rule, up to 200 (check_stop,
+                    by_island), and its answer repaired up to K times, for K in OWN_REPAIRS
+                    (docs/research/2026-12-08-repaired-labels.md, "The thesis world")
     default-own-stopK  the shipped default with its own route checked by the sweeps each start
                     takes to the client's stopping rule, up to K (check_stop, check_sweeps K; the
                     shipped one compares the changes at its twelfth sweep), for K in OWN_STOP_SWEEPS
@@ -131,6 +135,8 @@ LARGE_BEFORE = {"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": No
 FLAT_SWEEPS = (50, 100)
 #: Repairs of the zoo route's answer in zoo-repairK (face repairs).
 REPAIRS = (0, 1, 2, 3, 5, 8)
+#: Repairs of the default's own route's answer in default-own-repairK (checked island by island).
+OWN_REPAIRS = (0, 3)
 #: Sweeps to the stopping rule of the default's own route's check in default-own-stopK.
 OWN_STOP_SWEEPS = (48, 200)
 #: max_residual x 10 of the zoo route in 200 rounds checked by 200 sweeps (0.5 shipped, at 50 rounds and 12 sweeps).
@@ -198,6 +204,12 @@ def _fill(tmp: Path) -> None:
         card(tmp, f"zoo-repair{k}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "repairs": k})
         card(tmp, f"default-repair{k}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-repair{k}"}, measured=shipped_default.get("measured"))
+    # The default's own route checked island by island to the stopping rule, up to 200 sweeps, and
+    # its answer repaired up to K times (repairs need the check by islands).
+    for k in OWN_REPAIRS:
+        card(tmp, f"default-own-repair{k}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "check_stop": True, "check_sweeps": 200, "by_island": True, "repairs": k},
+             measured=shipped_default.get("measured"))
     for sweeps in OWN_STOP_SWEEPS:
         card(tmp, f"default-own-stop{sweeps}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "check_stop": True, "check_sweeps": sweeps},

@@ -68,8 +68,9 @@ import time
 import numpy as np
 
 from deepcontact.admission import AdmissionCarry
-from deepcontact.faces import (admit_solved, contact_face, face_labels, island_sweeps_to_stop, prepare_route,
-                               read_and_solve, repair_face, route_compiled, sweep_changes, sweeps_to_stop)
+from deepcontact.faces import (LABELS_FRICTION, admit_solved, contact_face, face_labels, island_sweeps_to_stop,
+                               prepare_route, read_and_solve, repair_face, route_compiled, sweep_changes,
+                               sweeps_to_stop)
 from deepcontact.kinematics import contact_frame, effective_masses, jacobi_change
 from deepcontact.modelcard import ModelCard, ModelCardError
 from deepcontact.step_gate import StepGate, step_features
@@ -82,9 +83,6 @@ from server.predictors import Domain, GraphPredictor, Prediction, Predictor, Wor
 #: so the bodies' inertia, the step's physics, each point's friction, and Box2D's warm start
 #: (the answer where no fallback card is named).
 ROUTE_NEEDS = ("body_inertia", "physics", "point_friction", "builtin")
-#: The friction coefficient a repair's labels are read at (deepcontact.faces.face_labels writes a
-#: sliding point's tangent label at FACE_IMPULSE, its limit at friction 1): any below 1 reads it sliding.
-REPAIR_FRICTION = 0.5
 #: served_by where Box2D's warm start is served in the route's place (no fallback card).
 BUILTIN = "builtin"
 #: The fewest points at which a step's geometry is built ahead, on another core: below, the
@@ -386,10 +384,8 @@ class FaceRoutePredictor(Predictor):
             if labels_before is not None and np.array_equal(labels, labels_before):
                 break
             labels_before = labels
-            # Written as a classifier's labels and read back as the same face: a sliding label's
-            # tangent (FACE_IMPULSE) lies at its limit only up to friction 1, and a point's own may be higher.
             answer = route_compiled(bodies, points, face_labels(labels), mu, world.physics, face["pressing"],
-                                    face["share"], REPAIR_FRICTION, face["rounds"], cut, prepared, face["relax"],
+                                    face["share"], LABELS_FRICTION, face["rounds"], cut, prepared, face["relax"],
                                     face["rho"], None, slide_in_bodies=face["slide_in_bodies"],
                                     restitution=restitution)
             expected = time.perf_counter() - t0

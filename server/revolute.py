@@ -12,12 +12,15 @@ request's joint_revolute, their limits and motors in joint_limits), the server h
   whole step: its answer at the contact points and the joints' impulses, each active angle limit
   (and a weld's angle) held there as a point on a lever from the anchor (lever_points; a motor's
   torque and a prismatic joint are not in that solve);
-- prices five starts on its copy of the step with the joints in it, as Box2D's joints sweep
-  them (b2RevoluteJoint with its angle limit and motor, b2WeldJoint, b2PrismaticJoint) before
-  the contacts in each sweep (deepcontact.faces.sweeps_to_stop with RevoluteRows),
-  each to the client's stopping rule: Box2D's start, the served answer and the route's answer,
-  each with the joints' own last impulses, and the served and the route's answers with the
-  route's impulses at the revolute joints (the client sets no other kind's);
+- with the card's repairs, repairs that answer up to so many times (the contacts' labels read
+  off its motion, deepcontact.faces.repair_face, the joints' points and levers held as they were)
+  and solves the step again on each, each repair another start with its joints' start;
+- prices five starts and the repairs on its copy of the step with the joints in it, as Box2D's
+  joints sweep them (b2RevoluteJoint with its angle limit and motor, b2WeldJoint,
+  b2PrismaticJoint) before the contacts in each sweep (deepcontact.faces.sweeps_to_stop with
+  RevoluteRows), each to the client's stopping rule: Box2D's start, the served answer and the
+  route's answer, each with the joints' own last impulses, and the served and the route's answers
+  with the route's impulses at the revolute joints (the client sets no other kind's);
 - serves the one that stops soonest, with its joints' start on the reply (Impulses.joint_impulses)
   where it is the route's.
 
@@ -37,7 +40,8 @@ import time
 
 import numpy as np
 
-from deepcontact.faces import RevoluteRows, island_sweeps_to_stop, route_compiled, sweeps_to_stop
+from deepcontact.faces import (LABELS_FRICTION, RevoluteRows, face_labels, island_sweeps_to_stop, repair_face,
+                               route_compiled, sweeps_to_stop)
 from server.predictors import Prediction
 
 #: A joint's two points' keys: far above any contact's (the engine's are 32-bit feature keys).
@@ -214,6 +218,26 @@ class PricingTime:
         self.seconds = seconds if self.seconds == 0.0 else self.seconds + self.weight * (seconds - self.seconds)
 
 
+def _joints_start(answer: np.ndarray, n_points: int, levers: np.ndarray, owner: np.ndarray, revolute: np.ndarray,
+                  own: np.ndarray) -> np.ndarray:
+    """The joints' start from the route's answer with the joints in it: `own` (the joints' own
+    last impulses, as rows(...) gives them) with each revolute joint's replaced by the route's
+    push on its body B (the client sets no other kind's). answer: (P + 2 J' + L, 2) N s, the
+    contact points', the jointed points' and the levers' (lever_points, `owner` their joints)."""
+    theirs = own.copy()
+    # Each joint's push on B: its two points' and its levers' (a lever's push, which the
+    # joint's point rows carry in Box2D, as the limit's impulse is a pure torque there).
+    push = np.zeros((len(revolute), 2))
+    with_points = pointed(revolute)
+    push[with_points] = joints_on_b(answer[n_points:len(answer) - len(levers)])
+    lever = answer[len(answer) - len(levers):]
+    n = np.asarray(levers["normal"], np.float64)
+    np.add.at(push, owner, lever[:, :1] * n + lever[:, 1:] * np.stack([n[:, 1], -n[:, 0]], 1))
+    on_b = push[with_points]
+    theirs[revolute[:, 0] == REVOLUTE] = on_b[revolute[pointed(revolute), 0] == REVOLUTE]
+    return theirs
+
+
 def joint_labels(route, bodies: np.ndarray, points: np.ndarray, joints: np.ndarray, revolute: np.ndarray, world,
                  step: int, previous, friction: np.ndarray) -> tuple[np.ndarray, np.ndarray, Prediction, float]:
     """(both, mu, labels, seconds): the step's points and the joints' (joint_points), the friction
@@ -261,40 +285,57 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
     if not s["restitution"]:
         restitution = None
     bounce = None if restitution is None else np.concatenate([restitution, np.zeros(len(both) - P)])
+    t_solve = time.perf_counter()
     solved = route_compiled(bodies, both, face, np.asarray(mu, np.float64), world.physics, s["pressing"], s["share"],
                             s["label_friction"], min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None,
                             restitution=bounce)
+    solve_seconds, repairs_seconds = time.perf_counter() - t_solve, 0.0
     ab, arms, own = rows(bodies, joints, revolute)
     held = limits(bodies, joints, revolute, world.physics.dt)
     starts = [np.asarray(points["builtin"], np.float64), np.asarray(served.impulses, np.float64)]
     joint_starts = [own, own]
     if solved is not None:
         answer = np.asarray(solved.impulses, np.float64)
-        # The route's impulses start the revolute joints (the client sets no other kind's).
-        theirs = own.copy()
-        # Each joint's push on B: its two points' and its levers' (a lever's push, which the
-        # joint's point rows carry in Box2D, as the limit's impulse is a pure torque there).
-        push = np.zeros((len(revolute), 2))
-        with_points = pointed(revolute)
-        push[with_points] = joints_on_b(answer[P:len(answer) - len(levers)])
-        lever = answer[len(answer) - len(levers):]
-        n = np.asarray(levers["normal"], np.float64)
-        np.add.at(push, owner, lever[:, :1] * n + lever[:, 1:] * np.stack([n[:, 1], -n[:, 0]], 1))
-        on_b = push[with_points]
-        theirs[revolute[:, 0] == REVOLUTE] = on_b[revolute[pointed(revolute), 0] == REVOLUTE]
+        theirs = _joints_start(answer, P, levers, owner, revolute, own)
         starts += [answer[:P], starts[1], answer[:P]]
         joint_starts += [own, theirs, theirs]
+        # The route's answer repaired (the card's repairs), each with its joints' start: the
+        # contacts' labels read off its motion, the joints' points and levers held as they were.
+        cone = np.asarray(mu, np.float64)
+        for k in range(1, s["repairs"] + 1):
+            # Begun only where it, and the pricing with k more starts (at most twice the pricing
+            # as it has taken without repairs), would still end by the deadline.
+            r0 = time.perf_counter()
+            if deadline is not None and r0 + solve_seconds + 2 * (timing.seconds if timing is not None else 0.0) \
+                    >= deadline:
+                break
+            relabelled = face_labels(repair_face(bodies, both, answer, cone, world.physics, restitution=bounce))
+            relabelled[P:] = face[P:]
+            again = route_compiled(bodies, both, relabelled, cone, world.physics, s["pressing"], s["share"],
+                                   LABELS_FRICTION, min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None,
+                                   restitution=bounce)
+            if again is None:
+                break
+            answer = np.asarray(again.impulses, np.float64)
+            starts.append(answer[:P])
+            joint_starts.append(_joints_start(answer, P, levers, owner, revolute, own))
+            repairs_seconds += time.perf_counter() - r0
     mu, most = np.asarray(friction, np.float64), route.settings["check_sweeps"] or 200
     # Box2D's start first: a start that has not stopped by the sweep where it stopped has lost,
     # so none is played further (on a step where the others lose that spares most of the sweeps).
     price = island_sweeps_to_stop if route.settings["by_island"] else sweeps_to_stop
     first = price(bodies, points, np.stack(starts[:1]), mu, world.physics, world.tolerance, most,
                   None, RevoluteRows(ab, arms, np.stack(joint_starts[:1]), held), restitution=restitution)
+    t_rest = time.perf_counter()
     rest = price(bodies, points, np.stack(starts[1:]), mu, world.physics, world.tolerance,
                  max(1, min(most, int(first[0][0]))), None, RevoluteRows(ab, arms, np.stack(joint_starts[1:]), held),
                  restitution=restitution)
     if timing is not None:
-        timing.observe(time.perf_counter() - t0)
+        # The pricing as it would take without the repairs and their starts' share of the sweeps:
+        # they are begun only where they fit, so they do not turn a step's pricing away.
+        repaired = len(starts) - 5 if solved is not None else 0
+        rest_seconds = time.perf_counter() - t_rest
+        timing.observe(time.perf_counter() - t0 - repairs_seconds - rest_seconds * repaired / (len(starts) - 1))
     stages = dict(served.stages)
     stages["inference"] = stages.get("inference", 0.0) + asked
     stages["admit"] = stages.get("admit", 0.0) + (time.perf_counter() - t1)

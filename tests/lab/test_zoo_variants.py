@@ -72,3 +72,7 @@ def test_the_zoo_route_with_each_number_of_repairs_is_served_behind_the_default(
     for k in (0, 1, 2, 3, 5, 8):
         assert served[f"zoo-repair{k}"].settings == {**zoo, "repairs": k}
         assert served[f"default-repair{k}"].settings == {**served["default"].settings, "fallback": f"zoo-repair{k}"}
+    # The default's own route checked island by island, without and with repairs.
+    own = {**served["default"].settings, "check_stop": True, "check_sweeps": 200, "by_island": True}
+    assert served["default-own-repair0"].settings == {**own, "repairs": 0}
+    assert served["default-own-repair3"].settings == {**own, "repairs": 3}

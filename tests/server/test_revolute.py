@@ -313,3 +313,39 @@ def test_an_active_angle_limit_is_held_on_a_lever_whose_normal_turns_the_way_the
                                atol=1e-7)
     assert len(np.unique(levers["key"])) == len(levers)
     assert len(lever_points(points, bodies, joints, revolute[:, :7])[0]) == 0  # no limits sent: none held
+
+
+def test_the_joints_route_repairs_its_answer_and_a_chains_steps_then_stop_sooner():
+    """With the card's repairs, the route with the joints in it also prices its answer repaired
+    (the contacts' labels read off the answer's motion, the joints' points held as they were), each
+    with its joints' start: on the chain settling over its heap, Box2D's own sweeps from what it
+    serves add up to fewer than from the same route without repairs."""
+    import copy
+
+    from bench.inprocess import declared_world
+    from server.predictors import Prediction, load_model
+    from server.revolute import joint_route, start_with_joints
+
+    spec, engine = chain_engine(settled=60)
+    repaired = joint_route(load_model(Path(__file__).resolve().parents[2] / "models" / "default.json"))
+    assert repaired.settings["repairs"] == 3
+    plain = copy.copy(repaired)
+    plain.settings = {**repaired.settings, "repairs": 0}
+    world = declared_world(spec, engine)
+    sweeps = {"repaired": 0, "plain": 0}
+    for step in range(60, 90):
+        engine.collide()
+        bodies, points = engine.bodies(), engine.contacts()
+        served = Prediction(np.asarray(points["builtin"], np.float32))
+        for name, route in (("repaired", repaired), ("plain", plain)):
+            answer = start_with_joints(route, bodies, points, engine.joints(), engine.revolute(), world, step, None,
+                                       points["friction"], served)
+            before = engine.joint_state()
+            if answer.joint_impulses is not None:
+                engine.set_revolute_impulses(answer.joint_impulses)
+            x = np.asarray(answer.impulses)
+            sweeps[name] += engine.trial(np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(x[:, 1]))
+            engine.set_joint_state(before)
+        engine.set_warm_start(*engine.builtin_start())
+        engine.solve()
+    assert sweeps["repaired"] < 0.8 * sweeps["plain"], sweeps
