@@ -22,6 +22,10 @@ DEADLINE_MS = 100.0
 # A held step misses its deadline whatever the host's speed; the stream answers in order, so the
 # next step waits for it, and the 50 ms between the hold and the deadline leave that one in time.
 FAULT_DELAY_MS, FAULT_EVERY = 150, 3
+# The restart test asserts which steps fell back, not how fast a step is: a deadline far past a
+# tiny model's round trip keeps a busy host's hiccup from reading as a crash's fallback. A dead
+# server fails a step at once (UNAVAILABLE, BACKING_OFF), so the long wait costs the test nothing.
+RESTART_DEADLINE_MS = 1000.0
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +68,7 @@ def test_a_restarted_server_gets_its_learned_warm_starts_back(model_dir):
     try:
         with WarmStartClient(bind, backoff_s=(0.02, 0.2)) as client:
             result = run_simulation(spec, 903, make_provider("server:tiny"), client=client,
-                                    deadline_ms=DEADLINE_MS, progress=progress)
+                                    deadline_ms=RESTART_DEADLINE_MS, progress=progress)
         restarter.join(60)
     finally:
         for srv in servers:
@@ -72,16 +76,17 @@ def test_a_restarted_server_gets_its_learned_warm_starts_back(model_dir):
     per_step, summary = result["per_step"], result["summary"]
     fallback = np.array(per_step["fallback"])
     contacts = np.array(per_step["contact_points"]) > 0
-    assert contacts[kill_at + 1] and not fallback[:kill_at + 1].any()
+    reasons = {k: per_step["fallback_reason"][k] for k in np.flatnonzero(fallback)}
+    assert contacts[kill_at + 1] and not fallback[:kill_at + 1].any(), reasons
     assert fallback[kill_at + 1:].any()  # the crash cost fallbacks ...
-    assert not fallback[-150:].any() and contacts[-150:].all()  # ... and the learned warm start came back
+    assert not fallback[-150:].any() and contacts[-150:].all(), reasons  # ... and the learned warm start came back
     assert summary["reconnects"] >= 1 and summary["reconnects"] == sum(per_step["reconnect"])
     assert sum(summary["fallbacks_by_reason"].values()) == summary["fallback_steps"] == fallback.sum()
     assert set(summary["fallbacks_by_reason"]) <= {"UNAVAILABLE", "BACKING_OFF", "DEADLINE_EXCEEDED",
                                                    "STREAM_ENDED", "CANCELLED"}
     # Backing off, reconnecting or not, no step waited much past its deadline.
     latency = np.array([x for x in per_step["latency_ms"] if x is not None])
-    assert latency.max() < DEADLINE_MS + 100
+    assert latency.max() < RESTART_DEADLINE_MS + 100
 
 
 def test_steps_past_the_deadline_fall_back_and_are_counted(slow_server):
