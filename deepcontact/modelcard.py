@@ -137,7 +137,10 @@ whole number 1 to 8, with by_island: the route's answer is repaired up to that m
 turn, each repair one step of an active-set method read off the answer before it
 (deepcontact.faces.repair_face, each point's bounce held) and the step solved and admitted again
 on the repaired labels, none begun after the deadline, and the check serves each island the
-start that stops it soonest among Box2D's, the route's answer and its repairs).
+start that stops it soonest among Box2D's, the route's answer and its repairs), repair_rounds
+(default null: each repair admitted in the card's `rounds`; a whole number 1 to `rounds`, with
+repairs: each repair's admission ends after that many, a repair's labels being close to the
+answer's it mends).
 
 `ModelCard.load` resolves it to the card it names (beside it), renamed; an
 alias of an alias is refused, so the chain is one step and cannot loop.
@@ -198,7 +201,7 @@ FACE_DEFAULTS = {"pressing": 0.5, "share": 1.0, "rounds": 1000, "label_friction"
                  "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
                  "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False,
                  "restitution": True, "held_labels": False, "check_work": None,
-                 "held_from_builtin": False, "repairs": 0}
+                 "held_from_builtin": False, "repairs": 0, "repair_rounds": None}
 
 
 class ModelCardError(ValueError):
@@ -371,12 +374,14 @@ def _face_settings(face: Any, kind: str) -> dict:
     out = {**FACE_DEFAULTS, **face}
     optional = ("label_friction", "max_residual", "close")
     sweeps, fewest, work = out["check_sweeps"], out["min_rounds"], out["check_work"]
+    mending = out["repair_rounds"]
     numbers = all(isinstance(out[k], (int, float)) and not isinstance(out[k], bool)
                   for k in out if k not in ("fallback", "solver", "retry_pressing", "against_builtin", "rescale", "carry",
                                            "extrapolate_jointed", "check_stop", "slide_in_bodies", "revolute_joints",
                                            "by_island", "restitution", "held_labels", "held_from_builtin",
                                            "repairs")
-                  and not (k in optional + ("max_points", "check_sweeps", "min_rounds", "check_work") and out[k] is None))
+                  and not (k in optional + ("max_points", "check_sweeps", "min_rounds", "check_work", "repair_rounds")
+                           and out[k] is None))
     retries = out["retry_pressing"]
     retries_ok = isinstance(retries, list) and all(isinstance(r, (int, float)) and not isinstance(r, bool) and r >= 0
                                                    for r in retries) and (not retries or out["max_residual"] is not None)
@@ -398,7 +403,8 @@ def _face_settings(face: Any, kind: str) -> dict:
             or not (sweeps is None or isinstance(sweeps, int) and 1 <= sweeps <= 1000) \
             or (out["check_stop"] and sweeps is None) \
             or not (work is None or isinstance(work, int) and work >= 1 and sweeps is not None) \
-            or not (fewest is None or isinstance(fewest, int) and 1 <= fewest <= out["rounds"]):
+            or not (fewest is None or isinstance(fewest, int) and 1 <= fewest <= out["rounds"]) \
+            or not (mending is None or isinstance(mending, int) and 1 <= mending <= out["rounds"] and out["repairs"]):
         raise ModelCardError(f"model card face: pressing >= 0 (N s), share > 0, rounds a whole number >= 1, relax "
                              f"between 0 and 2, rho > 0, "
                              f"label_friction, max_residual and close null or > 0, damping >= 0, max_points null or a "
@@ -411,7 +417,8 @@ def _face_settings(face: Any, kind: str) -> dict:
                              f"number >= 1 and only with check_sweeps, by_island true or false and only "
                              f"with check_stop, min_rounds null or a whole "
                              f"number 1 to rounds, held_from_builtin true or false and only with held_labels, "
-                             f"repairs a whole number 0-8 and above 0 only with by_island, "
+                             f"repairs a whole number 0-8 and above 0 only with by_island, repair_rounds null or a "
+                             f"whole number 1 to rounds and only with repairs, "
                              f"got {face!r}")
     return {"pressing": float(out["pressing"]), "share": float(out["share"]), "rounds": out["rounds"],
             **{k: None if out[k] is None else float(out[k]) for k in optional},
@@ -421,7 +428,8 @@ def _face_settings(face: Any, kind: str) -> dict:
             "check_sweeps": sweeps, "extrapolate_jointed": out["extrapolate_jointed"], "check_stop": out["check_stop"],
             "slide_in_bodies": out["slide_in_bodies"], "min_rounds": fewest, "revolute_joints": out["revolute_joints"],
             "by_island": out["by_island"], "restitution": out["restitution"], "held_labels": out["held_labels"],
-            "check_work": work, "held_from_builtin": out["held_from_builtin"], "repairs": out["repairs"]}
+            "check_work": work, "held_from_builtin": out["held_from_builtin"], "repairs": out["repairs"],
+            "repair_rounds": mending}
 
 
 def _measured(m: Any) -> dict:

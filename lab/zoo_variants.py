@@ -88,6 +88,10 @@ name another:
                     the route before), each island served whichever of Box2D's start, the answer and
                     its repairs stops it soonest; default-repairK the shipped default falling back
                     to it (docs/research/2026-12-08-repaired-labels.md)
+    zoo-repair3-roundsR  the zoo route with three repairs, each admitted in R rounds (face
+                    repair_rounds, for R in REPAIR_ROUNDS) where the route's answer has its 100;
+                    default-repair3-roundsR the shipped default falling back to it
+                    (docs/research/2026-12-08-cheaper-repairs.md)
     zoo-mirror      the zoo route as shipped on its classifier served with its mirror image (card
                     mirror: the mean of its answer and the reflected step's, reflected back);
                     default-zoo-mirror the shipped default falling back to it
@@ -135,6 +139,8 @@ LARGE_BEFORE = {"pressing": 0.75, "rounds": 100, "rho": 1000, "max_residual": No
 FLAT_SWEEPS = (50, 100)
 #: Repairs of the zoo route's answer in zoo-repairK (face repairs).
 REPAIRS = (0, 1, 2, 3, 5, 8)
+#: Admission rounds of each of three repairs in zoo-repair3-roundsR (face repair_rounds).
+REPAIR_ROUNDS = (10, 30, 100)
 #: Repairs of the default's own route's answer in default-own-repairK (checked island by island).
 OWN_REPAIRS = (0, 3)
 #: Sweeps to the stopping rule of the default's own route's check in default-own-stopK.
@@ -201,9 +207,19 @@ def _fill(tmp: Path) -> None:
          face={**shipped_default["face"], "fallback": "zoo-mirror"}, measured=shipped_default.get("measured"))
     # The shipped zoo route with its answer repaired up to K times, each island served the soonest.
     for k in REPAIRS:
-        card(tmp, f"zoo-repair{k}", alias_of=shipped_zoo["alias_of"], face={**shipped_zoo["face"], "repairs": k})
+        repaired = {**shipped_zoo["face"], "repairs": k}
+        if not k:
+            repaired.pop("repair_rounds", None)  # only with repairs
+        card(tmp, f"zoo-repair{k}", alias_of=shipped_zoo["alias_of"], face=repaired)
         card(tmp, f"default-repair{k}", alias_of=shipped_default["alias_of"],
              face={**shipped_default["face"], "fallback": f"zoo-repair{k}"}, measured=shipped_default.get("measured"))
+    # Three repairs, each admitted in R rounds rather than the route's.
+    for r in REPAIR_ROUNDS:
+        card(tmp, f"zoo-repair3-rounds{r}", alias_of=shipped_zoo["alias_of"],
+             face={**shipped_zoo["face"], "repairs": 3, "repair_rounds": r})
+        card(tmp, f"default-repair3-rounds{r}", alias_of=shipped_default["alias_of"],
+             face={**shipped_default["face"], "fallback": f"zoo-repair3-rounds{r}"},
+             measured=shipped_default.get("measured"))
     # The default's own route checked island by island to the stopping rule, up to 200 sweeps, and
     # its answer repaired up to K times (repairs need the check by islands).
     for k in OWN_REPAIRS:

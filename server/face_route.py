@@ -362,7 +362,8 @@ class FaceRoutePredictor(Predictor):
         """The route's answer repaired in turn, up to the card's `repairs` times: [(P, 2) N s], each
         the step solved and admitted on the labels one step of an active-set method reads off the
         answer before it (deepcontact.faces.repair_face, each point's bounce held), where those
-        labels differ from the ones before. By `until` (perf_counter() s, or None) the k-th repair
+        labels differ from the ones before, each admitted in the card's repair_rounds (its rounds
+        where null). By `until` (perf_counter() s, or None) the k-th repair
         leaves time for the check's sweeps from k more starts (check_seconds each): none is begun
         that would not end by then, taking as long as the solve before it (route_seconds, the
         route's own, for the first), and its admission rounds end there. Their seconds go to
@@ -385,7 +386,8 @@ class FaceRoutePredictor(Predictor):
                 break
             labels_before = labels
             answer = route_compiled(bodies, points, face_labels(labels), mu, world.physics, face["pressing"],
-                                    face["share"], LABELS_FRICTION, face["rounds"], cut, prepared, face["relax"],
+                                    face["share"], LABELS_FRICTION, face["repair_rounds"] or face["rounds"], cut,
+                                    prepared, face["relax"],
                                     face["rho"], None, slide_in_bodies=face["slide_in_bodies"],
                                     restitution=restitution)
             expected = time.perf_counter() - t0

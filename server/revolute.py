@@ -312,7 +312,8 @@ def start_with_joints(route, bodies: np.ndarray, points: np.ndarray, joints: np.
             relabelled = face_labels(repair_face(bodies, both, answer, cone, world.physics, restitution=bounce))
             relabelled[P:] = face[P:]
             again = route_compiled(bodies, both, relabelled, cone, world.physics, s["pressing"], s["share"],
-                                   LABELS_FRICTION, min(ROUNDS, s["rounds"]), None, None, s["relax"], s["rho"], None,
+                                   LABELS_FRICTION, min(ROUNDS, s["repair_rounds"] or s["rounds"]), None, None,
+                                   s["relax"], s["rho"], None,
                                    restitution=bounce)
             if again is None:
                 break

@@ -86,7 +86,7 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                          "carry": False, "check_sweeps": None, "extrapolate_jointed": False, "check_stop": False,
                          "slide_in_bodies": True, "min_rounds": None, "revolute_joints": False, "by_island": False,
                          "restitution": True, "held_labels": False, "check_work": None, "held_from_builtin": False,
-                         "repairs": 0}
+                         "repairs": 0, "repair_rounds": None}
     assert ModelCard.load(tmp_path / "classifier.json").face is None  # the classifier itself is served plain
     for bad, match in (({"pressing": -1}, "pressing >= 0"), ({"rounds": 0}, "rounds a whole number"),
                        ({"rounds": 2.5}, "rounds a whole number"), ({"labels": 1}, "keys among"),
@@ -111,6 +111,11 @@ def test_an_alias_may_serve_a_graph_classifier_solved_on_its_labels_with_default
                         "repairs a whole number 0-8"),
                        ({"repairs": True, "by_island": True, "check_stop": True, "check_sweeps": 200},
                         "repairs a whole number 0-8"),
+                       ({"repair_rounds": 10}, "repair_rounds null or a whole number 1 to rounds and only with repairs"),
+                       ({"repair_rounds": 60, "rounds": 50, "repairs": 3, "by_island": True, "check_stop": True,
+                         "check_sweeps": 200}, "repair_rounds null or a whole number 1 to rounds"),
+                       ({"repair_rounds": 0, "repairs": 3, "by_island": True, "check_stop": True,
+                         "check_sweeps": 200}, "repair_rounds null or a whole number 1 to rounds"),
                        ({"check_sweeps": 0}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_sweeps": 12.5}, "check_sweeps null or a whole number 1-1000"),
                        ({"check_stop": True}, "check_stop true or false and only with check_sweeps"),

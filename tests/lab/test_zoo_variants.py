@@ -70,8 +70,12 @@ def test_the_zoo_route_with_each_number_of_repairs_is_served_behind_the_default(
     zoo = served["zoo"].settings
     assert zoo["repairs"] == 3  # shipped
     for k in (0, 1, 2, 3, 5, 8):
-        assert served[f"zoo-repair{k}"].settings == {**zoo, "repairs": k}
+        assert served[f"zoo-repair{k}"].settings == {**zoo, "repairs": k, **({} if k else {"repair_rounds": None})}
         assert served[f"default-repair{k}"].settings == {**served["default"].settings, "fallback": f"zoo-repair{k}"}
+    # Three repairs, each admitted in fewer rounds than the route's answer.
+    for r in (10, 30, 100):
+        assert served[f"zoo-repair3-rounds{r}"].settings == {**zoo, "repairs": 3, "repair_rounds": r}
+        assert served[f"default-repair3-rounds{r}"].settings["fallback"] == f"zoo-repair3-rounds{r}"
     # The default's own route checked island by island, without and with repairs.
     own = {**served["default"].settings, "check_stop": True, "check_sweeps": 200, "by_island": True}
     assert served["default-own-repair0"].settings == {**own, "repairs": 0}
