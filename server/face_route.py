@@ -387,8 +387,9 @@ class FaceRoutePredictor(Predictor):
             labels_before = labels
             answer = route_compiled(bodies, points, face_labels(labels), mu, world.physics, face["pressing"],
                                     face["share"], LABELS_FRICTION, face["repair_rounds"] or face["rounds"], cut,
-                                    prepared, face["relax"], face["rho"], _mending(points, impulses),
-                                    slide_in_bodies=face["slide_in_bodies"], restitution=restitution)
+                                    prepared, face["relax"],
+                                    face["rho"], None, slide_in_bodies=face["slide_in_bodies"],
+                                    restitution=restitution)
             expected = time.perf_counter() - t0
             if answer is None:
                 break
@@ -668,12 +669,3 @@ class _Later:
 
     def __call__(self) -> None:
         self.value = self.fn(*self.args)
-
-
-def _mending(points: np.ndarray, impulses: np.ndarray) -> tuple:
-    """route_compiled's carry for a repair of `impulses` (P, 2) N s on the same points (P,)
-    CONTACT_DTYPE: its admission's rounds begin at the answer it mends (their scaled dual at 0),
-    where the repaired labels leave most points' problems as they were."""
-    state = np.zeros((len(points), 4))
-    state[:, :2] = impulses
-    return np.ascontiguousarray(points["key"]), state, np.empty((len(points), 4)), False
