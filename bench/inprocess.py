@@ -26,6 +26,7 @@ the simulation client itself never imports the server.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +45,11 @@ from simclient.scene import SceneSpec
 class InProcess(Provider):
     """The predictor of one model card, asked in process at every step with points."""
 
-    def __init__(self, predictor: Predictor, spec, revolute_joints: bool = True):
+    def __init__(self, predictor: Predictor, spec, revolute_joints: bool = True, budget_ms: float | None = None):
         self.predictor, self.spec = predictor, spec
+        # Each step's answer due budget_ms after the call, as a server gives the route a request's
+        # budget (less its margin); None: none, every step answered in full.
+        self.budget_ms = budget_ms
         # As the server answers a world of revolute joints (server.revolute): the joints'
         # start too, set on the engine as the client sets a reply's. False: the contact points alone.
         self.revolute_joints = revolute_joints
@@ -59,6 +63,9 @@ class InProcess(Provider):
         #: per step with points, the predictor's stage times (s), named as in the server's
         #: timings (server.predictors.STAGES)
         self.stages: list[dict[str, float]] = []
+        #: per step with points, what answered in the predictor's place (Prediction.served_by;
+        #: None: the predictor's own answer)
+        self.served_by: list[str | None] = []
 
     @classmethod
     def load(cls, models: Path, model: str, spec, revolute_joints: bool = True) -> "InProcess":
@@ -73,7 +80,7 @@ class InProcess(Provider):
 
     def prepare(self, engine) -> None:
         super().prepare(engine)
-        self._points, self.stages, self._memory = None, [], {}
+        self._points, self.stages, self.served_by, self._memory = None, [], [], {}
         self._history = ImpulseHistory() if self.predictor.extrapolates_jointed else None
         self.world = declared_world(self.spec, engine)
         self.predictor.warm_up(self.world.domain)  # as the server does when a stream declares its world
@@ -87,6 +94,8 @@ class InProcess(Provider):
             if "point_friction" in self.predictor.requires else {}
         if self.predictor.takes_memory:
             extra["memory"] = self._memory
+        if self.budget_ms is not None and self.predictor.takes_deadline:
+            extra["deadline"] = time.perf_counter() + self.budget_ms / 1e3
         # Each point's restitution as the wire carries it (float32; none where no point has any).
         restitution = engine.point_restitution(points)
         restitution = restitution if restitution.any() else None
@@ -107,6 +116,7 @@ class InProcess(Provider):
             answer = self.predictor.predict(bodies, points, self.world, step, self._points, **extra)
         self._points = points
         self.stages.append(answer.stages)
+        self.served_by.append(answer.served_by)
         return as_warm_start(answer.impulses)
 
 

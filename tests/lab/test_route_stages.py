@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from commands import main
-from lab.route_stages import solve_ways, stage_medians
+from lab.route_stages import answered_by, solve_ways, stage_medians
 
 
 def test_route_stages_prints_each_stage_of_the_default_on_a_users_world(capsys):
@@ -21,6 +21,24 @@ def test_route_stages_prints_each_stage_of_the_default_on_a_users_world(capsys):
 def test_route_stages_refuses_a_world_it_cannot_load_in_one_line(capsys):
     assert main(["lab", "route-stages", "--world", "no_such_file.py:build"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+    # A deadline inside the server's own margin leaves the route nothing: refused the same way.
+    assert main(["lab", "route-stages", "--world", "examples/stack.py:build", "--deadline-ms", "2"]) == 2
+    assert "--deadline-ms must exceed" in capsys.readouterr().err
+
+
+def test_under_a_deadline_route_stages_counts_what_answered_each_step(capsys):
+    assert main(["lab", "route-stages", "--world", "examples/stack.py:build", "--steps", "12", "--large", "10",
+                 "--deadline-ms", "1000"]) == 0
+    out = capsys.readouterr().out
+    assert "each step due 997 ms after its call (a 1000 ms request's)" in out
+    assert "| answered by | steps | of at least 10 points |" in out
+
+
+def test_what_answered_is_counted_over_every_step_and_the_large_ones():
+    sizes = np.array([100, 600, 700, 800])
+    counted = answered_by(sizes, [None, "builtin", "zoo", "builtin"], large=500)
+    assert counted == {"builtin": (2, 2), "the model": (1, 0), "zoo": (1, 1)}
+    assert list(counted)[0] == "builtin"  # the most steps first
 
 
 def test_the_large_steps_are_summarized_apart_and_total_is_the_stages_sum():
