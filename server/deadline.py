@@ -55,8 +55,8 @@ OFFSET = 50
 #: buckets where they lie at least SPREAD apart in (size + OFFSET); DEFAULT_POWER until then.
 MIN_POWER, DEFAULT_POWER, MAX_POWER = 1.0, 1.5, 2.0
 SPREAD = 1.5
-#: The share of a step's size within which steps of other sizes speak for it while its own
-#: bucket is not known; and the width of the bands of sizes over which declines are counted.
+#: The share of a step's size within which steps of other sizes speak for it while no bucket at
+#: or below it is known.
 NEAR = 0.2
 #: A slowdown at which the server counts as busy: another step at least shares each core.
 BUSY = 2.0
@@ -74,12 +74,6 @@ def _grow(seen: int, asked: int, power: float = DEFAULT_POWER) -> float:
     """The factor from a step's cost in bucket `seen` to one in bucket `asked`: (size + OFFSET)
     to the `power`."""
     return 1.0 if seen == asked else ((asked * BUCKET_POINTS + OFFSET) / (seen * BUCKET_POINTS + OFFSET)) ** power
-
-
-def _band(points: int) -> int:
-    """The band of sizes a step of `points` points lies in: bands NEAR wide in (size + OFFSET),
-    so that a world whose steps spread over dozens of buckets declines in a few bands."""
-    return int(math.log((points + OFFSET) / OFFSET) / math.log(1.0 + NEAR))
 
 
 def _power(known: dict[int, float]) -> float:
@@ -120,26 +114,23 @@ class CostBySize:
         at this size or below, and fewer than TRIALS steps seen at any size)."""
         return self._estimate(points)[0]
 
-    def _estimate(self, points: int) -> tuple[float, float, bool]:
-        """(the estimate, the fastest recent step's seconds, whether it is only grown from far
-        smaller sizes: fewer than TRIALS steps seen near this one) at this size, as the module
-        says."""
+    def _estimate(self, points: int) -> tuple[float, float]:
+        """(the estimate, the fastest recent step's seconds) at this size, as the module says."""
         k = points // BUCKET_POINTS
         with self._lock:
             power = self._power
-            if k not in self._medians:
+            known = [b for b in self._medians if b <= k]
+            if not known:
                 near = max(1.0, NEAR * points / BUCKET_POINTS)  # in buckets; the next ones always
                 pooled = sorted(seconds * _grow(b, k, power) for b, recent in self._seen.items()
                                 if abs(b - k) <= near for seconds in recent)
-                if len(pooled) >= TRIALS:
-                    return _quantile(pooled, 0.5), pooled[0], False
-            known = [b for b in self._medians if b <= k]
-            if not known:
-                return 0.0, 0.0, False
+                if len(pooled) < TRIALS:
+                    return 0.0, 0.0
+                return _quantile(pooled, 0.5), pooled[0]
             b = max(known)
             values = sorted(self._seen[b])
         grow = _grow(b, k, power)
-        return grow * _quantile(values, QUANTILE), grow * values[0], b != k
+        return grow * _quantile(values, QUANTILE), grow * values[0]
 
     def fits(self, points: int, now: float, deadline: float | None, slowdown: float = 1.0) -> bool:
         """Whether a step of `points` points started along the route at `now` should take it
@@ -148,7 +139,7 @@ class CostBySize:
         requests the server is answering at once over its cores: they share them)."""
         if deadline is None:
             return True
-        expected, fastest, grown = self._estimate(points)
+        expected, fastest = self._estimate(points)
         if expected == 0.0 and slowdown >= BUSY:
             # Nothing known at this size on a server answering several steps at once: a guess
             # that ran late would make every step sharing the cores late too. Probed below.
@@ -156,12 +147,8 @@ class CostBySize:
         expected, fastest = expected * slowdown, fastest * slowdown
         if now + expected <= deadline:
             return True
-        band = _band(points)
+        k = points // BUCKET_POINTS
         with self._lock:
-            self._declined[band] += 1
-            probe = self._declined[band] % PROBE_EVERY == 0
-        # A size nothing near has been seen at is tried blind now and then on a server that is not
-        # busy: grown from far smaller sizes its estimate may be several times its cost (a
-        # pyramid's first steps are small, then they jump past 500 points), and untried it
-        # would never be known.
-        return probe and (now + fastest <= deadline or (grown and slowdown < BUSY))
+            self._declined[k] += 1
+            probe = self._declined[k] % PROBE_EVERY == 0
+        return probe and now + fastest <= deadline

@@ -93,29 +93,3 @@ def test_a_size_not_seen_yet_is_grown_by_the_power_the_known_sizes_show():
             steep.observe(points, 0.0005 * ((points + OFFSET) / 80) ** 3)
     assert steep._power == MAX_POWER
     assert not steep.fits(400, now=0.0, deadline=0.008)
-
-
-def test_a_size_far_past_the_known_ones_is_tried_now_and_then_and_is_then_known_by_its_own_steps():
-    # A pyramid's first steps are small, its route about linear in them (1 ms at 30 points, 3.1 ms
-    # at 200); then its steps jump past 650 points, where grown so the route would take 9 ms.
-    def pyramid_start() -> CostBySize:
-        cost = CostBySize()
-        for points in (30, 200):
-            for _ in range(TRIALS):
-                cost.observe(points, 0.001 * (points + OFFSET) / 80)
-        return cost
-
-    cost = pyramid_start()
-    assert not cost.fits(680, now=0.0, deadline=0.007)
-    # Its steps spread over five buckets of one band: every PROBE_EVERY-th declined in the band is
-    # tried, though even the fastest step grown so would miss.
-    tries = [cost.fits(660 + 10 * (k % 5), now=0.0, deadline=0.007) for k in range(2 * PROBE_EVERY)]
-    assert tries.count(True) == 2
-    for _ in range(TRIALS):
-        cost.observe(690, 0.004)  # what the tries took
-    assert cost.fits(700, now=0.0, deadline=0.007)  # judged by the steps near it, not grown
-    assert abs(cost.estimate(700) - 0.004 * (700 + OFFSET) / (690 + OFFSET)) < 1e-12
-    # A busy server tries nothing blind: a try that ran late would make the steps beside it late.
-    busy = pyramid_start()
-    assert not any(busy.fits(660 + 10 * (k % 5), now=0.0, deadline=0.007, slowdown=2.0)
-                   for k in range(2 * PROBE_EVERY))
